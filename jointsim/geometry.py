@@ -1,0 +1,121 @@
+"""Sensor geometry: the domed saline chamber's surface and the electrode layout on its base.
+
+The chamber is a flat circular base (z = 0, outward normal −z) closed by a dome. The dome is
+passed around as a :class:`DomeSurface` (a triangle mesh whose boundary is the rim circle), so
+the parametric spherical cap and a mechanically deformed membrane go through the same path:
+``chamber_surface(dome)`` welds any dome to the base and returns a watertight trimesh.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from .scene import Scene
+
+__all__ = ["DomeSurface", "ElectrodeLayout", "spherical_cap", "chamber_surface", "chamber_from_scene", "electrode_layout"]
+
+
+@dataclass(frozen=True)
+class DomeSurface:
+    """The dome's inner surface: ``vertices`` (n, 3) in m, ``faces`` (m, 3), ``rim`` (k,) the
+    indices of the boundary loop, which lies on the circle r = base_radius, z = 0, ordered
+    anticlockwise seen from +z."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    rim: np.ndarray
+
+
+@dataclass(frozen=True)
+class ElectrodeLayout:
+    """Disc electrodes on the base plane: ``centres`` (n_el, 3), ``radii`` (n_el,).
+
+    Ring electrodes come first (0 … count−1, anticlockwise from ``first_angle_deg``); the
+    central ground is the last one, index ``ground``."""
+
+    centres: np.ndarray
+    radii: np.ndarray
+    ground: int
+
+    @property
+    def n_electrodes(self) -> int:
+        return len(self.radii)
+
+
+def electrode_layout(scene: Scene) -> ElectrodeLayout:
+    e = scene.electrodes
+    ang = np.deg2rad(e.first_angle_deg) + 2 * np.pi * np.arange(e.count) / e.count
+    ring = np.column_stack([e.ring_radius * np.cos(ang), e.ring_radius * np.sin(ang), np.zeros(e.count)])
+    centres = np.vstack([ring, np.zeros((1, 3))])
+    radii = np.append(np.full(e.count, e.diameter / 2), e.ground_diameter / 2)
+    return ElectrodeLayout(centres, radii, ground=e.count)
+
+
+def spherical_cap(base_radius: float, height: float, n_rim: int = 192, n_rings: int | None = None) -> DomeSurface:
+    """Spherical cap of base radius ``base_radius`` and apex height ``height`` (m).
+
+    Structured in polar rings; the apex is a single vertex. Sphere radius R = (a² + h²)/(2h).
+    """
+    a, h = base_radius, height
+    R = (a * a + h * h) / (2 * h)
+    zc = h - R
+    theta_max = np.arcsin(a / R)  # polar angle of the rim seen from the sphere centre
+    if n_rings is None:
+        n_rings = max(4, int(np.ceil(R * theta_max / (2 * np.pi * a / n_rim))))
+    theta = theta_max * np.arange(n_rings, 0, -1) / n_rings  # rim first, apex excluded
+    phi = 2 * np.pi * np.arange(n_rim) / n_rim
+    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
+    x = R * st * np.cos(phi)
+    y = R * st * np.sin(phi)
+    z = zc + R * ct * np.ones_like(phi)
+    verts = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+    verts[:n_rim, 2] = 0.0  # the rim is exactly on the base plane
+    verts[:n_rim, :2] = a * np.column_stack([np.cos(phi), np.sin(phi)])
+    verts = np.vstack([verts, [0.0, 0.0, h]])
+    apex = len(verts) - 1
+
+    ring = np.arange(n_rings)[:, None] * n_rim
+    j = np.arange(n_rim)[None, :]
+    j1 = (j + 1) % n_rim
+    a0, a1 = ring[:-1] + j, ring[:-1] + j1
+    b0, b1 = ring[1:] + j, ring[1:] + j1
+    # outward (away from the chamber interior) normals point up/out
+    quads = np.concatenate(
+        [np.stack([a0, a1, b1], -1).reshape(-1, 3), np.stack([a0, b1, b0], -1).reshape(-1, 3)]
+    )
+    last = (n_rings - 1) * n_rim + np.arange(n_rim)
+    cap = np.column_stack([last, np.roll(last, -1), np.full(n_rim, apex)])
+    faces = np.vstack([quads, cap])
+    return DomeSurface(verts, faces.astype(np.int64), np.arange(n_rim))
+
+
+def chamber_surface(dome: DomeSurface) -> trimesh.Trimesh:
+    """Close ``dome`` with the flat base (a fan from the centre to the rim) into a watertight,
+    outward-oriented surface. Raises ValueError naming what is wrong if it is not closed."""
+    v = np.asarray(dome.vertices, float)
+    rim = np.asarray(dome.rim)
+    rim_xy = v[rim, :2]
+    rim_r = np.hypot(*rim_xy.T)
+    if len(rim) < 8 or np.ptp(rim_r) > 1e-6 * rim_r.max() or np.abs(v[rim, 2]).max() > 1e-9:
+        raise ValueError("dome.rim: must be a loop of >= 8 vertices on the circle r = base_radius, z = 0")
+    centre = len(v)
+    verts = np.vstack([v, [0.0, 0.0, 0.0]])
+    # base normal must point −z: the rim runs anticlockwise seen from +z, so reverse it
+    base = np.column_stack([np.full(len(rim), centre), np.roll(rim, -1), rim])
+    faces = np.vstack([dome.faces, base])
+    surf = trimesh.Trimesh(verts, faces, process=True, validate=False)
+    if not surf.is_watertight:
+        raise ValueError("chamber surface is not watertight: the dome's boundary must be exactly its rim loop")
+    if not surf.is_winding_consistent:
+        raise ValueError("chamber surface has inconsistent face winding")
+    if surf.volume <= 0:
+        surf.invert()
+    return surf
+
+
+def chamber_from_scene(scene: Scene, n_rim: int = 192) -> trimesh.Trimesh:
+    c = scene.chamber
+    return chamber_surface(spherical_cap(c.base_radius, c.dome_height, n_rim))

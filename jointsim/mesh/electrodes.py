@@ -1,0 +1,172 @@
+"""Electrodes as weighted sets of boundary triangles, with exact contact integrals.
+
+The complete electrode model needs, per electrode e, ∫_e φ_i dS and ∫_e φ_i φ_j dS for the P1
+basis. A boundary triangle that an electrode's outline cuts contributes only the part inside
+the outline. Tagging whole triangles by centroid misplaces the area by ~2h/r, and on a
+current-carrying electrode the contact term I·z/|e| dominates the voltage, so a mesh-dependent
+area is mesh noise. Here each base triangle is clipped against the electrode disc
+(a regular polygon with the disc's exact area, 256 sides, so the region is fixed in space and
+independent of the mesh) and the moments of the barycentric coordinates are integrated
+exactly over the clipped polygon.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .tetmesh import TetMesh
+
+__all__ = ["ElectrodePatch", "disc_patches", "plane_face_patch"]
+
+N_POLY = 256
+
+
+@dataclass(frozen=True)
+class ElectrodePatch:
+    """One electrode: ``faces`` (k, 3) node indices of the boundary triangles it touches and,
+    per face, ``area`` (k,) of the covered part, ``m1`` (k, 3) = ∫ λ_a dS and
+    ``m2`` (k, 3, 3) = ∫ λ_a λ_b dS over the covered part (λ: the face's barycentrics)."""
+
+    faces: np.ndarray
+    area: np.ndarray
+    m1: np.ndarray
+    m2: np.ndarray
+
+    @property
+    def total_area(self) -> float:
+        return float(self.area.sum())
+
+    @classmethod
+    def from_faces(cls, nodes: np.ndarray, faces: np.ndarray) -> "ElectrodePatch":
+        """Whole triangles (an electrode given as a boundary triangle set)."""
+        faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+        p = nodes[faces]
+        area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+        m1 = np.repeat(area[:, None] / 3, 3, axis=1)
+        m2 = area[:, None, None] / 12 * (np.ones((3, 3)) + np.eye(3))
+        return cls(faces, area, m1, m2)
+
+    @classmethod
+    def concat(cls, patches: list["ElectrodePatch"]) -> "ElectrodePatch":
+        return cls(*(np.concatenate([getattr(p, f) for p in patches]) for f in ("faces", "area", "m1", "m2")))
+
+
+def plane_face_patch(mesh: TetMesh, axis: int, value: float, tol: float | None = None) -> ElectrodePatch:
+    """All boundary triangles lying on the plane x[axis] = value (a full-face electrode)."""
+    f = mesh.boundary_faces
+    x = mesh.nodes[f][..., axis]
+    tol = 1e-9 * np.ptp(mesh.nodes) if tol is None else tol
+    on = np.all(np.abs(x - value) <= tol, axis=1)
+    if not on.any():
+        raise ValueError(f"no boundary face lies on the plane x[{axis}] = {value}")
+    return ElectrodePatch.from_faces(mesh.nodes, f[on])
+
+
+def disc_patches(
+    mesh: TetMesh, centres: np.ndarray, radii: np.ndarray, plane_tol: float = 1e-9
+) -> list[ElectrodePatch]:
+    """Disc electrodes on the plane z = 0 (the chamber base), clipped exactly.
+
+    centres (n_el, 3), radii (n_el,). Boundary faces whose three nodes lie within
+    ``plane_tol`` of z = 0 are candidates. Raises ValueError if an electrode is not fully
+    covered by base triangles (its disc crosses the base outline).
+    """
+    f = mesh.boundary_faces
+    on = np.all(np.abs(mesh.nodes[f][..., 2]) <= plane_tol, axis=1)
+    base = f[on]
+    xy = mesh.nodes[base][..., :2]  # (k, 3, 2)
+    # polygon with the disc's area: R_p² · (N/2) sin(2π/N) = r²π
+    ang = 2 * np.pi * (np.arange(N_POLY) + 0.5) / N_POLY
+    scale = np.sqrt(2 * np.pi / (N_POLY * np.sin(2 * np.pi / N_POLY)))
+    unit_poly = scale * np.column_stack([np.cos(ang), np.sin(ang)])
+    patches = []
+    lo, hi = xy.min(axis=1), xy.max(axis=1)
+    for k, (c, r) in enumerate(zip(np.asarray(centres)[:, :2], radii)):
+        reach = r * scale
+        cand = np.all((hi >= c - reach) & (lo <= c + reach), axis=1)
+        tri = (xy[cand] - c) / r  # unit-disc frame
+        area, m1, m2 = _clip_moments(tri, unit_poly)
+        keep = area > 1e-14
+        patch = ElectrodePatch(base[cand][keep], area[keep] * r * r, m1[keep] * r * r, m2[keep] * r * r)
+        if abs(patch.total_area / (np.pi * r * r) - 1) > 1e-9:
+            raise ValueError(
+                f"electrode {k}: base triangles cover {patch.total_area / (np.pi * r * r):.4%} of its "
+                "disc; the disc must lie inside the meshed base plane"
+            )
+        patches.append(patch)
+    return patches
+
+
+def _clip_moments(tri: np.ndarray, poly: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Clip the convex polygon ``poly`` (N, 2) by each triangle ``tri`` (k, 3, 2) and integrate
+    the triangle's barycentrics over the intersection: area (k,), m1 (k, 3), m2 (k, 3, 3)."""
+    k = len(tri)
+    if k == 0:
+        return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3))
+    # orient triangles anticlockwise so "inside" is left of every edge
+    cross = _cross2(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    tri = np.where((cross < 0)[:, None, None], tri[:, [0, 2, 1]], tri)
+    flipped = cross < 0
+    pts = np.broadcast_to(poly, (k, len(poly), 2)).copy()
+    cnt = np.full(k, len(poly))
+    for e in range(3):
+        a, b = tri[:, e], tri[:, (e + 1) % 3]
+        pts, cnt = _clip_halfplane(pts, cnt, a, b)
+    # fan-triangulate the clipped polygon from its first vertex and integrate exactly
+    T = np.linalg.inv(np.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]], axis=2))  # xy -> (λ1, λ2)
+    lam12 = np.einsum("kij,kmj->kmi", T, pts - tri[:, None, 0])
+    lam = np.concatenate([1 - lam12.sum(axis=2, keepdims=True), lam12], axis=2)  # (k, M, 3)
+    M = pts.shape[1]
+    i = np.arange(1, M - 1)
+    valid = (i[None, :] + 1) < cnt[:, None]  # sub-triangle (0, i, i+1) exists
+    p0, p1, p2 = pts[:, :1], pts[:, 1:-1], pts[:, 2:]
+    sub_area = 0.5 * _cross2(p1 - p0, p2 - p0) * valid
+    l0, l1, l2 = lam[:, :1], lam[:, 1:-1], lam[:, 2:]
+    s = l0 + l1 + l2
+    area = sub_area.sum(axis=1)
+    m1 = np.einsum("km,kma->ka", sub_area, s) / 3
+    second = (
+        np.einsum("kma,kmb->kmab", l0.repeat(M - 2, axis=1), l0.repeat(M - 2, axis=1))
+        + np.einsum("kma,kmb->kmab", l1, l1)
+        + np.einsum("kma,kmb->kmab", l2, l2)
+        + np.einsum("kma,kmb->kmab", s, s)
+    )
+    m2 = np.einsum("km,kmab->kab", sub_area, second) / 12
+    # undo the reordering of vertices 1 and 2 for flipped triangles
+    perm = np.array([0, 2, 1])
+    m1 = np.where(flipped[:, None], m1[:, perm], m1)
+    m2 = np.where(flipped[:, None, None], m2[:, perm][:, :, perm], m2)
+    return area, m1, m2
+
+
+def _cross2(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
+
+def _clip_halfplane(pts: np.ndarray, cnt: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One Sutherland–Hodgman step, vectorised over polygons: keep the part left of a→b.
+
+    pts (k, M, 2) with the first cnt[k] rows valid; returns the clipped polygons compacted to
+    the front of a (k, M', 2) array."""
+    k, M, _ = pts.shape
+    idx = np.arange(M)
+    valid = idx[None, :] < cnt[:, None]
+    nxt = np.where(idx[None, :] + 1 < cnt[:, None], idx[None, :] + 1, 0)
+    q = np.take_along_axis(pts, nxt[..., None].repeat(2, axis=2), axis=1)
+    d = b - a
+    sp = _cross2(d[:, None], pts - a[:, None])  # >= 0: inside
+    sq = _cross2(d[:, None], q - a[:, None])
+    inside_p, inside_q = sp >= 0, sq >= 0
+    t = np.divide(sp, sp - sq, out=np.zeros_like(sp), where=(sp != sq))
+    cut = pts + t[..., None] * (q - pts)
+    emit_p = valid & inside_p
+    emit_cut = valid & (inside_p != inside_q)
+    out = np.stack([pts, cut], axis=2).reshape(k, 2 * M, 2)
+    keep = np.stack([emit_p, emit_cut], axis=2).reshape(k, 2 * M)
+    order = np.argsort(~keep, axis=1, kind="stable")
+    new_cnt = keep.sum(axis=1)
+    m_new = max(int(new_cnt.max()), 3)
+    out = np.take_along_axis(out, order[:, :m_new, None].repeat(2, axis=2), axis=1)
+    return out, new_cnt

@@ -1,0 +1,40 @@
+"""Simple structured tetrahedral meshes for closed-form checks and quick studies."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .tetmesh import TetMesh
+
+__all__ = ["box_mesh", "cylinder_mesh"]
+
+# Kuhn subdivision of the unit cube into 6 tetrahedra sharing the diagonal 0-7; conforming
+# across neighbouring cubes because every cube is split the same way.
+_KUHN = np.array([[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]])
+
+
+def box_mesh(size: tuple[float, float, float], shape: tuple[int, int, int], origin=(0.0, 0.0, 0.0)) -> TetMesh:
+    """Box [origin, origin + size] split into shape = (nx, ny, nz) cubes of 6 tets each."""
+    nx, ny, nz = shape
+    axes = [np.linspace(o, o + s, n + 1) for o, s, n in zip(origin, size, shape)]
+    X, Y, Z = np.meshgrid(*axes, indexing="ij")
+    nodes = np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
+    idx = np.arange(nodes.shape[0]).reshape(nx + 1, ny + 1, nz + 1)
+    i, j, k = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
+    corners = np.stack(
+        [idx[i + (c & 1), j + ((c >> 1) & 1), k + ((c >> 2) & 1)].ravel() for c in range(8)], axis=1
+    )
+    tets = corners[:, _KUHN].reshape(-1, 4)
+    return TetMesh(nodes, tets).oriented()
+
+
+def cylinder_mesh(radius: float, length: float, n_radial: int, n_axial: int) -> TetMesh:
+    """Cylinder along z from 0 to ``length``: a box mesh of the square [-1, 1]² mapped onto the
+    disc (concentric squares to circles), so the cross-section is a polygon close to the disc."""
+    m = box_mesh((2.0, 2.0, length), (2 * n_radial, 2 * n_radial, n_axial), origin=(-1.0, -1.0, 0.0))
+    x, y = m.nodes[:, 0], m.nodes[:, 1]
+    # the elliptical grid mapping: smooth, bijective, keeps the square's edges on the circle
+    u = x * np.sqrt(1 - y * y / 2)
+    v = y * np.sqrt(1 - x * x / 2)
+    nodes = np.column_stack([radius * u, radius * v, m.nodes[:, 2]])
+    return TetMesh(nodes, m.tets).oriented()

@@ -1,0 +1,141 @@
+"""Tetrahedral meshes as plain arrays: geometry (volumes, shape-function gradients), boundary
+faces and a quality report. Everything here is vectorised over elements."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+__all__ = ["TetMesh", "MeshQuality", "mesh_quality"]
+
+# the six edges of a tetrahedron and, for each, the two faces that meet on it
+_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])  # face i is opposite vertex i, outward
+
+
+@dataclass(frozen=True, eq=False)
+class TetMesh:
+    """``nodes`` (n_nodes, 3) in m, ``tets`` (n_tets, 4) node indices, positively oriented."""
+
+    nodes: np.ndarray
+    tets: np.ndarray
+
+    def __post_init__(self) -> None:
+        nodes = np.ascontiguousarray(self.nodes, dtype=np.float64)
+        tets = np.ascontiguousarray(self.tets, dtype=np.int64)
+        if nodes.ndim != 2 or nodes.shape[1] != 3:
+            raise ValueError(f"nodes: expected shape (n, 3), got {nodes.shape}")
+        if tets.ndim != 2 or tets.shape[1] != 4:
+            raise ValueError(f"tets: expected shape (m, 4), got {tets.shape}")
+        if len(tets) and (tets.min() < 0 or tets.max() >= len(nodes)):
+            raise ValueError("tets: node index out of range")
+        object.__setattr__(self, "nodes", nodes)
+        object.__setattr__(self, "tets", tets)
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.nodes)
+
+    @property
+    def n_tets(self) -> int:
+        return len(self.tets)
+
+    @cached_property
+    def signed_volumes(self) -> np.ndarray:
+        p = self.nodes[self.tets]
+        e = p[:, 1:] - p[:, :1]
+        return np.linalg.det(e) / 6.0
+
+    @property
+    def volumes(self) -> np.ndarray:
+        return np.abs(self.signed_volumes)
+
+    @cached_property
+    def centroids(self) -> np.ndarray:
+        return self.nodes[self.tets].mean(axis=1)
+
+    @cached_property
+    def gradients(self) -> np.ndarray:
+        """∇λ_a of the four barycentric (P1) shape functions, shape (n_tets, 4, 3), constant per
+        element: the rows of the inverse edge matrix, with ∇λ_0 = −Σ ∇λ_{1..3}."""
+        p = self.nodes[self.tets]
+        e = p[:, 1:] - p[:, :1]  # (m, 3, 3): rows are edge vectors
+        inv = np.linalg.inv(e)  # columns of inv are ∇λ_1..3
+        g = np.empty((len(self.tets), 4, 3))
+        g[:, 1:] = np.swapaxes(inv, 1, 2)
+        g[:, 0] = -g[:, 1:].sum(axis=1)
+        return g
+
+    @cached_property
+    def boundary_faces(self) -> np.ndarray:
+        """Faces that belong to one tetrahedron only, (k, 3), oriented outward."""
+        f = self.tets[:, _FACES].reshape(-1, 3)
+        key = np.sort(f, axis=1)
+        _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        return f[cnt[inv.ravel()] == 1]
+
+    def oriented(self) -> "TetMesh":
+        """A copy with negatively oriented elements flipped."""
+        neg = self.signed_volumes < 0
+        if not neg.any():
+            return self
+        t = self.tets.copy()
+        t[neg, 2], t[neg, 3] = self.tets[neg, 3], self.tets[neg, 2]
+        return TetMesh(self.nodes, t)
+
+
+@dataclass(frozen=True)
+class MeshQuality:
+    n_tets: int
+    n_nodes: int
+    n_inverted: int
+    min_dihedral_deg: float
+    max_dihedral_deg: float
+    min_radius_ratio: float
+    mean_radius_ratio: float
+    volume: float
+
+    def summary(self) -> str:
+        return (
+            f"{self.n_tets} tets, {self.n_nodes} nodes, volume {self.volume * 1e9:.1f} mm^3; "
+            f"dihedral angles {self.min_dihedral_deg:.1f}-{self.max_dihedral_deg:.1f} deg; "
+            f"radius ratio min {self.min_radius_ratio:.3f} mean {self.mean_radius_ratio:.3f}; "
+            f"{self.n_inverted} inverted"
+        )
+
+
+def mesh_quality(mesh: TetMesh) -> MeshQuality:
+    """Dihedral angles and the normalised radius ratio 3·r_in/r_circ (1 for a regular tet)."""
+    g = mesh.gradients  # face normals are ∝ −∇λ of the opposite vertex
+    n = g / np.linalg.norm(g, axis=2, keepdims=True)
+    # the dihedral angle on the edge (a, b) lies between the faces opposite the other two vertices
+    other = np.array([[2, 3], [1, 3], [1, 2], [0, 3], [0, 2], [0, 1]])
+    cosang = -np.einsum("mij,mij->mi", n[:, other[:, 0]], n[:, other[:, 1]])
+    dihedral = np.degrees(np.arccos(np.clip(cosang, -1, 1)))
+    vol = mesh.volumes
+    p = mesh.nodes[mesh.tets]
+    face_area = 0.5 * np.linalg.norm(
+        np.cross(p[:, _FACES[:, 1]] - p[:, _FACES[:, 0]], p[:, _FACES[:, 2]] - p[:, _FACES[:, 0]]), axis=2
+    ).sum(axis=1)
+    r_in = 3 * vol / face_area
+    r_circ = _circumradius(p)
+    rr = 3 * r_in / r_circ
+    return MeshQuality(
+        n_tets=mesh.n_tets,
+        n_nodes=mesh.n_nodes,
+        n_inverted=int((mesh.signed_volumes <= 0).sum()),
+        min_dihedral_deg=float(dihedral.min()),
+        max_dihedral_deg=float(dihedral.max()),
+        min_radius_ratio=float(rr.min()),
+        mean_radius_ratio=float(rr.mean()),
+        volume=float(vol.sum()),
+    )
+
+
+def _circumradius(p: np.ndarray) -> np.ndarray:
+    a = p[:, 1:] - p[:, :1]  # (m, 3, 3)
+    rhs = 0.5 * np.einsum("mij,mij->mi", a, a)
+    c = np.linalg.solve(a, rhs[..., None])[..., 0]
+    return np.linalg.norm(c, axis=1)

@@ -1,0 +1,325 @@
+"""Scene files: the sensor's physical setup as typed, validated, SI-unit dataclasses.
+
+A scene is a TOML file whose keys carry their unit (``radius_mm``, ``current_ua``).
+``load_scene`` converts everything to SI (m, S/m, A, Ω·m², Hz) and rejects a bad value with a
+:class:`SceneError` that names the key and its allowed range, before any solver runs.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "SceneError",
+    "Chamber",
+    "ElectrodeRing",
+    "Saline",
+    "Drive",
+    "Noise",
+    "MeshSpec",
+    "Scene",
+    "load_scene",
+    "scene_from_dict",
+    "MESH_PRESETS",
+]
+
+MM = 1e-3
+
+
+class SceneError(ValueError):
+    """A scene value outside its allowed range; the message names the key."""
+
+
+@dataclass(frozen=True)
+class Chamber:
+    """Saline chamber: a spherical-cap dome over a flat circular base (SI units)."""
+
+    base_radius: float = 20 * MM
+    dome_height: float = 10 * MM
+    membrane_thickness: float = 2 * MM
+
+
+@dataclass(frozen=True)
+class ElectrodeRing:
+    """Ring of disc electrodes on the base plus a central ground disc (SI units).
+
+    ``contact_impedance`` has one value per ring electrode (Ω·m²); ``contact_impedance_by_freq``
+    is optional, shape (n_frequencies, count), one row per FDM carrier.
+    """
+
+    count: int = 16
+    ring_radius: float = 15 * MM
+    diameter: float = 2 * MM
+    ground_diameter: float = 4 * MM
+    contact_impedance: tuple[float, ...] = (1e-3,) * 16
+    ground_contact_impedance: float = 1e-3
+    contact_impedance_by_freq: tuple[tuple[float, ...], ...] | None = None
+    first_angle_deg: float = 0.0
+
+
+@dataclass(frozen=True)
+class Saline:
+    conductivity: float = 0.37
+
+
+@dataclass(frozen=True)
+class Drive:
+    """Current injection: amplitude per injection, FDM carriers, and the skip-N protocol."""
+
+    current: float = 120e-6
+    frequencies: tuple[float, ...] = tuple(2750.0 + 725.0 * k for k in range(16))
+    skip: int = 8
+
+
+@dataclass(frozen=True)
+class Noise:
+    snr_db: float = 74.2
+    seed: int = 0
+    drift_per_s: float = 0.0
+    frame_rate_hz: float = 50.0
+
+
+MESH_PRESETS: dict[str, dict[str, float]] = {
+    # max_edge_mm sets the bulk size; tuned so the default chamber gives the named tet counts.
+    "test": {"max_edge_mm": 3.0, "electrode_refinement": 4.0},
+    "dataset": {"max_edge_mm": 1.6, "electrode_refinement": 10.0},
+    "paper": {"max_edge_mm": 0.85, "electrode_refinement": 10.0},
+}
+
+
+@dataclass(frozen=True)
+class MeshSpec:
+    """Chamber mesh resolution: bulk edge length, refinement factor and zone around electrodes."""
+
+    preset: str = "dataset"
+    max_edge: float = 1.6 * MM
+    electrode_refinement: float = 10.0
+    refinement_zone: float = 0.8 * MM
+    grading: float = 0.35
+    epsilon_rel: float = 1e-4
+
+
+@dataclass(frozen=True)
+class Scene:
+    name: str = "unnamed"
+    chamber: Chamber = field(default_factory=Chamber)
+    electrodes: ElectrodeRing = field(default_factory=ElectrodeRing)
+    saline: Saline = field(default_factory=Saline)
+    drive: Drive = field(default_factory=Drive)
+    noise: Noise = field(default_factory=Noise)
+    mesh: MeshSpec = field(default_factory=MeshSpec)
+
+    def with_mesh_preset(self, preset: str) -> "Scene":
+        if preset not in MESH_PRESETS:
+            raise SceneError(f"mesh.preset = {preset!r}: allowed values are {sorted(MESH_PRESETS)}")
+        p = MESH_PRESETS[preset]
+        return replace(
+            self,
+            mesh=replace(
+                self.mesh,
+                preset=preset,
+                max_edge=p["max_edge_mm"] * MM,
+                electrode_refinement=p["electrode_refinement"],
+            ),
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def digest(self, *sections: str) -> str:
+        """Content hash of the named sections (all when none), for caches and provenance."""
+        d = self.to_dict()
+        if sections:
+            d = {k: d[k] for k in sections}
+        return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
+# --------------------------------------------------------------------------------------------
+# Parsing and validation
+
+
+class _Table:
+    """Reads one TOML table, checking each key's range and rejecting unknown keys."""
+
+    def __init__(self, data: dict[str, Any], name: str):
+        if not isinstance(data, dict):
+            raise SceneError(f"[{name}] must be a table, got {type(data).__name__}")
+        self.data = dict(data)
+        self.name = name
+        self.seen: set[str] = set()
+
+    def key(self, k: str) -> str:
+        return f"{self.name}.{k}"
+
+    def number(
+        self,
+        k: str,
+        default: float,
+        lo: float,
+        hi: float,
+        *,
+        lo_open: bool = False,
+        hi_open: bool = False,
+    ) -> float:
+        self.seen.add(k)
+        v = self.data.get(k, default)
+        return _check_number(self.key(k), v, lo, hi, lo_open, hi_open)
+
+    def integer(self, k: str, default: int, lo: int, hi: int) -> int:
+        self.seen.add(k)
+        v = self.data.get(k, default)
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise SceneError(f"{self.key(k)} = {v!r}: must be an integer in [{lo}, {hi}]")
+        if not lo <= v <= hi:
+            raise SceneError(f"{self.key(k)} = {v}: must be an integer in [{lo}, {hi}]")
+        return v
+
+    def raw(self, k: str, default: Any) -> Any:
+        self.seen.add(k)
+        return self.data.get(k, default)
+
+    def finish(self) -> None:
+        unknown = sorted(set(self.data) - self.seen)
+        if unknown:
+            raise SceneError(
+                f"unknown key(s) in [{self.name}]: {', '.join(unknown)}; "
+                f"known keys are {', '.join(sorted(self.seen))}"
+            )
+
+
+def _check_number(key: str, v: Any, lo: float, hi: float, lo_open: bool, hi_open: bool) -> float:
+    rng = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise SceneError(f"{key} = {v!r}: must be a number in {rng}")
+    v = float(v)
+    if not math.isfinite(v):
+        raise SceneError(f"{key} = {v}: must be a finite number in {rng}")
+    bad_lo = v <= lo if lo_open else v < lo
+    bad_hi = v >= hi if hi_open else v > hi
+    if bad_lo or bad_hi:
+        raise SceneError(f"{key} = {v:g}: must be in {rng}")
+    return v
+
+
+def _number_list(key: str, v: Any, n: int | None, lo: float, hi: float, lo_open: bool) -> tuple[float, ...]:
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        v = [v] * (n or 1)
+    if not isinstance(v, list) or (n is not None and len(v) != n):
+        want = f"a list of {n} numbers" if n else "a list of numbers"
+        raise SceneError(f"{key}: must be a number or {want}, got {v!r}")
+    return tuple(_check_number(f"{key}[{i}]", x, lo, hi, lo_open, False) for i, x in enumerate(v))
+
+
+def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
+    """Build and validate a :class:`Scene` from a parsed TOML mapping (keys with units)."""
+    data = dict(data)
+    name = str(data.pop("name", name))
+    data.pop("description", None)
+    known = {"chamber", "electrodes", "saline", "drive", "noise", "mesh"}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise SceneError(f"unknown section(s): {', '.join(unknown)}; known are {', '.join(sorted(known))}")
+
+    t = _Table(data.get("chamber", {}), "chamber")
+    base_r = t.number("base_radius_mm", 20.0, 1.0, 500.0)
+    height = t.number("dome_height_mm", 10.0, 0.5, base_r * 2 if base_r < 250 else 500.0)
+    if height > base_r:
+        raise SceneError(
+            f"chamber.dome_height_mm = {height:g}: must be in [0.5, base_radius_mm = {base_r:g}] "
+            "(a spherical cap taller than its base radius is more than a hemisphere)"
+        )
+    thick = t.number("membrane_thickness_mm", 2.0, 0.05, min(height, 50.0), lo_open=False)
+    t.finish()
+    chamber = Chamber(base_r * MM, height * MM, thick * MM)
+
+    t = _Table(data.get("electrodes", {}), "electrodes")
+    count = t.integer("count", 16, 3, 64)
+    diam = t.number("diameter_mm", 2.0, 0.0, base_r, lo_open=True)
+    gdiam = t.number("ground_diameter_mm", 4.0, 0.0, base_r, lo_open=True)
+    ring_lo = gdiam / 2 + diam / 2
+    ring_hi = base_r - diam / 2
+    ring = t.number("ring_radius_mm", 15.0, ring_lo, ring_hi, lo_open=True, hi_open=True)
+    pitch = 2 * ring * math.sin(math.pi / count)
+    if pitch <= diam:
+        raise SceneError(
+            f"electrodes.diameter_mm = {diam:g}: must be below the ring pitch "
+            f"{pitch:.3g} mm (electrodes would overlap)"
+        )
+    z = _number_list(
+        "electrodes.contact_impedance_ohm_m2", t.raw("contact_impedance_ohm_m2", 1e-3), count, 0.0, 1.0, True
+    )
+    zg = t.number("ground_contact_impedance_ohm_m2", 1e-3, 0.0, 1.0, lo_open=True)
+    zf_raw = t.raw("contact_impedance_by_freq_ohm_m2", None)
+    first = t.number("first_angle_deg", 0.0, -360.0, 360.0)
+    t.finish()
+
+    t = _Table(data.get("saline", {}), "saline")
+    sigma = t.number("conductivity_s_per_m", 0.37, 0.0, 100.0, lo_open=True)
+    t.finish()
+
+    t = _Table(data.get("drive", {}), "drive")
+    current = t.number("current_ua", 120.0, 0.0, 1e5, lo_open=True)
+    freqs = _number_list("drive.frequencies_hz", t.raw("frequencies_hz", list(Drive().frequencies)), None, 0.0, 1e7, True)
+    skip = t.integer("skip", 8, 0, count // 2)
+    t.finish()
+
+    zf = None
+    if zf_raw is not None:
+        if not isinstance(zf_raw, list) or len(zf_raw) != len(freqs):
+            raise SceneError(
+                "electrodes.contact_impedance_by_freq_ohm_m2: must be a list with one row per "
+                f"drive frequency ({len(freqs)} rows)"
+            )
+        zf = tuple(
+            _number_list(f"electrodes.contact_impedance_by_freq_ohm_m2[{i}]", row, count, 0.0, 1.0, True)
+            for i, row in enumerate(zf_raw)
+        )
+
+    t = _Table(data.get("noise", {}), "noise")
+    snr = t.number("snr_db", 74.2, 0.0, 200.0)
+    seed = t.integer("seed", 0, 0, 2**63 - 1)
+    drift = t.number("drift_per_s", 0.0, 0.0, 1.0)
+    rate = t.number("frame_rate_hz", 50.0, 0.0, 1e5, lo_open=True)
+    t.finish()
+
+    t = _Table(data.get("mesh", {}), "mesh")
+    preset = t.raw("preset", "dataset")
+    if preset not in MESH_PRESETS and preset != "custom":
+        raise SceneError(f"mesh.preset = {preset!r}: allowed values are {sorted(MESH_PRESETS) + ['custom']}")
+    p = MESH_PRESETS.get(preset, MESH_PRESETS["dataset"])
+    max_edge = t.number("max_edge_mm", p["max_edge_mm"], 0.05, base_r)
+    refine = t.number("electrode_refinement", p["electrode_refinement"], 1.0, 50.0)
+    zone = t.number("refinement_zone_mm", 0.8, 0.0, base_r)
+    grading = t.number("grading", 0.35, 0.05, 2.0)
+    eps = t.number("epsilon_rel", 1e-4, 1e-6, 1e-2)
+    t.finish()
+    if preset != "custom" and ("max_edge_mm" in data.get("mesh", {}) or "electrode_refinement" in data.get("mesh", {})):
+        preset = "custom"
+
+    return Scene(
+        name=name,
+        chamber=chamber,
+        electrodes=ElectrodeRing(count, ring * MM, diam * MM, gdiam * MM, z, zg, zf, first),
+        saline=Saline(sigma),
+        drive=Drive(current * 1e-6, freqs, skip),
+        noise=Noise(snr, seed, drift, rate),
+        mesh=MeshSpec(preset, max_edge * MM, refine, zone * MM, grading, eps),
+    )
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Read and validate a TOML scene file."""
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"scene file not found: {path}")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(f"{path}: not valid TOML: {e}") from None
+    return scene_from_dict(data, name=path.stem)
