@@ -116,6 +116,6 @@ def chamber_surface(dome: DomeSurface) -> trimesh.Trimesh:
     return surf
 
 
-def chamber_from_scene(scene: Scene, n_rim: int = 192) -> trimesh.Trimesh:
+def chamber_from_scene(scene: Scene, n_rim: int = 96) -> trimesh.Trimesh:
     c = scene.chamber
     return chamber_surface(spherical_cap(c.base_radius, c.dome_height, n_rim))

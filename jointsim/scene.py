@@ -102,7 +102,7 @@ class MeshSpec:
     electrode_refinement: float = 10.0
     refinement_zone: float = 0.8 * MM
     grading: float = 0.35
-    epsilon_rel: float = 1e-4
+    epsilon_rel: float = 3e-4
 
 
 @dataclass(frozen=True)
@@ -297,7 +297,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     refine = t.number("electrode_refinement", p["electrode_refinement"], 1.0, 50.0)
     zone = t.number("refinement_zone_mm", 0.8, 0.0, base_r)
     grading = t.number("grading", 0.35, 0.05, 2.0)
-    eps = t.number("epsilon_rel", 1e-4, 1e-6, 1e-2)
+    eps = t.number("epsilon_rel", 3e-4, 1e-6, 1e-2)
     t.finish()
     if preset != "custom" and ("max_edge_mm" in data.get("mesh", {}) or "electrode_refinement" in data.get("mesh", {})):
         preset = "custom"

@@ -1,0 +1,61 @@
+"""Sensitivity of the measurements to element conductivities, by the adjoint method.
+
+For P1 elements and piecewise-constant σ, ∂A/∂σ_k = V_k ∇φ∇φᵀ on element k, so
+
+    ∂(meas·U_s)/∂σ_k = −V_k ∇u_s · ∇v_m,
+
+with u_s the field of injection s and v_m the field of the measurement pattern driven as a
+current (reciprocity). Both are combinations of the lead fields, so per element only the
+L × L matrix D_k = ∇v_i·∇v_j is needed, and J = −P·D·V with P the protocol's pair weights.
+Elements are processed in chunks so memory stays bounded (1 M tets fit in a few GB).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from .forward import LeadFields
+from .protocol import Protocol
+
+__all__ = ["jacobian", "lead_gradients"]
+
+
+def lead_gradients(fields: LeadFields, elements: slice | np.ndarray = slice(None)) -> np.ndarray:
+    """∇v_l on each element of the selection: (n_sel, L, 3) in V/(A·m)."""
+    mesh = fields.model.mesh
+    tets = mesh.tets[elements]
+    g = mesh.gradients[elements]  # (c, 4, 3)
+    return np.einsum("cai,cal->cli", g, fields.nodal[tets])
+
+
+def jacobian(
+    fields: LeadFields,
+    protocol: Protocol,
+    *,
+    coarse: sp.spmatrix | None = None,
+    chunk: int = 32768,
+    dtype: np.dtype = np.float64,
+) -> np.ndarray:
+    """∂(measurements)/∂σ: (n_meas, n_tets) in V·m/S, or (n_meas, n_coarse) when ``coarse``
+    (n_tets, n_coarse) maps elements onto coarse cells (the sum of fine columns per cell)."""
+    fields.model._check_protocol(protocol)
+    mesh = fields.model.mesh
+    P = protocol.pair_weights()  # (n_meas, L²)
+    n_out = mesh.n_tets if coarse is None else coarse.shape[1]
+    J = np.zeros((protocol.n_meas, n_out), dtype=dtype)
+    if coarse is not None:
+        coarse = sp.csr_matrix(coarse)
+        if coarse.shape[0] != mesh.n_tets:
+            raise ValueError(f"coarse: expected {mesh.n_tets} rows (one per element), got {coarse.shape[0]}")
+    vol = mesh.volumes
+    for start in range(0, mesh.n_tets, chunk):
+        sl = slice(start, min(start + chunk, mesh.n_tets))
+        G = lead_gradients(fields, sl)
+        D = np.einsum("cli,cmi->clm", G, G).reshape(len(G), -1)  # (c, L²)
+        block = -(P @ D.T) * vol[sl]  # (n_meas, c)
+        if coarse is None:
+            J[:, sl] = block
+        else:
+            J += (coarse[sl].T @ block.T).T
+    return J
