@@ -1,0 +1,34 @@
+"""Helpers shared by subcommands: scene loading with a preset override, stage timing."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator
+
+from ..scene import Scene, load_scene
+
+DEFAULT_SCENE = Path(__file__).resolve().parents[2] / "scenes" / "paper_sensor.toml"
+
+
+def add_scene_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", nargs="?", default=str(DEFAULT_SCENE), help="scene TOML file (default: the paper's sensor)")
+    p.add_argument("--mesh", dest="mesh_preset", choices=["test", "dataset", "paper"], help="override the scene's mesh preset")
+
+
+def scene_from_args(args: argparse.Namespace) -> Scene:
+    scene = load_scene(args.scene)
+    return scene.with_mesh_preset(args.mesh_preset) if args.mesh_preset else scene
+
+
+@contextmanager
+def stage(name: str, timings: dict[str, float], quiet: bool = False) -> Iterator[None]:
+    if not quiet:
+        print(f"  {name} ...", end="", flush=True)
+    t0 = time.perf_counter()
+    yield
+    timings[name] = time.perf_counter() - t0
+    if not quiet:
+        print(f" {timings[name]:.2f} s", flush=True)

@@ -1,0 +1,40 @@
+"""The ``jointsim`` command line: a thin layer over the Python API, one module per subcommand."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from ..scene import SceneError
+from . import forward, mesh
+
+SUBCOMMANDS = {"forward": forward, "mesh": mesh}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="jointsim",
+        description=(
+            "Coupled mechanics-EIT simulator of a saline-filled soft tactile sensor. "
+            "Scenes are TOML files (see scenes/paper_sensor.toml)."
+        ),
+    )
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, mod in SUBCOMMANDS.items():
+        sp = sub.add_parser(name, help=mod.HELP, description=mod.__doc__)
+        mod.add_arguments(sp)
+        sp.set_defaults(handler=mod.run)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.handler(args) or 0)
+    except (SceneError, ValueError) as e:
+        print(f"jointsim {args.command}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

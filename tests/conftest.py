@@ -1,0 +1,41 @@
+import numpy as np
+import pytest
+
+from jointsim.scene import load_scene
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER_SCENE = ROOT / "scenes" / "paper_sensor.toml"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _mesh_cache(tmp_path_factory):
+    """Meshes go to a per-run cache so a test never reads a stale mesh from another checkout."""
+    mp = pytest.MonkeyPatch()
+    mp.setenv("JOINTSIM_CACHE", str(tmp_path_factory.mktemp("mesh_cache")))
+    yield
+    mp.undo()
+
+
+@pytest.fixture(scope="session")
+def paper_scene():
+    return load_scene(PAPER_SCENE)
+
+
+@pytest.fixture(scope="session")
+def test_chamber(paper_scene, _mesh_cache):
+    """The paper's chamber at the coarse 'test' resolution (~15 k tets, ~25 s to mesh once)."""
+    from jointsim.mesh.chamber import chamber_mesh
+
+    scene = paper_scene.with_mesh_preset("test")
+    return scene, chamber_mesh(scene)
+
+
+@pytest.fixture(scope="session")
+def chamber_fields(test_chamber):
+    from jointsim.eit.forward import ForwardModel
+
+    scene, ch = test_chamber
+    model = ForwardModel.from_chamber(ch, scene)
+    sigma = np.full(ch.mesh.n_tets, scene.saline.conductivity)
+    return scene, ch, model, model.solve(sigma)

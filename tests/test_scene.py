@@ -1,0 +1,68 @@
+import math
+
+import pytest
+
+from jointsim.scene import SceneError, load_scene, scene_from_dict
+
+
+def test_paper_scene_holds_the_papers_values(paper_scene):
+    s = paper_scene
+    assert s.electrodes.count == 16
+    assert s.electrodes.ring_radius == pytest.approx(15e-3)
+    assert s.chamber.membrane_thickness == pytest.approx(2e-3)
+    assert s.drive.current == pytest.approx(120e-6)
+    assert len(s.drive.frequencies) == 16
+    assert s.drive.frequencies[0] == 2750 and s.drive.frequencies[-1] == 13625
+    assert all(b - a == pytest.approx(725) for a, b in zip(s.drive.frequencies, s.drive.frequencies[1:]))
+    assert s.drive.skip == 8
+    assert s.noise.snr_db == pytest.approx(74.2)
+
+
+@pytest.mark.parametrize(
+    "data, key",
+    [
+        ({"chamber": {"base_radius_mm": -1}}, "chamber.base_radius_mm"),
+        ({"chamber": {"dome_height_mm": 30}}, "chamber.dome_height_mm"),
+        ({"electrodes": {"ring_radius_mm": 25}}, "electrodes.ring_radius_mm"),
+        ({"electrodes": {"count": 2}}, "electrodes.count"),
+        ({"electrodes": {"diameter_mm": 8}}, "electrodes.diameter_mm"),
+        ({"electrodes": {"contact_impedance_ohm_m2": [1e-3] * 15}}, "electrodes.contact_impedance_ohm_m2"),
+        ({"electrodes": {"contact_impedance_ohm_m2": -1e-3}}, "electrodes.contact_impedance_ohm_m2"),
+        ({"saline": {"conductivity_s_per_m": 0}}, "saline.conductivity_s_per_m"),
+        ({"saline": {"conductivity_s_per_m": "salty"}}, "saline.conductivity_s_per_m"),
+        ({"drive": {"current_ua": float("nan")}}, "drive.current_ua"),
+        ({"drive": {"skip": 9}}, "drive.skip"),
+        ({"noise": {"snr_db": -3}}, "noise.snr_db"),
+        ({"mesh": {"preset": "huge"}}, "mesh.preset"),
+        ({"saline": {"conductivity": 0.4}}, "conductivity_s_per_m"),  # unit missing from the key
+        ({"optics": {}}, "optics"),
+    ],
+)
+def test_bad_values_are_rejected_naming_the_key(data, key):
+    with pytest.raises(SceneError, match=key.replace(".", r"\.")):
+        scene_from_dict(data)
+
+
+def test_error_states_the_allowed_range():
+    with pytest.raises(SceneError, match=r"must be in \(3, 19\)"):
+        scene_from_dict({"electrodes": {"ring_radius_mm": 25}})
+
+
+def test_units_are_converted_to_si():
+    s = scene_from_dict({"chamber": {"base_radius_mm": 25, "dome_height_mm": 12}, "drive": {"current_ua": 50}})
+    assert s.chamber.base_radius == pytest.approx(0.025)
+    assert s.drive.current == pytest.approx(50e-6)
+
+
+def test_missing_file_and_bad_toml(tmp_path):
+    with pytest.raises(SceneError, match="not found"):
+        load_scene(tmp_path / "nope.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[chamber\n")
+    with pytest.raises(SceneError, match="not valid TOML"):
+        load_scene(bad)
+
+
+def test_digest_changes_with_content(paper_scene):
+    assert paper_scene.digest() != paper_scene.with_mesh_preset("paper").digest()
+    assert paper_scene.digest("chamber") == paper_scene.with_mesh_preset("paper").digest("chamber")
