@@ -88,7 +88,7 @@ class Noise:
 MESH_PRESETS: dict[str, dict[str, float]] = {
     # max_edge_mm sets the bulk size; tuned so the default chamber gives the named tet counts.
     "test": {"max_edge_mm": 3.0, "electrode_refinement": 4.0},
-    "dataset": {"max_edge_mm": 1.6, "electrode_refinement": 10.0},
+    "dataset": {"max_edge_mm": 2.2, "electrode_refinement": 6.0},
     "paper": {"max_edge_mm": 0.85, "electrode_refinement": 10.0},
 }
 
@@ -98,8 +98,8 @@ class MeshSpec:
     """Chamber mesh resolution: bulk edge length, refinement factor and zone around electrodes."""
 
     preset: str = "dataset"
-    max_edge: float = 1.6 * MM
-    electrode_refinement: float = 10.0
+    max_edge: float = 2.2 * MM
+    electrode_refinement: float = 6.0
     refinement_zone: float = 0.8 * MM
     grading: float = 0.35
     epsilon_rel: float = 3e-4

@@ -29,14 +29,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--skip", type=int, help="override the scene's skip-N injection protocol")
     p.add_argument("--voxels", type=int, default=7000, help="coarse grid cells for the Jacobian (default 7000)")
     p.add_argument("--no-jacobian", action="store_true", help="skip the Jacobian")
-    p.add_argument("--solver", default="superlu", help="sparse direct backend: superlu (default), cholmod, pardiso")
+    p.add_argument("--solver", default="auto", help="sparse direct backend: auto (default: pardiso if installed), pardiso, cholmod, superlu")
 
 
 def run(args: argparse.Namespace) -> int:
     scene = scene_from_args(args)
     skip = scene.drive.skip if args.skip is None else args.skip
-    if not 0 <= skip <= scene.electrodes.count - 2:
-        raise ValueError(f"--skip = {skip}: must be in [0, {scene.electrodes.count - 2}]")
+    if not 0 <= skip <= scene.electrodes.count // 2:
+        raise ValueError(f"--skip = {skip}: must be in [0, {scene.electrodes.count // 2}]")
     if args.voxels < 1:
         raise ValueError(f"--voxels = {args.voxels}: must be >= 1")
     out: Path = args.out

@@ -72,7 +72,7 @@ class ForwardModel:
         electrodes: list[ElectrodePatch],
         ground: int,
         contact_impedance: np.ndarray | float,
-        backend: str = "superlu",
+        backend: str = "auto",
     ):
         self.mesh = mesh
         self.assembler = CEMAssembler(mesh, tuple(electrodes), ground)
@@ -83,7 +83,7 @@ class ForwardModel:
         self.backend = backend
 
     @classmethod
-    def from_chamber(cls, chamber: ChamberMesh, scene: Scene, backend: str = "superlu") -> "ForwardModel":
+    def from_chamber(cls, chamber: ChamberMesh, scene: Scene, backend: str = "auto") -> "ForwardModel":
         e = scene.electrodes
         z = np.append(np.asarray(e.contact_impedance), e.ground_contact_impedance)
         return cls(chamber.mesh, chamber.electrodes, chamber.ground, z, backend)

@@ -1,6 +1,10 @@
 """Sparse direct factorisation of the SPD CEM system, factorised once and solved for many
-right-hand sides. SuperLU from scipy is always there; CHOLMOD (scikit-sparse) or PARDISO
-(pypardiso) are used when installed and asked for."""
+right-hand sides.
+
+"auto" picks PARDISO (pypardiso, a dependency on x86-64) when it imports, else CHOLMOD
+(scikit-sparse, optional), else scipy's SuperLU. SuperLU is always there but is ~8x slower at
+350 k tets and ~25x at 1 M (fill-in of its LU on 3-D meshes); see results/eit_forward_benchmark.md.
+"""
 
 from __future__ import annotations
 
@@ -10,7 +14,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-__all__ = ["factorize", "available_backends"]
+__all__ = ["factorize", "available_backends", "default_backend"]
 
 
 def available_backends() -> list[str]:
@@ -30,8 +34,15 @@ def available_backends() -> list[str]:
     return out
 
 
-def factorize(A: sp.spmatrix, backend: str = "superlu") -> Callable[[np.ndarray], np.ndarray]:
+def default_backend() -> str:
+    b = available_backends()
+    return "pardiso" if "pardiso" in b else "cholmod" if "cholmod" in b else "superlu"
+
+
+def factorize(A: sp.spmatrix, backend: str = "auto") -> Callable[[np.ndarray], np.ndarray]:
     """Factorise the SPD matrix A once; return solve(B) for B (n,) or (n, k)."""
+    if backend == "auto":
+        backend = default_backend()
     A = sp.csc_matrix(A)
     if backend == "superlu":
         # a symmetric fill-reducing ordering and no pivoting: A is SPD, so LU = LDLᵀ in effect
@@ -50,8 +61,15 @@ def factorize(A: sp.spmatrix, backend: str = "superlu") -> Callable[[np.ndarray]
     if backend == "pardiso":
         import pypardiso
 
-        solver = pypardiso.PyPardisoSolver(mtype=2)  # real SPD
+        solver = pypardiso.PyPardisoSolver(mtype=2)  # real SPD: Cholesky on the upper triangle
+        solver.set_statistical_info_off()
         Au = sp.triu(A, format="csr")
+        Au.sort_indices()
         solver.factorize(Au)
-        return lambda b: solver.solve(Au, np.asarray(b, float))
+
+        def solve(b: np.ndarray) -> np.ndarray:
+            x = solver.solve(Au, np.ascontiguousarray(b, dtype=float))
+            return x.reshape(np.shape(b))
+
+        return solve
     raise ValueError(f"backend = {backend!r}: allowed values are {available_backends()}")

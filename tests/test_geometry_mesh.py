@@ -1,0 +1,139 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from jointsim.geometry import chamber_surface, electrode_layout, spherical_cap, DomeSurface
+from jointsim.mesh.electrodes import ElectrodePatch, _clip_moments, disc_patches
+from jointsim.mesh.shapes import box_mesh
+from jointsim.mesh.tetmesh import TetMesh, mesh_quality
+
+
+def test_spherical_cap_chamber_is_watertight_with_the_cap_volume():
+    a, h = 0.02, 0.01
+    surf = chamber_surface(spherical_cap(a, h, n_rim=192))
+    assert surf.is_watertight
+    exact = np.pi * h * (3 * a * a + h * h) / 6
+    # inscribed facets: the relative volume deficit is O((π/n)²) ≈ 2.7e-4 for 192 facets
+    assert surf.volume == pytest.approx(exact, rel=1e-3)
+    assert surf.volume < exact
+
+
+def test_dome_rim_off_the_base_circle_is_rejected():
+    d = spherical_cap(0.02, 0.01, n_rim=32)
+    v = d.vertices.copy()
+    v[d.rim[0], 2] = 1e-3
+    with pytest.raises(ValueError, match="rim"):
+        chamber_surface(DomeSurface(v, d.faces, d.rim))
+
+
+def test_electrode_layout_follows_the_ring(paper_scene):
+    lay = electrode_layout(paper_scene)
+    assert lay.n_electrodes == 17 and lay.ground == 16
+    r = np.hypot(*lay.centres[:16, :2].T)
+    np.testing.assert_allclose(r, 15e-3)
+    ang = np.degrees(np.arctan2(lay.centres[:16, 1], lay.centres[:16, 0])) % 360
+    np.testing.assert_allclose(ang, 22.5 * np.arange(16), atol=1e-9)
+    assert lay.radii[16] == pytest.approx(2e-3)
+
+
+def test_unit_tet_gradients_and_volume():
+    m = TetMesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]), np.array([[0, 1, 2, 3]]))
+    assert m.volumes[0] == pytest.approx(1 / 6)
+    np.testing.assert_allclose(m.gradients[0], [[-1, -1, -1], [1, 0, 0], [0, 1, 0], [0, 0, 1]], atol=1e-14)
+
+
+def test_box_mesh_quality_and_boundary():
+    m = box_mesh((2.0, 3.0, 4.0), (2, 3, 4))  # unit cubes, 6 Kuhn tets each
+    q = mesh_quality(m)
+    assert q.n_inverted == 0
+    assert q.volume == pytest.approx(24.0)
+    assert q.min_dihedral_deg == pytest.approx(45.0) and q.max_dihedral_deg == pytest.approx(90.0)
+    f = m.boundary_faces
+    p = m.nodes[f]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum()
+    assert area == pytest.approx(2 * (6 + 8 + 12))
+
+
+def test_inverted_element_is_reported():
+    m = TetMesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]), np.array([[0, 2, 1, 3]]))
+    assert mesh_quality(m).n_inverted == 1
+    assert mesh_quality(m.oriented()).n_inverted == 0
+
+
+def _cross2(u, v):
+    return u[0] * v[1] - u[1] * v[0]
+
+
+def _unit_poly():
+    n = 256
+    ang = 2 * np.pi * (np.arange(n) + 0.5) / n
+    return np.sqrt(2 * np.pi / (n * np.sin(2 * np.pi / n))) * np.column_stack([np.cos(ang), np.sin(ang)])
+
+
+def test_clipped_moments_of_a_triangle_inside_the_disc_are_the_whole_triangle_moments():
+    tri = np.array([[[0.1, -0.2], [0.4, 0.1], [-0.3, 0.3]]])
+    area, m1, m2 = _clip_moments(tri, _unit_poly())
+    full = ElectrodePatch.from_faces(np.c_[tri[0], np.zeros(3)], [[0, 1, 2]])
+    np.testing.assert_allclose(area, full.area, rtol=1e-12)
+    np.testing.assert_allclose(m1, full.m1, rtol=1e-12)
+    np.testing.assert_allclose(m2, full.m2, rtol=1e-12)
+
+
+def test_quarter_disc_first_moment():
+    # ∫ x dA over the quarter of the unit disc in the triangle (0,0),(2,0),(0,2) is 1/3; λ1 = x/2
+    area, m1, _ = _clip_moments(np.array([[[0, 0], [2, 0], [0, 2.0]]]), _unit_poly())
+    assert area[0] == pytest.approx(np.pi / 4, rel=1e-12)
+    assert m1[0, 1] == pytest.approx(1 / 6, rel=1e-4)  # the polygon is a 256-gon, not the disc
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(-2, 2), min_size=6, max_size=6))
+def test_clipped_moments_are_consistent(coords):
+    tri = np.array(coords).reshape(1, 3, 2)
+    if abs(_cross2(tri[0, 1] - tri[0, 0], tri[0, 2] - tri[0, 0])) < 1e-3:
+        return
+    area, m1, m2 = _clip_moments(tri, _unit_poly())
+    tri_area = 0.5 * abs(_cross2(tri[0, 1] - tri[0, 0], tri[0, 2] - tri[0, 0]))
+    assert -1e-12 <= area[0] <= min(tri_area, np.pi) + 1e-12
+    # the barycentrics sum to one: Σ_a m1_a = area and Σ_ab m2_ab = area
+    assert m1[0].sum() == pytest.approx(area[0], abs=1e-12)
+    assert m2[0].sum() == pytest.approx(area[0], abs=1e-12)
+    assert np.allclose(m2[0], m2[0].T)
+
+
+def test_disc_patches_cover_exactly_the_disc_on_any_mesh():
+    centres = np.array([[0.3, 0.1, 0.0], [-0.45, -0.2, 0.0]])
+    radii = np.array([0.21, 0.13])
+    for n in (3, 7, 12):
+        m = box_mesh((2.0, 2.0, 0.5), (n, n, 2), origin=(-1.0, -1.0, 0.0))
+        patches = disc_patches(m, centres, radii)
+        for p, r in zip(patches, radii):
+            assert p.total_area == pytest.approx(np.pi * r * r, rel=1e-12)
+
+
+def test_disc_off_the_base_is_rejected():
+    m = box_mesh((1.0, 1.0, 0.5), (4, 4, 2))
+    with pytest.raises(ValueError, match="electrode 0"):
+        disc_patches(m, np.array([[1.0, 0.5, 0.0]]), np.array([0.2]))
+
+
+def test_chamber_mesh_is_valid_and_electrodes_exact(test_chamber):
+    scene, ch = test_chamber
+    q = ch.quality()
+    assert q.n_inverted == 0
+    assert q.min_dihedral_deg > 5.0
+    a, h = scene.chamber.base_radius, scene.chamber.dome_height
+    assert q.volume == pytest.approx(np.pi * h * (3 * a * a + h * h) / 6, rel=5e-3)
+    for e, r in zip(ch.electrodes, ch.layout.radii):
+        assert e.total_area == pytest.approx(np.pi * r * r, rel=1e-12)
+
+
+def test_chamber_mesh_is_cached(test_chamber):
+    from jointsim.mesh.chamber import cache_dir, chamber_mesh
+
+    scene, ch = test_chamber
+    assert (cache_dir() / f"chamber-{ch.key}.npz").is_file()
+    again = chamber_mesh(scene)
+    assert again.key == ch.key
+    np.testing.assert_array_equal(again.mesh.tets, ch.mesh.tets)
