@@ -137,3 +137,16 @@ def test_chamber_mesh_is_cached(test_chamber):
     again = chamber_mesh(scene)
     assert again.key == ch.key
     np.testing.assert_array_equal(again.mesh.tets, ch.mesh.tets)
+
+
+def test_uniform_refinement_keeps_volume_and_conformity():
+    from jointsim.mesh.tetmesh import refine_uniform
+
+    m = box_mesh((1.0, 1.0, 1.0), (2, 2, 2))
+    r = refine_uniform(m)
+    assert r.n_tets == 8 * m.n_tets
+    assert mesh_quality(r).n_inverted == 0
+    assert r.volumes.sum() == pytest.approx(1.0)
+    # conforming: the boundary of the refined mesh is 4x the faces of the coarse boundary
+    assert len(r.boundary_faces) == 4 * len(m.boundary_faces)
+    np.testing.assert_allclose(np.sort(r.volumes)[-1], np.sort(m.volumes)[-1] / 8)

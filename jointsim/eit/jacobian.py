@@ -5,8 +5,7 @@ For P1 elements and piecewise-constant σ, ∂A/∂σ_k = V_k ∇φ∇φᵀ on e
     ∂(meas·U_s)/∂σ_k = −V_k ∇u_s · ∇v_m,
 
 with u_s the field of injection s and v_m the field of the measurement pattern driven as a
-current (reciprocity). Both are combinations of the lead fields, so per element only the
-L × L matrix D_k = ∇v_i·∇v_j is needed, and J = −P·D·V with P the protocol's pair weights.
+current (reciprocity). Both are combinations of the lead fields: ∇u_s = Σ_l stim[s,l] ∇v_l and ∇v_m = Σ_l meas[s,m,l] ∇v_l.
 Elements are processed in chunks so memory stays bounded (1 M tets fit in a few GB).
 """
 
@@ -41,7 +40,6 @@ def jacobian(
     (n_tets, n_coarse) maps elements onto coarse cells (the sum of fine columns per cell)."""
     fields.model._check_protocol(protocol)
     mesh = fields.model.mesh
-    P = protocol.pair_weights()  # (n_meas, L²)
     n_out = mesh.n_tets if coarse is None else coarse.shape[1]
     J = np.zeros((protocol.n_meas, n_out), dtype=dtype)
     if coarse is not None:
@@ -49,11 +47,18 @@ def jacobian(
         if coarse.shape[0] != mesh.n_tets:
             raise ValueError(f"coarse: expected {mesh.n_tets} rows (one per element), got {coarse.shape[0]}")
     vol = mesh.volumes
+    shared_meas = bool((protocol.meas == protocol.meas[:1]).all())
     for start in range(0, mesh.n_tets, chunk):
         sl = slice(start, min(start + chunk, mesh.n_tets))
-        G = lead_gradients(fields, sl)
-        D = np.einsum("cli,cmi->clm", G, G).reshape(len(G), -1)  # (c, L²)
-        block = -(P @ D.T) * vol[sl]  # (n_meas, c)
+        G = lead_gradients(fields, sl)  # (c, L, 3)
+        gu = np.matmul(protocol.stim, G)  # injection fields (c, S, 3)
+        if shared_meas:
+            gv = np.matmul(protocol.meas[0], G)  # (c, M, 3)
+            block = np.matmul(gu, gv.transpose(0, 2, 1))  # (c, S, M)
+        else:
+            gv = np.matmul(protocol.meas[None], G[:, None])  # (c, S, M, 3)
+            block = np.matmul(gv, gu[..., None])[..., 0]
+        block = block.reshape(len(G), -1).T * -vol[sl]  # (n_meas, c)
         if coarse is None:
             J[:, sl] = block
         else:

@@ -8,7 +8,7 @@ from functools import cached_property
 
 import numpy as np
 
-__all__ = ["TetMesh", "MeshQuality", "mesh_quality"]
+__all__ = ["TetMesh", "MeshQuality", "mesh_quality", "refine_uniform"]
 
 # the six edges of a tetrahedron and, for each, the two faces that meet on it
 _EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
@@ -139,3 +139,25 @@ def _circumradius(p: np.ndarray) -> np.ndarray:
     rhs = 0.5 * np.einsum("mij,mij->mi", a, a)
     c = np.linalg.solve(a, rhs[..., None])[..., 0]
     return np.linalg.norm(c, axis=1)
+
+
+def refine_uniform(mesh: TetMesh) -> TetMesh:
+    """Red refinement: every tetrahedron split into 8 through its edge midpoints (the inner
+    octahedron cut along one diagonal). Boundary faces stay in their planes, so flat electrodes
+    can be re-clipped exactly on the refined mesh."""
+    t = mesh.tets
+    e = t[:, _EDGES].reshape(-1, 2)
+    key = np.sort(e, axis=1)
+    uniq, inv = np.unique(key, axis=0, return_inverse=True)
+    mid = mesh.n_nodes + inv.reshape(-1, 6)  # midpoint node of each of the 6 edges
+    nodes = np.vstack([mesh.nodes, mesh.nodes[uniq].mean(axis=1)])
+    m01, m02, m03, m12, m13, m23 = mid.T
+    v0, v1, v2, v3 = t.T
+    children = np.stack(
+        [
+            [v0, m01, m02, m03], [m01, v1, m12, m13], [m02, m12, v2, m23], [m03, m13, m23, v3],
+            [m01, m02, m03, m13], [m01, m02, m12, m13], [m02, m03, m13, m23], [m02, m12, m13, m23],
+        ],
+        axis=0,
+    )  # (8, 4, n_tets)
+    return TetMesh(nodes, children.transpose(2, 0, 1).reshape(-1, 4)).oriented()
