@@ -25,7 +25,7 @@ def lead_gradients(fields: LeadFields, elements: slice | np.ndarray = slice(None
     mesh = fields.model.mesh
     tets = mesh.tets[elements]
     g = mesh.gradients[elements]  # (c, 4, 3)
-    return np.einsum("cai,cal->cli", g, fields.nodal[tets])
+    return np.matmul(fields.nodal[tets].transpose(0, 2, 1), g)
 
 
 def jacobian(
@@ -50,15 +50,17 @@ def jacobian(
     shared_meas = bool((protocol.meas == protocol.meas[:1]).all())
     for start in range(0, mesh.n_tets, chunk):
         sl = slice(start, min(start + chunk, mesh.n_tets))
-        G = lead_gradients(fields, sl)  # (c, L, 3)
-        gu = np.matmul(protocol.stim, G)  # injection fields (c, S, 3)
+        G = lead_gradients(fields, sl).transpose(2, 1, 0)  # (3, L, c): elements last, contiguous
+        gu = np.matmul(protocol.stim, G)  # injection fields (3, S, c)
         if shared_meas:
-            gv = np.matmul(protocol.meas[0], G)  # (c, M, 3)
-            block = np.matmul(gu, gv.transpose(0, 2, 1))  # (c, S, M)
+            gv = np.matmul(protocol.meas[0], G)[:, None]  # measurement fields (3, 1, M, c)
         else:
-            gv = np.matmul(protocol.meas[None], G[:, None])  # (c, S, M, 3)
-            block = np.matmul(gv, gu[..., None])[..., 0]
-        block = block.reshape(len(G), -1).T * -vol[sl]  # (n_meas, c)
+            gv = np.matmul(protocol.meas[None], G[:, None])  # (3, S, M, c)
+        # a sum of three outer products beats a batched 16×3·3×16 matmul by ~10× in numpy
+        block = gu[0, :, None] * gv[0]
+        block += gu[1, :, None] * gv[1]
+        block += gu[2, :, None] * gv[2]
+        block = block.reshape(protocol.n_meas, -1) * -vol[sl]  # (n_meas, c)
         if coarse is None:
             J[:, sl] = block
         else:
