@@ -199,3 +199,19 @@ def test_solver_backends_agree(box_fields):
         np.testing.assert_allclose(other.transfer, ref.transfer, rtol=1e-9)
     with pytest.raises(ValueError, match="backend"):
         ForwardModel(model.mesh, list(model.assembler.electrodes), 4, model.z, backend="magic").solve(sigma)
+
+
+def test_per_carrier_contact_impedance(box_fields):
+    model, sigma, f = box_fields
+    p = skip_protocol(4, 1, 1e-4)
+    same = np.tile(model.z, (4, 1))
+    np.testing.assert_allclose(model.voltages_by_frequency(sigma, p, same, np.arange(4)), f.voltages(p), rtol=1e-10)
+    z_by_freq = same.copy()
+    z_by_freq[2] *= 5.0  # carrier 2 sees a five times larger contact impedance
+    v = model.voltages_by_frequency(sigma, p, z_by_freq, np.arange(4)).reshape(4, 4)
+    ref = f.voltages(p).reshape(4, 4)
+    np.testing.assert_allclose(v[[0, 1, 3]], ref[[0, 1, 3]], rtol=1e-10)
+    alone = model.solve(sigma, z_by_freq[2]).voltages(p).reshape(4, 4)
+    np.testing.assert_allclose(v[2], alone[2], rtol=1e-10)
+    # a larger contact impedance raises the voltage on the driven electrodes
+    assert v[2, 2] > ref[2, 2]

@@ -1,0 +1,104 @@
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from jointsim.eit.noise import add_noise, gain_drift, noise_std
+from jointsim.io.export import write_mat, write_npz, write_vtu
+from jointsim.mesh.electrodes import plane_face_patch
+from jointsim.mesh.shapes import box_mesh
+
+
+def test_noise_has_the_requested_snr_and_is_seeded():
+    rng = np.random.default_rng(0)
+    v = 0.2 * rng.standard_normal(256)
+    frames = add_noise(np.broadcast_to(v, (400, 256)), 60.0, rng=7, standing=v)
+    std = (frames - v).std()
+    # 102 400 samples: the sample std is within ~0.5 % (3 standard errors) of the true one
+    assert std == pytest.approx(np.abs(v).mean() / 1000, rel=0.01)
+    snr = 20 * np.log10(np.abs(v).mean() / std)
+    assert snr == pytest.approx(60.0, abs=0.1)
+    np.testing.assert_array_equal(add_noise(v, 60, rng=3), add_noise(v, 60, rng=3))
+    assert not np.array_equal(add_noise(v, 60, rng=3), add_noise(v, 60, rng=4))
+
+
+def test_noise_rejects_an_undefined_reference():
+    with pytest.raises(ValueError, match="standing"):
+        noise_std(np.zeros(4), 70)
+
+
+def test_gain_drift_grows_like_a_random_walk():
+    g = gain_drift(n_frames=501, n_meas=2000, drift_per_s=1e-3, frame_rate_hz=50.0, rng=1)
+    assert np.all(g[0] == 1.0)
+    # after 10 s: std(g − 1) = 1e-3 · √10; 2000 channels give the std to ~1.6 % (1σ)
+    assert (g[-1] - 1).std() == pytest.approx(1e-3 * np.sqrt(10), rel=0.06)
+    with pytest.raises(ValueError, match="drift_per_s"):
+        gain_drift(2, 2, -1.0)
+
+
+def test_vtu_npz_and_mat_round_trip(tmp_path):
+    import meshio
+    from scipy.io import loadmat
+
+    m = box_mesh((1.0, 1.0, 1.0), (2, 2, 2))
+    sigma = np.linspace(1, 2, m.n_tets)
+    write_vtu(tmp_path / "a.vtu", m, {"sigma": sigma}, {"u": np.arange(m.n_nodes, dtype=float)})
+    r = meshio.read(tmp_path / "a.vtu")
+    np.testing.assert_allclose(r.points, m.nodes)
+    np.testing.assert_array_equal(r.cells_dict["tetra"], m.tets)
+    np.testing.assert_allclose(r.cell_data["sigma"][0], sigma)
+    write_npz(tmp_path / "b.npz", v=np.arange(3.0))
+    assert np.load(tmp_path / "b.npz")["v"].tolist() == [0, 1, 2]
+    e = [plane_face_patch(m, 2, 1.0), plane_face_patch(m, 2, 0.0)]
+    stim = np.array([[1e-3]])
+    write_mat(tmp_path / "c.mat", m, sigma, np.array([0.5]), stim, np.ones((1, 1, 1)), e, np.array([1e-3, 2e-3]), 1)
+    d = loadmat(tmp_path / "c.mat", squeeze_me=True, struct_as_record=False)
+    f = d["fwd_model"]
+    assert f.elems.min() == 1 and f.elems.shape == (m.n_tets, 4)  # 1-based, as EIDORS
+    assert f.electrode.z_contact == pytest.approx(1e-3)
+    assert f.stimulation.stim_pattern == pytest.approx(1e-3)
+    # nothing half-written or temporary is left behind
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.vtu", "b.npz", "c.mat"]
+
+
+def test_vtu_rejects_misshapen_fields(tmp_path):
+    m = box_mesh((1.0, 1.0, 1.0), (1, 1, 1))
+    with pytest.raises(ValueError, match="sigma"):
+        write_vtu(tmp_path / "a.vtu", m, {"sigma": np.ones(m.n_tets + 1)})
+    assert not list(tmp_path.iterdir())
+
+
+def _jointsim(*args, env=None):
+    return subprocess.run([sys.executable, "-m", "jointsim", *args], capture_output=True, text=True, env=env)
+
+
+def test_cli_help_lists_the_subcommands():
+    r = _jointsim("--help")
+    assert r.returncode == 0
+    assert "forward" in r.stdout and "mesh" in r.stdout
+
+
+def test_cli_rejects_a_bad_scene_with_the_key(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[electrodes]\nring_radius_mm = 25.0\n")
+    r = _jointsim("forward", str(bad), "--out", str(tmp_path / "out"))
+    assert r.returncode == 2
+    assert "electrodes.ring_radius_mm = 25: must be in (3, 19)" in r.stderr
+    assert "Traceback" not in r.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_forward_writes_its_outputs(test_chamber, tmp_path):
+    import os
+
+    out = tmp_path / "fwd"
+    r = _jointsim("forward", "--mesh", "test", "--voxels", "500", "--out", str(out), env=dict(os.environ))
+    assert r.returncode == 0, r.stderr
+    d = np.load(out / "forward.npz")
+    assert d["voltages"].shape == (256,)
+    assert d["jacobian_voxels"].shape[0] == 256
+    meta = json.loads((out / "forward.json").read_text())
+    assert meta["scene"]["electrodes"]["count"] == 16
+    assert (out / "chamber.vtu").is_file() and (out / "forward_eidors.mat").is_file()
