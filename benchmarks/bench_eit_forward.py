@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SIZES = {
     # (max_edge_mm, electrode_refinement, uniform refinements)
     "100k": (2.0, 10.0, 0),
-    "350k": (1.05, 10.0, 0),
+    "350k": (1.1, 10.0, 0),
     "1M": (1.7, 6.0, 1),
 }
 EIDORS_OCTAVE = {"350k": {"forward_s": 4.8, "jacobian_s": 14.9}, "1M": {"forward_s": 24.0, "jacobian_s": 63.0, "mem_gb": 4.8}}

@@ -169,14 +169,19 @@ def test_paper_chamber_standing_voltages(chamber_fields):
 def test_sixteen_fold_symmetry_of_the_chamber(chamber_fields):
     scene, ch, model, f = chamber_fields
     v = f.voltages(skip_protocol(16, 8, scene.drive.current)).reshape(16, 16)
-    # injection i seen from electrode i: rotate every frame back to injection 0
+    # injection i seen from electrode i + j: rotate every frame back to injection 0
     aligned = np.array([np.roll(v[i], -i) for i in range(16)])
-    spread = aligned.std(axis=0).max() / np.abs(v).max()
-    # an unstructured mesh is not rotationally symmetric: the coarse test mesh (15 k tets, h = 3
-    # mm, 0.75 mm at the electrodes) breaks the symmetry by its discretisation error, largest on
-    # the driven electrode (measured 2.6 % of its voltage; the refinement test shows changes of
-    # that order per halving of h at this resolution)
-    assert spread < 0.05
+    spread = aligned.std(axis=0)
+    driven = [0, 9]
+    passive = [j for j in range(16) if j not in driven]
+    # An unstructured mesh is not rotationally symmetric, so the 16 rotated copies differ by
+    # their discretisation error. On the passive electrodes (the bulk field) it is small:
+    # measured 0.25-0.7 % of their mean |V| over repeated meshings of the coarse test mesh.
+    assert spread[passive].max() < 0.02 * np.abs(aligned[:, passive]).mean()
+    # On the driven electrodes the contact region dominates and the coarse mesh (0.75 mm at the
+    # electrodes) is far from converged: refining the electrodes x4 -> x6 moves their voltage
+    # by 5.5 %; the spread measured 3-4.5 %.
+    assert np.all(spread[driven] < 0.08 * np.abs(aligned[:, driven].mean(axis=0)))
 
 
 def test_bad_inputs_raise_clear_errors(box_fields):

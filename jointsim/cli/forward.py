@@ -50,7 +50,14 @@ def run(args: argparse.Namespace) -> int:
     sigma = np.full(ch.mesh.n_tets, scene.saline.conductivity)
     with stage("factorise + 16 lead fields", t):
         fields = model.solve(sigma)
-    v = fields.voltages(protocol)
+    zf = scene.electrodes.contact_impedance_by_freq
+    if zf is None:
+        v = fields.voltages(protocol)
+    else:
+        # FDM: injection s runs on carrier s, each carrier with its own contact impedances
+        z_by_freq = np.column_stack([np.asarray(zf), np.full(len(zf), scene.electrodes.ground_contact_impedance)])
+        with stage(f"per-carrier contact impedance ({len(zf)} factorisations)", t):
+            v = model.voltages_by_frequency(sigma, protocol, z_by_freq, np.arange(protocol.n_stim) % len(zf))
     noisy = add_noise(v, scene.noise.snr_db, scene.noise.seed)
     std = noise_std(v, scene.noise.snr_db)
     print(

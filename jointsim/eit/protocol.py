@@ -55,12 +55,6 @@ class Protocol:
         """Measurements from electrode voltages (n_stim, n_el) → (n_meas,), injection-major."""
         return np.einsum("sme,se->sm", self.meas, electrode_voltages).ravel()
 
-    def pair_weights(self) -> np.ndarray:
-        """P (n_meas, n_el·n_el) with P[(s,m), (i,j)] = stim[s,i]·meas[s,m,j]: a measurement is
-        Σ_ij P·Z_ij for the transfer impedance matrix Z, and its Jacobian Σ_ij P·(−∇v_i·∇v_j)."""
-        p = np.einsum("si,smj->smij", self.stim, self.meas)
-        return p.reshape(self.n_meas, self.n_el * self.n_el)
-
 
 def skip_pairs(n_el: int, skip: int) -> np.ndarray:
     """(n_el, 2) source/sink electrodes: injection i drives i (+) against i + skip + 1 (−)."""

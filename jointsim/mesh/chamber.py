@@ -125,6 +125,8 @@ def _tetrahedralise(surface: trimesh.Trimesh, layout: ElectrodeLayout, spec: Mes
         np.asarray(surface.faces, np.int32),
         edge_length_abs=spec.max_edge,
         epsilon=spec.epsilon_rel,
+        stop_energy=spec.stop_energy,
+        num_opt_iter=spec.max_opt_iter,
         num_threads=num_threads,
         bg_vertices=bg_p,
         bg_tets=bg_t,
@@ -149,7 +151,7 @@ def _hash(surface: trimesh.Trimesh, layout: ElectrodeLayout, spec: MeshSpec) -> 
     h.update(_MESHER_VERSION.encode())
     for a in (surface.vertices, surface.faces, layout.centres, layout.radii):
         h.update(np.ascontiguousarray(a, dtype=np.float64).tobytes())
-    h.update(repr((spec.max_edge, spec.electrode_refinement, spec.refinement_zone, spec.grading, spec.epsilon_rel)).encode())
+    h.update(repr((spec.max_edge, spec.electrode_refinement, spec.refinement_zone, spec.grading, spec.epsilon_rel, spec.stop_energy, spec.max_opt_iter)).encode())
     return h.hexdigest()[:20]
 
 
