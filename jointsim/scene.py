@@ -232,12 +232,8 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
 
     t = _Table(data.get("chamber", {}), "chamber")
     base_r = t.number("base_radius_mm", 20.0, 1.0, 500.0)
-    height = t.number("dome_height_mm", 10.0, 0.5, base_r * 2 if base_r < 250 else 500.0)
-    if height > base_r:
-        raise SceneError(
-            f"chamber.dome_height_mm = {height:g}: must be in [0.5, base_radius_mm = {base_r:g}] "
-            "(a spherical cap taller than its base radius is more than a hemisphere)"
-        )
+    # a spherical cap taller than its base radius would be more than a hemisphere
+    height = t.number("dome_height_mm", 10.0, 0.5, base_r)
     thick = t.number("membrane_thickness_mm", 2.0, 0.05, min(height, 50.0), lo_open=False)
     t.finish()
     chamber = Chamber(base_r * MM, height * MM, thick * MM)

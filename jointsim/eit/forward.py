@@ -103,11 +103,11 @@ class ForwardModel:
         z = self.z if z is None else np.asarray(z, float)
         sigma = np.broadcast_to(np.asarray(sigma, float), (self.mesh.n_tets,))
         A = self.assembler.assemble(sigma, z)
-        solve = factorize(A, self.backend)
         n, L = self.mesh.n_nodes, self.n_driven
         rhs = np.zeros((n + L, L))
         rhs[n + np.arange(L), np.arange(L)] = 1.0
-        x = solve(rhs)
+        with factorize(A, self.backend) as solve:
+            x = solve(rhs)
         return LeadFields(self, np.array(sigma), z, x[:n], x[n:])
 
     def voltages(self, sigma: np.ndarray | float, protocol: Protocol) -> np.ndarray:

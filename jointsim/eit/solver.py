@@ -8,13 +8,14 @@ right-hand sides.
 
 from __future__ import annotations
 
+import weakref
 from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-__all__ = ["factorize", "available_backends", "default_backend"]
+__all__ = ["Factorization", "factorize", "available_backends", "default_backend"]
 
 
 def available_backends() -> list[str]:
@@ -39,8 +40,34 @@ def default_backend() -> str:
     return "pardiso" if "pardiso" in b else "cholmod" if "cholmod" in b else "superlu"
 
 
-def factorize(A: sp.spmatrix, backend: str = "auto") -> Callable[[np.ndarray], np.ndarray]:
-    """Factorise the SPD matrix A once; return solve(B) for B (n,) or (n, k)."""
+class Factorization:
+    """A factorised matrix: ``fac(B)`` solves A X = B for B (n,) or (n, k). ``free()`` releases
+    the factor now; it is also released when the object is garbage-collected (PARDISO keeps
+    its factor inside MKL, out of Python's sight, and would leak it otherwise)."""
+
+    def __init__(self, solve: Callable[[np.ndarray], np.ndarray], release: Callable[[], None] | None = None):
+        self._solve = solve
+        self._finalizer = weakref.finalize(self, release) if release is not None else None
+
+    def __call__(self, b: np.ndarray) -> np.ndarray:
+        if self._solve is None:
+            raise RuntimeError("factorisation already freed")
+        return self._solve(b)
+
+    def free(self) -> None:
+        self._solve = None
+        if self._finalizer is not None:
+            self._finalizer()
+
+    def __enter__(self) -> "Factorization":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.free()
+
+
+def factorize(A: sp.spmatrix, backend: str = "auto") -> Factorization:
+    """Factorise the SPD matrix A once, for many solves."""
     if backend == "auto":
         backend = default_backend()
     A = sp.csc_matrix(A)
@@ -52,12 +79,12 @@ def factorize(A: sp.spmatrix, backend: str = "auto") -> Callable[[np.ndarray], n
             diag_pivot_thresh=0.0,
             options={"SymmetricMode": True},
         )
-        return lambda b: lu.solve(np.asarray(b, float))
+        return Factorization(lambda b: lu.solve(np.asarray(b, float)))
     if backend == "cholmod":
         from sksparse.cholmod import cholesky
 
         f = cholesky(A)
-        return lambda b: f(np.asarray(b, float))
+        return Factorization(lambda b: f(np.asarray(b, float)))
     if backend == "pardiso":
         import pypardiso
 
@@ -71,5 +98,5 @@ def factorize(A: sp.spmatrix, backend: str = "auto") -> Callable[[np.ndarray], n
             x = solver.solve(Au, np.ascontiguousarray(b, dtype=float))
             return x.reshape(np.shape(b))
 
-        return solve
+        return Factorization(solve, lambda: solver.free_memory(everything=True))
     raise ValueError(f"backend = {backend!r}: allowed values are {available_backends()}")
