@@ -50,3 +50,50 @@ def element_voxel_map(mesh: TetMesh, grid: VoxelGrid) -> sp.csr_matrix:
     J_coarse = J·C is the exact Jacobian for σ_k = σ_cell(k), and σ_fine = C·σ_coarse."""
     cell = grid.cell_of(mesh.centroids)
     return sp.csr_matrix((np.ones(mesh.n_tets), (np.arange(mesh.n_tets), cell)), shape=(mesh.n_tets, grid.n_cells))
+
+
+@dataclass(frozen=True, eq=False)
+class ChamberGrid:
+    """The voxels of ``grid`` that hold saline, for reconstruction.
+
+    ``active`` (n,) flat indices into the full grid; ``volume`` (n,) saline volume in each
+    (a cell cut by the chamber wall holds less than a full voxel: volume fraction =
+    volume / voxel volume); ``centroid`` (n, 3) the centroid of the saline in each cell;
+    ``C`` (n_tets, n) the exact element → cell map (J_cells = J · C)."""
+
+    grid: VoxelGrid
+    active: np.ndarray
+    volume: np.ndarray
+    centroid: np.ndarray
+    C: sp.csr_matrix
+
+    @classmethod
+    def over(cls, mesh: TetMesh, n_cells: int = 7000, grid: VoxelGrid | None = None) -> "ChamberGrid":
+        """Cells of ``grid`` (default: ~``n_cells`` cubic voxels over the mesh's bounding box)
+        that contain element centroids of ``mesh``."""
+        grid = VoxelGrid.covering(mesh, n_cells) if grid is None else grid
+        cell = grid.cell_of(mesh.centroids)
+        active, local = np.unique(cell, return_inverse=True)
+        vol = mesh.volumes
+        volume = np.bincount(local, weights=vol)
+        centroid = np.stack([np.bincount(local, weights=vol * mesh.centroids[:, i]) for i in range(3)], 1) / volume[:, None]
+        C = sp.csr_matrix((np.ones(mesh.n_tets), (np.arange(mesh.n_tets), local)), shape=(mesh.n_tets, len(active)))
+        return cls(grid, active, volume, centroid, C)
+
+    @property
+    def n_cells(self) -> int:
+        return len(self.active)
+
+    @property
+    def voxel_volume(self) -> float:
+        return float(np.prod(self.grid.spacing))
+
+    @property
+    def volume_fraction(self) -> np.ndarray:
+        return self.volume / self.voxel_volume
+
+    def to_full(self, values: np.ndarray, fill: float = np.nan) -> np.ndarray:
+        """Values on the active cells scattered into the full (nx, ny, nz) grid."""
+        out = np.full(self.grid.n_cells, fill, dtype=float)
+        out[self.active] = values
+        return out.reshape(self.grid.shape)

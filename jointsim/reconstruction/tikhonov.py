@@ -1,0 +1,175 @@
+"""Zeroth-order Tikhonov difference imaging with the regularisation chosen from one SVD.
+
+    x_λ = argmin ‖J x − δv‖² + λ²‖x‖² = V diag(s / (s² + λ²)) Uᵀ δv,   J = U S Vᵀ.
+
+The hat matrix H_λ = U diag(f) Uᵀ with filter factors f = s²/(s² + λ²) gives every selection
+score for a whole λ grid without refitting:
+
+- leave-one-out CV: e_i = r_i / (1 − H_ii);
+- k-fold CV: the held-out residuals of fold F are (I − H_FF)⁻¹ r_F (exact for ridge regression);
+- GCV: n‖r‖² / (n − tr H)²;
+- L-curve: the corner (maximum curvature) of (log ‖r‖, log ‖x‖).
+
+Once λ is fixed, the reconstruction matrix R (n_cells, n_meas) is stored and one frame's image
+costs a matrix–vector product.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["SVD", "LambdaChoice", "Reconstructor", "choose_lambda", "lambda_grid", "tikhonov_solve"]
+
+METHODS = ("kfold", "loo", "gcv", "lcurve")
+
+
+@dataclass(frozen=True, eq=False)
+class SVD:
+    """Thin SVD of the Jacobian: ``U`` (n_meas, r), ``s`` (r,), ``Vt`` (r, n_cells)."""
+
+    U: np.ndarray
+    s: np.ndarray
+    Vt: np.ndarray
+
+    @classmethod
+    def of(cls, J: np.ndarray) -> "SVD":
+        J = np.asarray(J, float)
+        if J.ndim != 2 or not np.isfinite(J).all():
+            raise ValueError("J: expected a finite 2-D Jacobian (n_meas, n_cells)")
+        U, s, Vt = np.linalg.svd(J, full_matrices=False)
+        return cls(U, s, Vt)
+
+    def filters(self, lam: np.ndarray) -> np.ndarray:
+        """Filter factors f = s²/(s² + λ²), shape (n_lambda, r)."""
+        s2 = self.s**2
+        return s2 / (s2 + np.asarray(lam, float)[:, None] ** 2)
+
+    def reconstruction_matrix(self, lam: float) -> np.ndarray:
+        """R = V diag(s/(s² + λ²)) Uᵀ, (n_cells, n_meas)."""
+        g = self.s / (self.s**2 + lam**2)
+        return (self.Vt.T * g) @ self.U.T
+
+
+def lambda_grid(svd: SVD, n: int = 600, decades_below: float = 6.0, decades_above: float = 1.0) -> np.ndarray:
+    """Log-spaced λ from s_max·10^-decades_below to s_max·10^decades_above."""
+    smax = float(svd.s[0])
+    return np.logspace(np.log10(smax) - decades_below, np.log10(smax) + decades_above, n)
+
+
+@dataclass(frozen=True)
+class LambdaChoice:
+    """The chosen ``lam``, the ``method``, the ``grid`` and each λ's ``score`` (lower is better;
+    for the L-curve, minus the curvature)."""
+
+    lam: float
+    method: str
+    grid: np.ndarray
+    score: np.ndarray
+
+    def plot(self, ax=None):
+        import matplotlib.pyplot as plt
+
+        ax = ax or plt.gca()
+        ax.loglog(self.grid, self.score if self.method != "lcurve" else -self.score + 1e-300)
+        ax.axvline(self.lam, color="k", ls="--", lw=0.8)
+        ax.set_xlabel("λ")
+        ax.set_ylabel({"kfold": "k-fold CV error", "loo": "LOO CV error", "gcv": "GCV", "lcurve": "curvature"}[self.method])
+        return ax
+
+
+def choose_lambda(
+    svd: SVD,
+    dv: np.ndarray,
+    method: str = "kfold",
+    grid: np.ndarray | None = None,
+    k: int = 10,
+    seed: int = 0,
+) -> LambdaChoice:
+    """Select λ for the data ``dv`` (n_meas,), or several frames (n_frames, n_meas) whose
+    scores are summed, by ``method`` in ("kfold", "loo", "gcv", "lcurve")."""
+    if method not in METHODS:
+        raise ValueError(f"method = {method!r}: allowed values are {METHODS}")
+    grid = lambda_grid(svd) if grid is None else np.asarray(grid, float)
+    if grid.ndim != 1 or len(grid) < 2 or not (np.isfinite(grid).all() and (grid > 0).all()):
+        raise ValueError("grid: λ values must be a 1-D array of at least 2 finite values > 0")
+    dv = np.atleast_2d(np.asarray(dv, float))
+    n = svd.U.shape[0]
+    if dv.shape[1] != n:
+        raise ValueError(f"dv: expected {n} measurements per frame, got {dv.shape[1]}")
+    if not np.any(dv):
+        raise ValueError("dv: all-zero voltage change; there is nothing to reconstruct")
+    F = svd.filters(grid)  # (L, r)
+    c = dv @ svd.U  # (frames, r): data in the singular basis
+    outside = dv - c @ svd.U.T  # the part of dv no λ can fit
+    # residuals r = dv − H dv for every λ and frame: (L, frames, n)
+    r = np.einsum("fr,lr,nr->lfn", c, 1 - F, svd.U) + outside[None]
+    if method == "loo":
+        h = F @ (svd.U**2).T  # (L, n) diagonal of H
+        score = ((r / (1 - h)[:, None, :]) ** 2).sum(axis=(1, 2))
+    elif method == "gcv":
+        tr = F.sum(axis=1)
+        score = n * (r**2).sum(axis=(1, 2)) / (n - tr) ** 2
+    elif method == "kfold":
+        if not 2 <= k <= n:
+            raise ValueError(f"k = {k}: must be in [2, {n}]")
+        folds = np.array_split(np.random.default_rng(seed).permutation(n), k)
+        score = np.zeros(len(grid))
+        for idx in folds:
+            Uf = svd.U[idx]  # (m, r)
+            Hff = np.einsum("mr,lr,pr->lmp", Uf, F, Uf)
+            A = np.eye(len(idx))[None] - Hff
+            e = np.linalg.solve(A, np.swapaxes(r[:, :, idx], 1, 2))  # (L, m, frames)
+            score += (e**2).sum(axis=(1, 2))
+    else:  # lcurve
+        rn = np.log(np.sqrt((r**2).sum(axis=(1, 2))))
+        g = svd.s / (svd.s**2 + grid[:, None] ** 2)
+        xn = np.log(np.sqrt(((c[None] * g[:, None, :]) ** 2).sum(axis=(1, 2))))
+        t = np.log(grid)
+        d1r, d1x = np.gradient(rn, t), np.gradient(xn, t)
+        d2r, d2x = np.gradient(d1r, t), np.gradient(d1x, t)
+        kappa = (d1r * d2x - d2r * d1x) / (d1r**2 + d1x**2) ** 1.5
+        score = -kappa
+    i = int(np.argmin(score))
+    return LambdaChoice(float(grid[i]), method, grid, score)
+
+
+def tikhonov_solve(J: np.ndarray, dv: np.ndarray, lam: float) -> np.ndarray:
+    """x = (JᵀJ + λ²I)⁻¹ Jᵀ dv through the SVD (reference path for one-off solves)."""
+    return SVD.of(J).reconstruction_matrix(lam) @ dv
+
+
+@dataclass(frozen=True, eq=False)
+class Reconstructor:
+    """A fixed reconstruction: ``R`` (n_cells, n_meas) for the chosen ``choice``.
+
+    ``image(dv)`` maps (n_meas,) or (n_frames, n_meas) voltage changes to conductivity
+    changes per cell in S/m."""
+
+    R: np.ndarray
+    choice: LambdaChoice
+
+    @classmethod
+    def build(cls, J: np.ndarray, dv_for_lambda: np.ndarray, method: str = "kfold", **kw) -> "Reconstructor":
+        svd = SVD.of(J)
+        choice = choose_lambda(svd, dv_for_lambda, method, **kw)
+        return cls(svd.reconstruction_matrix(choice.lam), choice)
+
+    @property
+    def lam(self) -> float:
+        return self.choice.lam
+
+    def image(self, dv: np.ndarray) -> np.ndarray:
+        dv = np.asarray(dv, float)
+        return dv @ self.R.T if dv.ndim == 2 else self.R @ dv
+
+    def noise_std(self, sigma_noise: float | np.ndarray) -> np.ndarray:
+        """Per-cell standard deviation of the image under white noise of std ``sigma_noise``
+        (scalar, or per measurement (n_meas,)): sqrt(Σ_j R_ij² σ_j²)."""
+        s2 = np.broadcast_to(np.asarray(sigma_noise, float) ** 2, (self.R.shape[1],))
+        return np.sqrt((self.R**2) @ s2)
+
+    def normalised_image(self, dv: np.ndarray, sigma_noise: float | np.ndarray) -> np.ndarray:
+        """The image divided by its per-cell noise standard deviation."""
+        return self.image(dv) / self.noise_std(sigma_noise)
