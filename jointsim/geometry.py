@@ -15,7 +15,7 @@ import trimesh
 
 from .scene import Scene
 
-__all__ = ["DomeSurface", "ElectrodeLayout", "spherical_cap", "chamber_surface", "chamber_from_scene", "electrode_layout"]
+__all__ = ["DomeSurface", "ElectrodeLayout", "spherical_cap", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
 
 
 @dataclass(frozen=True)
@@ -116,6 +116,15 @@ def chamber_surface(dome: DomeSurface) -> trimesh.Trimesh:
     return surf
 
 
-def chamber_from_scene(scene: Scene, n_rim: int = 96) -> trimesh.Trimesh:
+DOME_RIM_VERTICES = 96  # a multiple of 16: a 22.5° rotation maps the dome triangulation onto itself
+
+
+def dome_from_scene(scene: Scene, n_rim: int = DOME_RIM_VERTICES) -> DomeSurface:
+    """The undeformed inner dome surface of ``scene``."""
     c = scene.chamber
-    return chamber_surface(spherical_cap(c.base_radius, c.dome_height, n_rim))
+    return spherical_cap(c.base_radius, c.dome_height, n_rim)
+
+
+def chamber_from_scene(scene: Scene, n_rim: int = DOME_RIM_VERTICES) -> trimesh.Trimesh:
+    """The undeformed chamber surface of ``scene``."""
+    return chamber_surface(dome_from_scene(scene, n_rim))

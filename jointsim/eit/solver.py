@@ -1,9 +1,11 @@
 """Sparse direct factorisation of the SPD CEM system, factorised once and solved for many
 right-hand sides.
 
-"auto" picks PARDISO (pypardiso, a dependency on x86-64) when it imports, else CHOLMOD
-(scikit-sparse, optional), else scipy's SuperLU. SuperLU is always there but is ~8x slower at
-350 k tets and ~25x at 1 M (fill-in of its LU on 3-D meshes); see results/eit_forward_benchmark.md.
+"auto" picks by size, from results/eit_forward_benchmark.md (2-core machine): scipy's SuperLU
+for systems below 40 k unknowns (it beat PARDISO 0.18 s to 0.48 s at 21 k nodes, where MKL's
+set-up dominates), PARDISO (pypardiso) above (0.85 s against SuperLU's 1.20 s at 68 k nodes;
+SuperLU's fill-in grows fastest on 3-D meshes). CHOLMOD (scikit-sparse, optional, needs
+SuiteSparse from the system) is used when asked for.
 """
 
 from __future__ import annotations
@@ -35,9 +37,14 @@ def available_backends() -> list[str]:
     return out
 
 
-def default_backend() -> str:
-    b = available_backends()
-    return "pardiso" if "pardiso" in b else "cholmod" if "cholmod" in b else "superlu"
+SUPERLU_MAX_UNKNOWNS = 40_000
+
+
+def default_backend(n_unknowns: int | None = None) -> str:
+    """The backend "auto" resolves to for a system of ``n_unknowns`` (large when not given)."""
+    if n_unknowns is not None and n_unknowns < SUPERLU_MAX_UNKNOWNS:
+        return "superlu"
+    return "pardiso" if "pardiso" in available_backends() else "superlu"
 
 
 class Factorization:
@@ -69,7 +76,7 @@ class Factorization:
 def factorize(A: sp.spmatrix, backend: str = "auto") -> Factorization:
     """Factorise the SPD matrix A once, for many solves."""
     if backend == "auto":
-        backend = default_backend()
+        backend = default_backend(A.shape[0])
     A = sp.csc_matrix(A)
     if backend == "superlu":
         # a symmetric fill-reducing ordering and no pivoting: A is SPD, so LU = LDLᵀ in effect

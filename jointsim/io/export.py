@@ -14,7 +14,7 @@ import numpy as np
 
 from ..mesh.tetmesh import TetMesh
 
-__all__ = ["atomic_path", "write_vtu", "write_npz", "write_mat"]
+__all__ = ["atomic_path", "write_vtu", "write_npz", "write_mat", "write_voxels_vtu"]
 
 
 @contextmanager
@@ -112,4 +112,30 @@ def write_mat(
     path = Path(path)
     with atomic_path(path) as tmp:
         savemat(tmp, out, do_compression=True, oned_as="column")
+    return path
+
+
+def write_voxels_vtu(path: str | Path, grid, cell_data: dict[str, np.ndarray]) -> Path:
+    """The active cells of a :class:`~jointsim.reconstruction.grid.ChamberGrid` as hexahedra
+    with per-cell fields (n_cells,), for ParaView."""
+    import meshio
+
+    g = grid.grid
+    nx, ny, nz = g.shape
+    axes = [g.origin[i] + g.spacing[i] * np.arange(g.shape[i] + 1) for i in range(3)]
+    X, Y, Z = np.meshgrid(*axes, indexing="ij")
+    points = np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
+    i, j, k = np.unravel_index(grid.active, g.shape)
+    node = lambda a, b, c: np.ravel_multi_index((a, b, c), (nx + 1, ny + 1, nz + 1))  # noqa: E731
+    hexes = np.column_stack(
+        [node(i, j, k), node(i + 1, j, k), node(i + 1, j + 1, k), node(i, j + 1, k),
+         node(i, j, k + 1), node(i + 1, j, k + 1), node(i + 1, j + 1, k + 1), node(i, j + 1, k + 1)]
+    )
+    for name, a in cell_data.items():
+        if np.shape(a)[0] != grid.n_cells:
+            raise ValueError(f"cell_data[{name!r}]: expected {grid.n_cells} values, got {np.shape(a)[0]}")
+    m = meshio.Mesh(points, [("hexahedron", hexes)], cell_data={k: [np.asarray(v)] for k, v in cell_data.items()})
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        m.write(tmp, file_format="vtu")
     return path
