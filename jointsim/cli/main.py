@@ -6,9 +6,9 @@ import argparse
 import sys
 
 from ..scene import SceneError
-from . import forward, mesh
+from . import forward, mesh, protocol_study
 
-SUBCOMMANDS = {"forward": forward, "mesh": mesh}
+SUBCOMMANDS = {"forward": forward, "mesh": mesh, "protocol-study": protocol_study}
 
 
 def build_parser() -> argparse.ArgumentParser:

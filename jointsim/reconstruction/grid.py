@@ -22,11 +22,14 @@ class VoxelGrid:
     shape: tuple[int, int, int]
 
     @classmethod
-    def covering(cls, mesh: TetMesh, n_cells: int = 7000) -> "VoxelGrid":
-        """Cubic voxels over the mesh's bounding box, about ``n_cells`` of them in the box."""
+    def covering(cls, mesh: TetMesh, n_cells: int = 7000, volume: float | None = None) -> "VoxelGrid":
+        """Cubic voxels over the mesh's bounding box, sized so that ``volume`` (default: the
+        box's) holds about ``n_cells`` of them."""
+        if n_cells < 1:
+            raise ValueError(f"n_cells = {n_cells}: must be >= 1")
         lo, hi = mesh.nodes.min(axis=0), mesh.nodes.max(axis=0)
         ext = hi - lo
-        h = float(np.cbrt(np.prod(ext) / n_cells))
+        h = float(np.cbrt((np.prod(ext) if volume is None else volume) / n_cells))
         shape = tuple(int(max(1, np.ceil(e / h - 1e-9))) for e in ext)
         return cls(lo.copy(), np.full(3, h), shape)
 
@@ -69,9 +72,9 @@ class ChamberGrid:
 
     @classmethod
     def over(cls, mesh: TetMesh, n_cells: int = 7000, grid: VoxelGrid | None = None) -> "ChamberGrid":
-        """Cells of ``grid`` (default: ~``n_cells`` cubic voxels over the mesh's bounding box)
-        that contain element centroids of ``mesh``."""
-        grid = VoxelGrid.covering(mesh, n_cells) if grid is None else grid
+        """Cells of ``grid`` that contain element centroids of ``mesh``; by default cubic
+        voxels sized so that about ``n_cells`` of them fill the chamber (the paper's 7 k)."""
+        grid = VoxelGrid.covering(mesh, n_cells, volume=float(mesh.volumes.sum())) if grid is None else grid
         cell = grid.cell_of(mesh.centroids)
         active, local = np.unique(cell, return_inverse=True)
         vol = mesh.volumes
