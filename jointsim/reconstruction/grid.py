@@ -48,6 +48,18 @@ class VoxelGrid:
         return self.origin + (idx + 0.5) * self.spacing
 
 
+def _child_barycentres(levels: int) -> np.ndarray:
+    """Barycentric coordinates (8**levels, 4) of the centroids of the children of ``levels``
+    uniform (red) refinements of a tetrahedron: equal-volume sample points."""
+    from ..mesh.tetmesh import refine_uniform
+
+    ref = TetMesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]), np.array([[0, 1, 2, 3]]))
+    for _ in range(levels):
+        ref = refine_uniform(ref)
+    c = ref.centroids
+    return np.column_stack([1 - c.sum(axis=1), c])
+
+
 def element_voxel_map(mesh: TetMesh, grid: VoxelGrid) -> sp.csr_matrix:
     """C (n_tets, n_cells), C[k, c] = 1 when element k's centroid lies in cell c. Then
     J_coarse = J·C is the exact Jacobian for σ_k = σ_cell(k), and σ_fine = C·σ_coarse."""
@@ -71,16 +83,33 @@ class ChamberGrid:
     C: sp.csr_matrix
 
     @classmethod
-    def over(cls, mesh: TetMesh, n_cells: int = 7000, grid: VoxelGrid | None = None) -> "ChamberGrid":
-        """Cells of ``grid`` that contain element centroids of ``mesh``; by default cubic
-        voxels sized so that about ``n_cells`` of them fill the chamber (the paper's 7 k)."""
+    def over(cls, mesh: TetMesh, n_cells: int = 7000, grid: VoxelGrid | None = None, levels: int = 2) -> "ChamberGrid":
+        """The cells of ``grid`` that hold saline; by default cubic voxels sized so that about
+        ``n_cells`` of them fill the chamber (the paper's 7 k).
+
+        Elements larger than a voxel straddle several, so each element is split among the
+        cells by volume: it is subdivided ``levels`` times into 8 equal-volume children
+        (64 for levels = 2) and each child goes to the cell holding its centroid. C[k, c] is
+        then the fraction of element k in cell c (rows sum to 1), σ_fine = C σ_cells, and
+        J_cells = J C is the exact Jacobian of that parametrisation."""
         grid = VoxelGrid.covering(mesh, n_cells, volume=float(mesh.volumes.sum())) if grid is None else grid
-        cell = grid.cell_of(mesh.centroids)
-        active, local = np.unique(cell, return_inverse=True)
+        bary = _child_barycentres(levels)  # (s, 4)
+        rows, cols = [], []
+        chunk = max(1, 2_000_000 // len(bary))
+        for start in range(0, mesh.n_tets, chunk):
+            t = mesh.tets[start : start + chunk]
+            pts = np.einsum("sa,kai->ksi", bary, mesh.nodes[t])
+            cols.append(grid.cell_of(pts.reshape(-1, 3)))
+            rows.append(np.repeat(np.arange(start, start + len(t)), len(bary)))
+        rows, cols = np.concatenate(rows), np.concatenate(cols)
+        active, local = np.unique(cols, return_inverse=True)
+        C = sp.csr_matrix(
+            (np.full(len(rows), 1.0 / len(bary)), (rows, local.ravel())), shape=(mesh.n_tets, len(active))
+        )
+        C.sum_duplicates()
         vol = mesh.volumes
-        volume = np.bincount(local, weights=vol)
-        centroid = np.stack([np.bincount(local, weights=vol * mesh.centroids[:, i]) for i in range(3)], 1) / volume[:, None]
-        C = sp.csr_matrix((np.ones(mesh.n_tets), (np.arange(mesh.n_tets), local)), shape=(mesh.n_tets, len(active)))
+        volume = C.T @ vol
+        centroid = (C.T @ (vol[:, None] * mesh.centroids)) / volume[:, None]
         return cls(grid, active, volume, centroid, C)
 
     @property

@@ -42,7 +42,8 @@ def write_study(result: StudyResult, out: Path, command: str) -> list[Path]:
         "mirror_pairs_rel_diff": result.mirror_pairs,
         "rows": rows,
         "per_position": {
-            str(s): [m.as_dict() for m in result.metrics[s]] for s in result.config.skips
+            str(s): {"normalised": [m.as_dict() for m in result.metrics[s]], "raw": [m.as_dict() for m in result.metrics_raw[s]]}
+            for s in result.config.skips
         },
     }
     with atomic_path(out / "study.json") as tmp:
@@ -76,17 +77,24 @@ def _markdown(path: Path, result: StudyResult, rows: list[dict], command: str) -
         f"Noise {c.snr_db} dB re mean standing |V|; λ by {c.lambda_method} CV over a 600-value log grid; "
         f"perturbation threshold {c.threshold:.0%}.",
         "",
-        "| skip | RMS δV µV | δV SNR dB | J_sens | CoM err mean mm | CoM err max mm | Σσ | d_eq mm | λ |"
+        "| skip | RMS δV µV | δV SNR dB | J_sens | CoM err mean mm | CoM err max mm | XY err mm | Z bias mm | raw-image CoM err mm | Σσ | d_eq mm | λ |"
         + "".join(f" floor {k} dB |" for k in result.floor),
-        "|---|---|---|---|---|---|---|---|---|" + "---|" * len(result.floor),
+        "|---|---|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(result.floor),
     ]
     for r in rows:
         lines.append(
             f"| {r['skip']} | {r['rms_dV_uV']:.1f} | {r['snr_dV_dB']:.1f} | {r['J_sens']:.3g} | {r['com_error_mm_mean']:.2f} | "
-            f"{r['com_error_mm_max']:.2f} | {r['sum_sigma']:.3g} | {r['diameter_eq_mm']:.1f} | {r['lambda']:.3g} |"
+            f"{r['com_error_mm_max']:.2f} | {r['com_error_xy_mm_mean']:.2f} | {r['com_dz_mm_mean']:+.2f} | {r['com_error_raw_mm_mean']:.2f} | "
+            f"{r['sum_sigma']:.3g} | {r['diameter_eq_mm']:.1f} | {r['lambda']:.3g} |"
             + "".join(f" {r[f'floor_{k}_dB']:.1f} |" for k in result.floor)
         )
     lines += [
+        "",
+        "CoM errors are 3-D distances between the CoM of the perturbation in the noise-normalised image",
+        "(Δσ divided by each cell's noise std) and the centroid of the displaced saline; XY err is the",
+        "in-plane part and Z bias the mean signed vertical offset. The raw Δσ image peaks at the",
+        "electrodes, where 0th-order Tikhonov puts the most sensitive cells (its CoM error column); Σσ",
+        "is taken on the raw image, in S/m·voxel.",
         "",
         "Mesh-noise floor: 20·log10(mean standing |V| / RMS of the voltage change caused by meshing",
         "alone); `remesh` = the same chamber meshed again, `rotate` = meshed with the electrode ring",
