@@ -91,11 +91,19 @@ def image_metrics(
     true_centre: np.ndarray | None = None,
     target_volume: float | None = None,
     threshold: float = 0.75,
+    amplitude: np.ndarray | None = None,
 ) -> ImageMetrics:
     """All metrics of one image (n_cells,); ``true_centre`` (3,) m and ``target_volume`` m³
-    are needed for the CoM error and the amplitude response (NaN without them)."""
+    are needed for the CoM error and the amplitude response (NaN without them).
+
+    ``amplitude`` (n_cells,), when given, is the Δσ image whose values the sums (Σσ, AR,
+    ringing) are taken of, while the cluster and CoM come from ``x`` (e.g. a noise-normalised
+    image, which finds the perturbation where the raw Δσ image is biased)."""
     x = np.asarray(x, float)
     mask = largest_cluster(grid, x, threshold)
+    a = x if amplitude is None else np.asarray(amplitude, float)
+    if a.shape != x.shape:
+        raise ValueError(f"amplitude: expected shape {x.shape}, got {a.shape}")
     v = grid.volume
     w = np.abs(x[mask]) * v[mask]
     com = (w[:, None] * grid.centroid[mask]).sum(0) / w.sum()
@@ -108,8 +116,8 @@ def image_metrics(
         d = 0.0
     r_eq = (3 * vol / (4 * np.pi)) ** (1 / 3)
     outside = np.linalg.norm(c - com, axis=1) > r_eq
-    opposite = (np.sign(x) == -sign) & ~mask
-    cluster_sum = float((x[mask] * v[mask]).sum())
+    opposite = (np.sign(a) == -sign) & ~mask
+    cluster_sum = float((a[mask] * v[mask]).sum())
     err = float(np.linalg.norm(com - np.asarray(true_centre))) if true_centre is not None else float("nan")
     return ImageMetrics(
         com=com,
@@ -119,10 +127,10 @@ def image_metrics(
         diameter_equivalent=float((6 * vol / np.pi) ** (1 / 3)),
         extent_xy=float(d + grid.grid.spacing[0]),
         n_cells=int(mask.sum()),
-        amplitude_response=float((x * v).sum() / target_volume) if target_volume else float("nan"),
+        amplitude_response=float((a * v).sum() / target_volume) if target_volume else float("nan"),
         resolution=float((vol / v.sum()) ** (1 / 3)),
         shape_deformation=float(v[mask][outside].sum() / vol),
-        ringing=float(-(x[opposite] * v[opposite]).sum() / cluster_sum) if cluster_sum else float("nan"),
+        ringing=float(-(a[opposite] * v[opposite]).sum() / cluster_sum) if cluster_sum else float("nan"),
     )
 
 

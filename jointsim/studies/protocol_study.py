@@ -46,6 +46,7 @@ class StudyConfig:
     n_cells: int = 7000
     threshold: float = 0.75
     lambda_method: str = "kfold"
+    noise_repeats: int = 10  # noisy frames per position pooled for the choice of λ
     mesh_floor: bool = True
 
     def __post_init__(self) -> None:
@@ -57,6 +58,8 @@ class StudyConfig:
             raise ValueError(f"depth = {self.depth}: must be > 0 m")
         if not self.positions:
             raise ValueError("positions: at least one contact position is needed")
+        if self.noise_repeats < 1:
+            raise ValueError(f"noise_repeats = {self.noise_repeats}: must be >= 1")
 
 
 @dataclass
@@ -75,7 +78,7 @@ class StudyResult:
     metrics: dict[int, list[ImageMetrics]]  # of the noise-normalised images (localisation)
     metrics_raw: dict[int, list[ImageMetrics]]  # of the Δσ images (Σσ in S/m·voxel)
     noise_std: dict[int, float]
-    floor: dict[str, dict[int, float]] = field(default_factory=dict)  # kind -> skip -> dB
+    floor: dict[str, dict[int, float]] = field(default_factory=dict)  # kind -> skip -> dB re mean |V|
     mirror_pairs: dict[str, float] = field(default_factory=dict)  # "6~8" -> relative difference
 
     def table(self) -> list[dict]:
@@ -97,10 +100,14 @@ class StudyResult:
                     "com_error_xy_mm_mean": 1e3 * float(np.mean(xy)),
                     "com_dz_mm_mean": 1e3 * float(np.mean(dz)),
                     "com_error_raw_mm_mean": 1e3 * float(np.mean([x.com_error for x in raw])),
-                    "sum_sigma": float(np.mean([x.sum_sigma for x in raw])),
+                    "sum_sigma": float(np.mean([x.sum_sigma for x in m])),
                     "diameter_eq_mm": 1e3 * float(np.mean([x.diameter_equivalent for x in m])),
                     "lambda": self.lambdas[s].lam,
                     **{f"floor_{k}_dB": v.get(s, float("nan")) for k, v in self.floor.items()},
+                    **{
+                        f"floor_{k}_uV": 1e6 * float(np.abs(self.v_ref[s]).mean()) * 10 ** (-v.get(s, np.nan) / 20)
+                        for k, v in self.floor.items()
+                    },
                 }
             )
         return rows
@@ -142,17 +149,23 @@ def run_protocol_study(scene: Scene, config: StudyConfig = StudyConfig(), progre
         std[s] = noise_std(v_ref[s], config.snr_db)
         dv_clean[s] = v_def[s] - v_ref[s]
         # the paper subtracts a steady-state reference averaged over many frames: only the
-        # deformed frame carries noise
-        dv[s] = dv_clean[s] + rng.normal(0.0, std[s], size=dv_clean[s].shape)
+        # deformed frame carries noise. Several noisy repeats per position steady the choice
+        # of λ (one frame's CV curve is flat and its minimum wanders by a decade); the first
+        # repeat is the frame that is imaged.
+        noisy = dv_clean[s][None] + rng.normal(0.0, std[s], size=(config.noise_repeats,) + dv_clean[s].shape)
+        dv[s] = noisy[0]
         svd = SVD.of(J[s])
-        lambdas[s] = choose_lambda(svd, dv[s], config.lambda_method, seed=config.seed)
+        lambdas[s] = choose_lambda(svd, noisy.reshape(-1, noisy.shape[-1]), config.lambda_method, seed=config.seed)
         R = svd.reconstruction_matrix(lambdas[s].lam)
         images[s] = dv[s] @ R.T
         # 0th-order Tikhonov images peak where the sensitivity is largest, at the electrodes;
         # dividing by each cell's noise std (white noise through R) removes that bias, as the
         # noise-based correction of the paper's reconstruction software does
         normalised = images[s] / np.sqrt((R**2).sum(axis=1))
-        metrics[s] = [image_metrics(grid, normalised[i], centres[i], volumes[i], config.threshold) for i in range(P)]
+        metrics[s] = [
+            image_metrics(grid, normalised[i], centres[i], volumes[i], config.threshold, amplitude=images[s][i])
+            for i in range(P)
+        ]
         metrics_raw[s] = [image_metrics(grid, images[s][i], centres[i], volumes[i], config.threshold) for i in range(P)]
         j_sens[s] = sensitivity_total(J[s], grid)
         tick()

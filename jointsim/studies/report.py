@@ -78,7 +78,7 @@ def _markdown(path: Path, result: StudyResult, rows: list[dict], command: str) -
         f"perturbation threshold {c.threshold:.0%}.",
         "",
         "| skip | RMS δV µV | δV SNR dB | J_sens | CoM err mean mm | CoM err max mm | XY err mm | Z bias mm | raw-image CoM err mm | Σσ | d_eq mm | λ |"
-        + "".join(f" floor {k} dB |" for k in result.floor),
+        + "".join(f" floor {k} µV (dB) |" for k in result.floor),
         "|---|---|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(result.floor),
     ]
     for r in rows:
@@ -86,21 +86,22 @@ def _markdown(path: Path, result: StudyResult, rows: list[dict], command: str) -
             f"| {r['skip']} | {r['rms_dV_uV']:.1f} | {r['snr_dV_dB']:.1f} | {r['J_sens']:.3g} | {r['com_error_mm_mean']:.2f} | "
             f"{r['com_error_mm_max']:.2f} | {r['com_error_xy_mm_mean']:.2f} | {r['com_dz_mm_mean']:+.2f} | {r['com_error_raw_mm_mean']:.2f} | "
             f"{r['sum_sigma']:.3g} | {r['diameter_eq_mm']:.1f} | {r['lambda']:.3g} |"
-            + "".join(f" {r[f'floor_{k}_dB']:.1f} |" for k in result.floor)
+            + "".join(f" {r[f'floor_{k}_uV']:.1f} ({r[f'floor_{k}_dB']:.1f}) |" for k in result.floor)
         )
     lines += [
         "",
         "CoM errors are 3-D distances between the CoM of the perturbation in the noise-normalised image",
         "(Δσ divided by each cell's noise std) and the centroid of the displaced saline; XY err is the",
         "in-plane part and Z bias the mean signed vertical offset. The raw Δσ image peaks at the",
-        "electrodes, where 0th-order Tikhonov puts the most sensitive cells (its CoM error column); Σσ",
-        "is taken on the raw image, in S/m·voxel.",
+        "electrodes, where 0th-order Tikhonov puts the most sensitive cells (its CoM error column). Σσ",
+        "sums the raw Δσ (S/m·voxel) over the perturbation found in the normalised image.",
         "",
-        "Mesh-noise floor: 20·log10(mean standing |V| / RMS of the voltage change caused by meshing",
-        "alone); `remesh` = the same chamber meshed again, `rotate` = meshed with the electrode ring",
-        "rotated by one pitch and permuted back. Compare with the instrument's 74.2 dB and with the",
-        "δV SNR column: a δV below the floor would be meshing, not physics. The study itself uses",
-        "the morphed mesh, whose floor is exact zero (no deformation reproduces the reference mesh).",
+        "Mesh-noise floor: the RMS voltage change caused by meshing alone, in µV beside RMS δV, and in",
+        "dB as 20·log10(mean standing |V| / that RMS), the instrument's SNR convention (74.2 dB);",
+        "`remesh` = the same chamber meshed again (fTetWild is not deterministic), `rotate` = meshed",
+        "with the electrode ring rotated by one pitch and permuted back. Where the floor is not far",
+        "below δV, remeshing each frame would image the mesher; the study therefore uses the morphed",
+        "mesh, whose floor is exactly zero (no deformation reproduces the reference mesh).",
         "",
         "## skip-N and skip-(14 − N)",
         "",
@@ -163,9 +164,9 @@ def _figures(out: Path, result: StudyResult, rows: list[dict]) -> list[Path]:
         j = int(np.clip((result.true_centres[i_pos, 1] - g.grid.origin[1]) / g.grid.spacing[1], 0, g.grid.shape[1] - 1))
         vmax = np.nanmax(np.abs(full))
         ext_xy = [g.grid.origin[0], g.grid.origin[0] + g.grid.shape[0] * g.grid.spacing[0], g.grid.origin[1], g.grid.origin[1] + g.grid.shape[1] * g.grid.spacing[1]]
-        axes[0, col].imshow(full[:, :, k].T, origin="lower", cmap="RdBu", vmin=-vmax, vmax=vmax, extent=np.array(ext_xy) * 1e3)
+        axes[0, col].imshow(full[:, :, k].T, origin="lower", cmap="RdBu_r", vmin=-vmax, vmax=vmax, extent=np.array(ext_xy) * 1e3)
         ext_xz = [ext_xy[0], ext_xy[1], g.grid.origin[2], g.grid.origin[2] + g.grid.shape[2] * g.grid.spacing[2]]
-        axes[1, col].imshow(full[:, j, :].T, origin="lower", cmap="RdBu", vmin=-vmax, vmax=vmax, extent=np.array(ext_xz) * 1e3)
+        axes[1, col].imshow(full[:, j, :].T, origin="lower", cmap="RdBu_r", vmin=-vmax, vmax=vmax, extent=np.array(ext_xz) * 1e3)
         for ax in axes[:, col]:
             ax.set_xticks([])
             ax.set_yticks([])
