@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     batch = reps * len(frames) / (time.perf_counter() - t0)
     del x, X
     res = {
-        "command": "python benchmarks/bench_reconstruction.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "command": " ".join(["python benchmarks/bench_reconstruction.py", *(argv if argv is not None else sys.argv[1:])]),
         "machine": f"{platform.machine()}, 1 BLAS thread, Python {platform.python_version()}, numpy {np.__version__}",
         "date": time.strftime("%Y-%m-%d"),
         "mesh_tets": ch.mesh.n_tets,

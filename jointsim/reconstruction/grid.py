@@ -92,7 +92,12 @@ class ChamberGrid:
         (64 for levels = 2) and each child goes to the cell holding its centroid. C[k, c] is
         then the fraction of element k in cell c (rows sum to 1), σ_fine = C σ_cells, and
         J_cells = J C is the exact Jacobian of that parametrisation."""
-        grid = VoxelGrid.covering(mesh, n_cells, volume=float(mesh.volumes.sum())) if grid is None else grid
+        if grid is None:
+            # cut cells at the wall add to the count: size once, then correct the spacing
+            volume = float(mesh.volumes.sum())
+            first = cls.over(mesh, grid=VoxelGrid.covering(mesh, n_cells, volume=volume), levels=levels)
+            g = VoxelGrid.covering(mesh, n_cells, volume=volume * first.n_cells / n_cells)
+            return cls.over(mesh, grid=g, levels=levels)
         bary = _child_barycentres(levels)  # (s, 4)
         rows, cols = [], []
         chunk = max(1, 2_000_000 // len(bary))
