@@ -73,21 +73,24 @@ class Factorization:
         self.free()
 
 
-def factorize(A: sp.spmatrix, backend: str = "auto") -> Factorization:
-    """Factorise the SPD matrix A once, for many solves."""
+def factorize(A: sp.spmatrix, backend: str = "auto", spd: bool = True) -> Factorization:
+    """Factorise the symmetric matrix A once, for many solves; ``spd=False`` for a symmetric
+    indefinite A (PARDISO's Bunch–Kaufman LDLᵀ, or SuperLU with threshold pivoting)."""
     if backend == "auto":
         backend = default_backend(A.shape[0])
     A = sp.csc_matrix(A)
     if backend == "superlu":
-        # a symmetric fill-reducing ordering and no pivoting: A is SPD, so LU = LDLᵀ in effect
+        # a symmetric fill-reducing ordering; no pivoting when A is SPD (LU = LDLᵀ in effect)
         lu = spla.splu(
             A,
             permc_spec="MMD_AT_PLUS_A",
-            diag_pivot_thresh=0.0,
+            diag_pivot_thresh=0.0 if spd else 0.01,
             options={"SymmetricMode": True},
         )
         return Factorization(lambda b: lu.solve(np.asarray(b, float)))
     if backend == "cholmod":
+        if not spd:
+            return factorize(A, "superlu", spd=False)
         from sksparse.cholmod import cholesky
 
         f = cholesky(A)
@@ -95,7 +98,8 @@ def factorize(A: sp.spmatrix, backend: str = "auto") -> Factorization:
     if backend == "pardiso":
         import pypardiso
 
-        solver = pypardiso.PyPardisoSolver(mtype=2)  # real SPD: Cholesky on the upper triangle
+        # real SPD (Cholesky) or real symmetric indefinite (LDLᵀ), on the upper triangle
+        solver = pypardiso.PyPardisoSolver(mtype=2 if spd else -2)
         solver.set_statistical_info_off()
         Au = sp.triu(A, format="csr")
         Au.sort_indices()

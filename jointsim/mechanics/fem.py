@@ -1,0 +1,288 @@
+"""Quadratic (P2, 10-node) tetrahedra for finite-strain hyperelasticity, with the element
+energy, gradient and Hessian computed in a Warp kernel (CPU by default, CUDA when asked).
+
+Why P2: linear tetrahedra lock when the material is nearly incompressible (κ/μ = 1000 for the
+silicone); quadratic displacement fields can follow an isochoric deformation, and the closed-form
+checks in tests/test_mechanics.py show no locking at κ/μ = 1000.
+
+The element Hessian uses the material tangent A = ∂P/∂F by central differences of P in
+float64 (relative error ~1e-9, enough for quadratic Newton convergence), and each element's
+30 × 30 Hessian is projected onto the positive semi-definite cone (eigenvalues clamped at 0)
+before assembly, so Newton directions are descent directions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import scipy.sparse as sp
+import warp as wp
+
+from ..mesh.tetmesh import _EDGES, TetMesh
+from .materials import Material, first_piola, strain_energy
+
+__all__ = ["P2Mesh", "ElementState", "element_terms", "assemble_hessian"]
+
+wp.config.quiet = True
+# the element loops are short but deeply nested: unrolling them makes compile times explode,
+# and no adjoint kernels are needed (derivatives are formed explicitly)
+wp.set_module_options({"max_unroll": 1, "enable_backward": False})
+
+_MatN = wp.types.matrix(shape=(10, 3), dtype=wp.float64)
+
+# 4-point degree-2 rule on the tetrahedron (barycentric points, weights summing to 1)
+_QA, _QB = 0.5854101966249685, 0.1381966011250105
+QUAD_BARY = np.array([[_QA, _QB, _QB, _QB], [_QB, _QA, _QB, _QB], [_QB, _QB, _QA, _QB], [_QB, _QB, _QB, _QA]])
+QUAD_W = np.full(4, 0.25)
+FD_STEP = 1e-6
+
+
+@dataclass(frozen=True, eq=False)
+class P2Mesh:
+    """``nodes`` (n, 3) reference positions in m; ``tets`` (m, 10): corners 0–3 then the edge
+    midpoints of edges 01, 02, 03, 12, 13, 23; straight-sided (affine) geometry."""
+
+    nodes: np.ndarray
+    tets: np.ndarray
+
+    @classmethod
+    def from_linear(cls, mesh: TetMesh) -> "P2Mesh":
+        t = mesh.tets
+        e = np.sort(t[:, _EDGES].reshape(-1, 2), axis=1)
+        uniq, inv = np.unique(e, axis=0, return_inverse=True)
+        mid = mesh.nodes[uniq].mean(axis=1)
+        nodes = np.vstack([mesh.nodes, mid])
+        tets = np.hstack([t, mesh.n_nodes + inv.reshape(-1, 6)])
+        return cls(nodes, tets.astype(np.int32))
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.nodes)
+
+    @property
+    def n_tets(self) -> int:
+        return len(self.tets)
+
+    @cached_property
+    def volumes(self) -> np.ndarray:
+        p = self.nodes[self.tets[:, :4]]
+        return np.linalg.det(p[:, 1:] - p[:, :1]) / 6
+
+    @cached_property
+    def boundary_faces(self) -> np.ndarray:
+        """Boundary faces as 6-node triangles (k, 6): corners a, b, c then midpoints ab, bc, ca,
+        oriented outward."""
+        faces = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+        edge_of = {(0, 1): 4, (0, 2): 5, (0, 3): 6, (1, 2): 7, (1, 3): 8, (2, 3): 9}
+        mids = np.array([[edge_of[tuple(sorted((f[i], f[(i + 1) % 3])))] for i in range(3)] for f in faces])
+        corner = self.tets[:, faces].reshape(-1, 3)
+        mid = self.tets[:, mids].reshape(-1, 3)
+        key = np.sort(corner, axis=1)
+        _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        b = cnt[inv.ravel()] == 1
+        return np.hstack([corner[b], mid[b]])
+
+    @cached_property
+    def sparsity(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(indptr, indices, slot) of the 3n × 3n Hessian: element entry (e, r, c) adds into
+        data[slot[e*900 + r*30 + c]]."""
+        dof = (3 * self.tets[:, :, None] + np.arange(3)).reshape(-1, 30).astype(np.int64)
+        rows = np.repeat(dof, 30, axis=1).ravel()
+        cols = np.tile(dof, (1, 30)).ravel()
+        n = 3 * self.n_nodes
+        uniq, slot = np.unique(rows * n + cols, return_inverse=True)
+        indptr = np.searchsorted(uniq // n, np.arange(n + 1))
+        return indptr.astype(np.int64), (uniq % n).astype(np.int32), slot.ravel()
+
+
+@wp.kernel
+def _p2_element(
+    X: wp.array(dtype=wp.vec3d),
+    u: wp.array(dtype=wp.vec3d),
+    tets: wp.array2d(dtype=wp.int32),
+    params: wp.array2d(dtype=wp.float64),
+    qbary: wp.array(dtype=wp.vec4d),
+    qw: wp.array(dtype=wp.float64),
+    want_hessian: int,
+    h: wp.float64,
+    energy: wp.array(dtype=wp.float64),
+    grad: wp.array2d(dtype=wp.float64),
+    hess: wp.array3d(dtype=wp.float64),
+    min_det: wp.array(dtype=wp.float64),
+):
+    e = wp.tid()
+    x0 = X[tets[e, 0]]
+    Dm = wp.matrix_from_cols(X[tets[e, 1]] - x0, X[tets[e, 2]] - x0, X[tets[e, 3]] - x0)
+    vol = wp.determinant(Dm) / wp.float64(6.0)
+    Dinv = wp.inverse(Dm)
+    g1 = wp.vec3d(Dinv[0, 0], Dinv[0, 1], Dinv[0, 2])
+    g2 = wp.vec3d(Dinv[1, 0], Dinv[1, 1], Dinv[1, 2])
+    g3 = wp.vec3d(Dinv[2, 0], Dinv[2, 1], Dinv[2, 2])
+    g0 = -(g1 + g2 + g3)
+    c1 = params[e, 0]
+    c2 = params[e, 1]
+    c3 = params[e, 2]
+    kappa = params[e, 3]
+    one = wp.float64(1.0)
+    four = wp.float64(4.0)
+    E = wp.float64(0.0)
+    jmin = wp.float64(1.0e30)
+    for q in range(4):
+        l = qbary[q]
+        w = qw[q] * vol
+        G = _MatN()
+        # corner shape functions λ(2λ − 1) and edge functions 4 λa λb, differentiated
+        gc0 = (four * l[0] - one) * g0
+        gc1 = (four * l[1] - one) * g1
+        gc2 = (four * l[2] - one) * g2
+        gc3 = (four * l[3] - one) * g3
+        ge01 = four * (l[0] * g1 + l[1] * g0)
+        ge02 = four * (l[0] * g2 + l[2] * g0)
+        ge03 = four * (l[0] * g3 + l[3] * g0)
+        ge12 = four * (l[1] * g2 + l[2] * g1)
+        ge13 = four * (l[1] * g3 + l[3] * g1)
+        ge23 = four * (l[2] * g3 + l[3] * g2)
+        for k in range(3):
+            G[0, k] = gc0[k]
+            G[1, k] = gc1[k]
+            G[2, k] = gc2[k]
+            G[3, k] = gc3[k]
+            G[4, k] = ge01[k]
+            G[5, k] = ge02[k]
+            G[6, k] = ge03[k]
+            G[7, k] = ge12[k]
+            G[8, k] = ge13[k]
+            G[9, k] = ge23[k]
+        F = wp.identity(n=3, dtype=wp.float64)
+        for n in range(10):
+            un = u[tets[e, n]]
+            F += wp.outer(un, wp.vec3d(G[n, 0], G[n, 1], G[n, 2]))
+        jmin = wp.min(jmin, wp.determinant(F))
+        E += w * strain_energy(F, c1, c2, c3, kappa)
+        P = first_piola(F, c1, c2, c3, kappa)
+        for n in range(10):
+            for i in range(3):
+                grad[e, 3 * n + i] += w * (P[i, 0] * G[n, 0] + P[i, 1] * G[n, 1] + P[i, 2] * G[n, 2])
+        if want_hessian != 0:
+            for j in range(3):
+                for m in range(3):
+                    dF = wp.mat33d()
+                    dF[j, m] = h
+                    dP = (first_piola(F + dF, c1, c2, c3, kappa) - first_piola(F - dF, c1, c2, c3, kappa)) / (wp.float64(2.0) * h)
+                    # H[(a,i),(b,j)] += w Σ_k dP[i,k] G[a,k] G[b,m]
+                    for a in range(10):
+                        t0 = dP[0, 0] * G[a, 0] + dP[0, 1] * G[a, 1] + dP[0, 2] * G[a, 2]
+                        t1 = dP[1, 0] * G[a, 0] + dP[1, 1] * G[a, 1] + dP[1, 2] * G[a, 2]
+                        t2 = dP[2, 0] * G[a, 0] + dP[2, 1] * G[a, 1] + dP[2, 2] * G[a, 2]
+                        for b in range(10):
+                            s = w * G[b, m]
+                            hess[e, 3 * a + 0, 3 * b + j] += t0 * s
+                            hess[e, 3 * a + 1, 3 * b + j] += t1 * s
+                            hess[e, 3 * a + 2, 3 * b + j] += t2 * s
+    energy[e] = E
+    min_det[e] = jmin
+
+
+@dataclass
+class ElementState:
+    """Per-element energy (m,), gradient (m, 30), Hessian (m, 30, 30) or None, and the smallest
+    det F over the quadrature points (m,) (≤ 0: the element inverted)."""
+
+    energy: np.ndarray
+    grad: np.ndarray
+    hess: np.ndarray | None
+    min_det: np.ndarray
+
+
+class ElementKernel:
+    """Warp arrays for one P2 mesh and per-element material parameters, reused across calls."""
+
+    def __init__(self, mesh: P2Mesh, materials: Material | list[Material], material_of: np.ndarray | None = None, device: str = "cpu"):
+        self.mesh = mesh
+        self.device = device
+        mats = [materials] if isinstance(materials, Material) else list(materials)
+        idx = np.zeros(mesh.n_tets, int) if material_of is None else np.asarray(material_of)
+        params = np.array([[m.c1, m.c2, m.c3, m.bulk] for m in mats])[idx]
+        if np.any(mesh.volumes <= 0):
+            raise ValueError("mesh: elements must be positively oriented (call TetMesh.oriented())")
+        self._X = wp.array(mesh.nodes, dtype=wp.vec3d, device=device)
+        self._tets = wp.array(mesh.tets, dtype=wp.int32, device=device)
+        self._params = wp.array(params, dtype=wp.float64, device=device)
+        self._qb = wp.array(QUAD_BARY, dtype=wp.vec4d, device=device)
+        self._qw = wp.array(QUAD_W, dtype=wp.float64, device=device)
+        m = mesh.n_tets
+        self._energy = wp.zeros(m, dtype=wp.float64, device=device)
+        self._grad = wp.zeros((m, 30), dtype=wp.float64, device=device)
+        self._hess = wp.zeros((m, 30, 30), dtype=wp.float64, device=device)
+        self._hess_empty = wp.zeros((1, 1, 1), dtype=wp.float64, device=device)
+        self._mindet = wp.zeros(m, dtype=wp.float64, device=device)
+
+    def __call__(self, u: np.ndarray, hessian: bool = True) -> ElementState:
+        uw = wp.array(np.ascontiguousarray(u, dtype=np.float64), dtype=wp.vec3d, device=self.device)
+        self._grad.zero_()
+        if hessian:
+            self._hess.zero_()
+        wp.launch(
+            _p2_element,
+            dim=self.mesh.n_tets,
+            inputs=[self._X, uw, self._tets, self._params, self._qb, self._qw, int(hessian), FD_STEP],
+            outputs=[self._energy, self._grad, self._hess if hessian else self._hess_empty, self._mindet],
+            device=self.device,
+        )
+        return ElementState(
+            self._energy.numpy().copy(),
+            self._grad.numpy().copy(),
+            self._hess.numpy().copy() if hessian else None,
+            self._mindet.numpy().copy(),
+        )
+
+
+def element_terms(mesh: P2Mesh, material: Material, u: np.ndarray, hessian: bool = True) -> ElementState:
+    """One-off evaluation (builds the Warp arrays each call; use :class:`ElementKernel` in loops)."""
+    return ElementKernel(mesh, material)(u, hessian)
+
+
+def project_psd(H: np.ndarray) -> np.ndarray:
+    """Clamp each element Hessian's negative eigenvalues to zero: (m, 30, 30) → same."""
+    w, V = np.linalg.eigh(H)
+    if (w >= 0).all():
+        return H
+    return np.einsum("mij,mj,mkj->mik", V, np.maximum(w, 0.0), V)
+
+
+def assemble_hessian(mesh: P2Mesh, H: np.ndarray) -> sp.csr_matrix:
+    indptr, indices, slot = mesh.sparsity
+    data = np.bincount(slot, weights=H.ravel(), minlength=len(indices))
+    n = 3 * mesh.n_nodes
+    return sp.csr_matrix((data, indices, indptr), shape=(n, n))
+
+
+def assemble_gradient(mesh: P2Mesh, g: np.ndarray) -> np.ndarray:
+    dof = (3 * mesh.tets[:, :, None] + np.arange(3)).reshape(-1)
+    return np.bincount(dof, weights=g.ravel(), minlength=3 * mesh.n_nodes)
+
+
+class ElasticTerm:
+    """The hyperelastic energy of a P2 mesh, as an energy term for the Newton solver."""
+
+    def __init__(self, mesh: P2Mesh, materials: Material | list[Material], material_of: np.ndarray | None = None, device: str = "cpu"):
+        self.mesh = mesh
+        self.kernel = ElementKernel(mesh, materials, material_of, device)
+        self.last: ElementState | None = None
+
+    def evaluate(self, u: np.ndarray, hessian: bool):
+        s = self.kernel(u, hessian)
+        self.last = s
+        ok = bool((s.min_det > 0).all() and np.isfinite(s.energy).all())
+        if not ok:
+            return np.inf, np.zeros(u.size), None, False
+        g = assemble_gradient(self.mesh, s.grad)
+        H = assemble_hessian(self.mesh, s.hess) if hessian else None
+        return float(s.energy.sum()), g, H, True
+
+    def projected_hessian(self, u: np.ndarray) -> sp.csr_matrix:
+        """The Hessian with each element's negative eigenvalues clamped to zero (SPD-projected)."""
+        s = self.last if self.last is not None and self.last.hess is not None else self.kernel(u, True)
+        return assemble_hessian(self.mesh, project_psd(s.hess))

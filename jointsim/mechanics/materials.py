@@ -1,0 +1,90 @@
+"""Hyperelastic material laws of the dome (Ecoflex 00-50) and of soft targets.
+
+Yeoh with a volumetric penalty, in the isochoric invariant Ī₁ = J^{-2/3} tr(FᵀF):
+
+    W(F) = C₁(Ī₁ − 3) + C₂(Ī₁ − 3)² + C₃(Ī₁ − 3)³ + κ/2 (J − 1)²
+
+Neo-Hookean is the case C₁ = μ/2, C₂ = C₃ = 0. The first Piola–Kirchhoff stress is
+
+    P = 2 W₁ J^{-2/3} (F − Ī₁·J^{2/3}/3 · F^{-T}) + κ (J − 1) J F^{-T},   W₁ = ∂W/∂Ī₁.
+
+Defaults (DESIGN.md): neo-Hookean μ ≈ 22 kPa, or Yeoh C₁ 9.8, C₂ 0.91, C₃ −0.16 kPa (fits to
+Marechal et al., Soft Robotics 2021, λ ≤ 2); κ = 1000·μ (ν ≈ 0.4995), nearly incompressible.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+wp.config.quiet = True
+
+__all__ = ["Material", "first_piola", "strain_energy"]
+
+
+@dataclass(frozen=True)
+class Material:
+    """Yeoh coefficients ``c1``, ``c2``, ``c3`` (Pa) and bulk modulus ``bulk`` (Pa)."""
+
+    c1: float
+    c2: float = 0.0
+    c3: float = 0.0
+    bulk: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not self.c1 > 0:
+            raise ValueError(f"c1 = {self.c1}: must be > 0 Pa (the small-strain shear modulus is 2·c1)")
+        if not self.bulk > 0:
+            raise ValueError(f"bulk = {self.bulk}: must be > 0 Pa")
+        # W₁ = ∂W/∂Ī₁ must stay positive over the fit's range (uniaxial λ ≤ 2: Ī₁ − 3 ≤ 2)
+        d = np.linspace(0, 2, 41)
+        if np.any(self.c1 + 2 * self.c2 * d + 3 * self.c3 * d**2 <= 0):
+            raise ValueError("Yeoh coefficients (c1, c2, c3) give a non-positive stiffness for stretches up to 2")
+
+    @classmethod
+    def neo_hookean(cls, mu: float, bulk_ratio: float = 1000.0) -> "Material":
+        """Neo-Hookean with shear modulus ``mu`` (Pa) and κ = ``bulk_ratio``·μ."""
+        if not mu > 0:
+            raise ValueError(f"mu = {mu}: must be > 0 Pa")
+        if not bulk_ratio > 0:
+            raise ValueError(f"bulk_ratio = {bulk_ratio}: must be > 0")
+        return cls(mu / 2, 0.0, 0.0, bulk_ratio * mu)
+
+    @classmethod
+    def yeoh(cls, c1: float, c2: float, c3: float, bulk_ratio: float = 1000.0) -> "Material":
+        return cls(c1, c2, c3, bulk_ratio * 2 * c1)
+
+    @property
+    def mu(self) -> float:
+        """Small-strain shear modulus 2·C₁."""
+        return 2 * self.c1
+
+    def uniaxial_nominal_stress(self, stretch: np.ndarray) -> np.ndarray:
+        """Incompressible uniaxial nominal stress P = 2(λ − λ⁻²)·W₁(I₁), I₁ = λ² + 2/λ."""
+        lam = np.asarray(stretch, float)
+        d = lam**2 + 2 / lam - 3
+        w1 = self.c1 + 2 * self.c2 * d + 3 * self.c3 * d**2
+        return 2 * (lam - lam**-2) * w1
+
+
+@wp.func
+def strain_energy(F: wp.mat33d, c1: wp.float64, c2: wp.float64, c3: wp.float64, kappa: wp.float64) -> wp.float64:
+    """W(F) of the Yeoh law with a volumetric penalty (see module docstring)."""
+    J = wp.determinant(F)
+    i1 = wp.trace(wp.transpose(F) @ F) * wp.pow(J, wp.float64(-2.0 / 3.0))
+    d = i1 - wp.float64(3.0)
+    return c1 * d + c2 * d * d + c3 * d * d * d + wp.float64(0.5) * kappa * (J - wp.float64(1.0)) * (J - wp.float64(1.0))
+
+
+@wp.func
+def first_piola(F: wp.mat33d, c1: wp.float64, c2: wp.float64, c3: wp.float64, kappa: wp.float64) -> wp.mat33d:
+    """P = ∂W/∂F."""
+    J = wp.determinant(F)
+    Finv_t = wp.transpose(wp.inverse(F))
+    jm23 = wp.pow(J, wp.float64(-2.0 / 3.0))
+    I1 = wp.trace(wp.transpose(F) @ F)
+    d = I1 * jm23 - wp.float64(3.0)
+    w1 = c1 + wp.float64(2.0) * c2 * d + wp.float64(3.0) * c3 * d * d
+    return wp.float64(2.0) * w1 * jm23 * (F - I1 / wp.float64(3.0) * Finv_t) + kappa * (J - wp.float64(1.0)) * J * Finv_t

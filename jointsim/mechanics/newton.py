@@ -1,0 +1,120 @@
+"""Quasi-static equilibrium as energy minimisation: Newton's method with an SPD-projected
+Hessian and a backtracking (Armijo) line search that also rejects inverted elements.
+
+The total energy is a sum of terms (elastic, pressure, contact), each returning its energy,
+gradient and Hessian over all 3n displacement components. Dirichlet components are fixed to
+given values; Newton runs on the free ones."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..eit.solver import available_backends, factorize
+
+__all__ = ["EnergyTerm", "NewtonResult", "NewtonError", "minimize_energy"]
+
+
+class NewtonError(RuntimeError):
+    """Equilibrium was not reached (no descent, inverted elements, or too many iterations)."""
+
+
+class EnergyTerm(Protocol):
+    def evaluate(self, u: np.ndarray, hessian: bool) -> tuple[float, np.ndarray, sp.spmatrix | None, bool]:
+        """(energy, gradient (3n,), Hessian (3n, 3n) or None, admissible)."""
+
+
+@dataclass
+class NewtonResult:
+    u: np.ndarray  # (n, 3)
+    energy: float
+    gradient: np.ndarray  # (3n,) total, reactions on the fixed components
+    iterations: int
+    residual: float  # norm of the free gradient at the end
+    history: list[float]
+
+
+# elasticity Hessians (3 dofs per node, P2 coupling) fill in far more than the EIT matrix:
+# PARDISO beats SuperLU already at ~30 k unknowns (0.8 s against 2.3 s for a 5 k-tet P2 shell)
+_BACKEND = "pardiso" if "pardiso" in available_backends() else "superlu"
+
+
+def _newton_step(terms, u, H, free, g) -> np.ndarray:
+    """The full-Hessian Newton step when it is a descent direction (quadratic convergence
+    near equilibrium); otherwise the step with every term's Hessian projected to PSD."""
+    Hff = sp.csr_matrix(H)[free][:, free]
+    try:
+        with factorize(Hff, _BACKEND, spd=False) as solve:
+            d = solve(-g[free])
+        if np.all(np.isfinite(d)) and g[free] @ d < 0:
+            return d
+    except Exception:  # singular or the factorisation broke down: take the projected step
+        pass
+    Hp = None
+    for t in terms:
+        Ht = t.projected_hessian(u) if hasattr(t, "projected_hessian") else t.evaluate(u, True)[2]
+        Hp = Ht if Hp is None else Hp + Ht
+    with factorize(sp.csr_matrix(Hp)[free][:, free], _BACKEND) as solve:
+        return -solve(g[free])
+
+
+def _total(terms, u, hessian):
+    E, g, H, ok = 0.0, None, None, True
+    for t in terms:
+        e, gi, Hi, oki = t.evaluate(u, hessian)
+        ok &= oki
+        E += e
+        g = gi if g is None else g + gi
+        if hessian:
+            H = Hi if H is None else H + Hi
+    return E, g, H, ok
+
+
+def minimize_energy(
+    terms: list[EnergyTerm],
+    u0: np.ndarray,
+    fixed: np.ndarray,
+    rtol: float = 1e-9,
+    atol: float = 0.0,
+    max_iter: int = 50,
+) -> NewtonResult:
+    """Minimise Σ terms over u (n, 3) with u[fixed] held at u0[fixed] (fixed: (n, 3) bool).
+
+    Converged when ‖g_free‖ ≤ max(atol, rtol·‖g_free at the start‖) or the energy stops
+    decreasing at round-off level. Raises :class:`NewtonError` otherwise."""
+    u = np.array(u0, dtype=float)
+    free = ~np.asarray(fixed, bool).ravel()
+    E, g, H, ok = _total(terms, u, True)
+    if not ok:
+        raise NewtonError("the initial state has inverted elements")
+    r0 = np.linalg.norm(g[free])
+    tol = max(atol, rtol * r0)
+    history = [r0]
+    for it in range(max_iter):
+        r = np.linalg.norm(g[free])
+        if r <= tol or r == 0.0:
+            return NewtonResult(u, E, g, it, r, history)
+        d = np.zeros(u.size)
+        d[free] = _newton_step(terms, u, H, free, g)
+        slope = float(g @ d)
+        if slope >= 0:
+            raise NewtonError(f"iteration {it}: the Newton direction is not a descent direction")
+        alpha = 1.0
+        while True:
+            u_try = u + alpha * d.reshape(u.shape)
+            E_try, g_try, _, ok_try = _total(terms, u_try, False)
+            if ok_try and E_try <= E + 1e-4 * alpha * slope:
+                break
+            if ok_try and abs(E_try - E) <= 1e-14 * max(abs(E), 1e-300) and alpha < 1e-3:
+                # at round-off: no further decrease is measurable
+                return NewtonResult(u, E, g, it, r, history)
+            alpha *= 0.5
+            if alpha < 1e-10:
+                raise NewtonError(f"iteration {it}: line search failed (inverted elements or no decrease)")
+        u = u_try
+        E, g, H, ok = _total(terms, u, True)
+        history.append(float(np.linalg.norm(g[free])))
+    raise NewtonError(f"no convergence in {max_iter} iterations: residual {np.linalg.norm(g[free]):.3e} > {tol:.3e}")

@@ -1,0 +1,76 @@
+"""Pressure loads as energy: a uniform pressure p on a closed surface does work p·V, so the
+term −p·V(x) with V the enclosed volume gives the follower pressure force as its gradient and a
+symmetric Hessian. V = s/6 Σ x_a·(x_b × x_c) over the surface's linear triangles (each 6-node
+P2 triangle split into 4), s = ±1 by orientation."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+__all__ = ["PressureTerm", "linear_subtriangles", "enclosed_volume"]
+
+
+def linear_subtriangles(faces6: np.ndarray) -> np.ndarray:
+    """Split 6-node triangles (corners a, b, c; midpoints ab, bc, ca) into 4 linear ones."""
+    a, b, c, ab, bc, ca = faces6.T
+    return np.concatenate([np.column_stack(t) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+
+
+def enclosed_volume(x: np.ndarray, tris: np.ndarray, sign: float = 1.0) -> float:
+    p = x[tris]
+    return sign * float(np.einsum("ti,ti->t", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum()) / 6
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    z = np.zeros(len(v))
+    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], -1), np.stack([v[:, 2], z, -v[:, 0]], -1), np.stack([-v[:, 1], v[:, 0], z], -1)], 1)
+
+
+class PressureTerm:
+    """−p·V(X + u) for the volume V enclosed by ``tris`` (k, 3) linear triangles of the mesh's
+    nodes ``X`` (n, 3); ``sign`` = +1 when the triangles' normals point out of that volume.
+    Set ``pressure`` (Pa) between solves to load in steps."""
+
+    def __init__(self, X: np.ndarray, tris: np.ndarray, pressure: float = 0.0, sign: float = 1.0):
+        self.X = np.asarray(X, float)
+        self.tris = np.asarray(tris, np.int64)
+        self.pressure = float(pressure)
+        self.sign = float(sign)
+        n = 3 * len(X)
+        t = self.tris
+        dof = (3 * t[:, :, None] + np.arange(3)).reshape(-1, 9)
+        self._rows = np.repeat(dof, 9, axis=1).ravel()
+        self._cols = np.tile(dof, (1, 9)).ravel()
+        self._n = n
+
+    def volume(self, u: np.ndarray) -> float:
+        return enclosed_volume(self.X + u, self.tris, self.sign)
+
+    def evaluate(self, u: np.ndarray, hessian: bool):
+        x = self.X + u
+        p = x[self.tris]
+        s = self.sign / 6
+        V = s * float(np.einsum("ti,ti->t", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum())
+        dV = s * np.stack([np.cross(p[:, 1], p[:, 2]), np.cross(p[:, 2], p[:, 0]), np.cross(p[:, 0], p[:, 1])], 1)
+        g = np.bincount((3 * self.tris[:, :, None] + np.arange(3)).ravel(), weights=dV.ravel(), minlength=self._n)
+        H = None
+        if hessian:
+            Ka, Kb, Kc = _skew(p[:, 0]), _skew(p[:, 1]), _skew(p[:, 2])
+            Z = np.zeros_like(Ka)
+            # ∂²V/∂x_a∂x_b = −s[x_c]×, ∂²V/∂x_a∂x_c = s[x_b]×, ∂²V/∂x_b∂x_c = −s[x_a]×
+            blocks = np.stack(
+                [
+                    np.stack([Z, -Kc, Kb], 1),
+                    np.stack([Kc, Z, -Ka], 1),
+                    np.stack([-Kb, Ka, Z], 1),
+                ],
+                1,
+            )  # (t, 3, 3, 3, 3): [a-block row][b-block col][i][j]
+            data = (s * blocks).transpose(0, 1, 3, 2, 4).reshape(len(p), 81)
+            H = sp.csr_matrix((-self.pressure * data.ravel(), (self._rows, self._cols)), shape=(self._n, self._n))
+        return -self.pressure * V, -self.pressure * g, H, True
+
+    def projected_hessian(self, u: np.ndarray) -> sp.csr_matrix:
+        """The pressure Hessian is indefinite; the projected Newton step leaves it out."""
+        return sp.csr_matrix((self._n, self._n))
