@@ -118,3 +118,50 @@ def minimize_energy(
         E, g, H, ok = _total(terms, u, True)
         history.append(float(np.linalg.norm(g[free])))
     raise NewtonError(f"no convergence in {max_iter} iterations: residual {np.linalg.norm(g[free]):.3e} > {tol:.3e}")
+
+
+def step_to(
+    terms: list[EnergyTerm],
+    u_eq: np.ndarray,
+    fixed: np.ndarray,
+    target: np.ndarray,
+    max_halvings: int = 6,
+    **newton_kw,
+) -> NewtonResult:
+    """Move from the equilibrium ``u_eq`` to the equilibrium with u[fixed] = target[fixed].
+
+    The Dirichlet increment is spread into the free components by a linear predictor (the
+    tangent at ``u_eq``), then Newton corrects. When Newton fails, the increment is halved
+    and taken in two sub-steps, up to ``max_halvings`` times, before the error is raised."""
+    fixed = np.asarray(fixed, bool)
+    free = ~fixed.ravel()
+    try:
+        return minimize_energy(terms, _predict(terms, u_eq, fixed, target), fixed, **newton_kw)
+    except NewtonError:
+        if max_halvings <= 0:
+            raise
+    mid = u_eq.copy()
+    mid[fixed] = 0.5 * (u_eq[fixed] + target[fixed])
+    half = step_to(terms, u_eq, fixed, mid, max_halvings - 1, **newton_kw)
+    return step_to(terms, half.u, fixed, target, max_halvings - 1, **newton_kw)
+
+
+def _predict(terms, u_eq, fixed, target) -> np.ndarray:
+    """u_eq plus the linear response to the Dirichlet increment, scaled back if it inverts."""
+    free = ~fixed.ravel()
+    du = np.zeros(u_eq.size)
+    du[~free] = (target - u_eq).ravel()[~free]
+    if not du.any():
+        return u_eq.copy()
+    _, _, H, _ = _total(terms, u_eq, True)
+    H = sp.csr_matrix(H)
+    try:
+        with factorize(H[free][:, free], _BACKEND, spd=False) as solve:
+            du[free] = solve(-(H[free][:, ~free] @ du[~free]))
+    except Exception:
+        du[free] = 0.0
+    for scale in (1.0, 0.5, 0.25, 0.0):
+        trial = u_eq + (du * np.where(free, scale, 1.0)).reshape(u_eq.shape)
+        if _total(terms, trial, False)[3]:
+            return trial
+    return trial
