@@ -42,17 +42,18 @@ class NewtonResult:
 _BACKEND = "pardiso" if "pardiso" in available_backends() else "superlu"
 
 
-def _newton_step(terms, u, H, free, g) -> np.ndarray:
-    """The full-Hessian Newton step when it is a descent direction (quadratic convergence
-    near equilibrium); otherwise the step with every term's Hessian projected to PSD."""
-    Hff = sp.csr_matrix(H)[free][:, free]
+def _full_step(u, H, free, g) -> np.ndarray | None:
+    """The Newton step with the full Hessian, or None when it is not a descent direction."""
     try:
-        with factorize(Hff, _BACKEND, spd=False) as solve:
+        with factorize(sp.csr_matrix(H)[free][:, free], _BACKEND, spd=False) as solve:
             d = solve(-g[free])
-        if np.all(np.isfinite(d)) and g[free] @ d < 0:
-            return d
-    except Exception:  # singular or the factorisation broke down: take the projected step
-        pass
+    except Exception:  # singular or the factorisation broke down
+        return None
+    return d if np.all(np.isfinite(d)) and g[free] @ d < 0 else None
+
+
+def _projected_step(terms, u, free, g) -> np.ndarray:
+    """The Newton step with every term's Hessian projected to PSD (always a descent step)."""
     Hp = None
     for t in terms:
         Ht = t.projected_hessian(u) if hasattr(t, "projected_hessian") else t.evaluate(u, True)[2]
@@ -97,27 +98,40 @@ def minimize_energy(
         r = np.linalg.norm(g[free])
         if r <= tol or r == 0.0:
             return NewtonResult(u, E, g, it, r, history)
+        # the full-Hessian step converges quadratically near equilibrium; where it is not a
+        # descent direction or the full step is rejected (active-set changes in contact, large
+        # load increments), the SPD-projected step is taken instead
         d = np.zeros(u.size)
-        d[free] = _newton_step(terms, u, H, free, g)
-        slope = float(g @ d)
-        if slope >= 0:
-            raise NewtonError(f"iteration {it}: the Newton direction is not a descent direction")
-        alpha = 1.0
-        while True:
-            u_try = u + alpha * d.reshape(u.shape)
-            E_try, g_try, _, ok_try = _total(terms, u_try, False)
-            if ok_try and E_try <= E + 1e-4 * alpha * slope:
-                break
-            if ok_try and abs(E_try - E) <= 1e-14 * max(abs(E), 1e-300) and alpha < 1e-3:
-                # at round-off: no further decrease is measurable
-                return NewtonResult(u, E, g, it, r, history)
-            alpha *= 0.5
-            if alpha < 1e-10:
-                raise NewtonError(f"iteration {it}: line search failed (inverted elements or no decrease)")
+        full = _full_step(u, H, free, g)
+        accepted = False
+        if full is not None:
+            d[free] = full
+            u_try = u + d.reshape(u.shape)
+            E_try, _, _, ok_try = _total(terms, u_try, False)
+            accepted = ok_try and E_try <= E + 1e-4 * float(g @ d)
+        if not accepted:
+            d[free] = _projected_step(terms, u, free, g)
+            slope = float(g @ d)
+            if slope >= 0:
+                raise NewtonError(f"iteration {it}: the projected Newton direction is not a descent direction")
+            alpha = 1.0
+            while True:
+                u_try = u + alpha * d.reshape(u.shape)
+                E_try, _, _, ok_try = _total(terms, u_try, False)
+                if ok_try and E_try <= E + 1e-4 * alpha * slope:
+                    break
+                if ok_try and abs(E_try - E) <= 1e-14 * max(abs(E), 1e-300) and alpha < 1e-3:
+                    # at round-off: no further decrease is measurable
+                    return NewtonResult(u, E, g, it, r, history)
+                alpha *= 0.5
+                if alpha < 1e-10:
+                    raise NewtonError(f"iteration {it}: line search failed (inverted elements or no decrease)")
         u = u_try
         E, g, H, ok = _total(terms, u, True)
         history.append(float(np.linalg.norm(g[free])))
-    raise NewtonError(f"no convergence in {max_iter} iterations: residual {np.linalg.norm(g[free]):.3e} > {tol:.3e}")
+    err = NewtonError(f"no convergence in {max_iter} iterations: residual {np.linalg.norm(g[free]):.3e} > {tol:.3e}")
+    err.history = history
+    raise err
 
 
 def step_to(

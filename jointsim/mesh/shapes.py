@@ -6,7 +6,7 @@ import numpy as np
 
 from .tetmesh import TetMesh
 
-__all__ = ["box_mesh", "cylinder_mesh"]
+__all__ = ["box_mesh", "grid_mesh", "graded_axis", "cylinder_mesh"]
 
 # Kuhn subdivision of the unit cube into 6 tetrahedra sharing the diagonal 0-7; conforming
 # across neighbouring cubes because every cube is split the same way.
@@ -15,8 +15,27 @@ _KUHN = np.array([[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4,
 
 def box_mesh(size: tuple[float, float, float], shape: tuple[int, int, int], origin=(0.0, 0.0, 0.0)) -> TetMesh:
     """Box [origin, origin + size] split into shape = (nx, ny, nz) cubes of 6 tets each."""
-    nx, ny, nz = shape
-    axes = [np.linspace(o, o + s, n + 1) for o, s, n in zip(origin, size, shape)]
+    return grid_mesh(*[np.linspace(o, o + s, n + 1) for o, s, n in zip(origin, size, shape)])
+
+
+def graded_axis(length: float, h0: float, ratio: float) -> np.ndarray:
+    """Coordinates 0 … length with the first cell h0 and each next one ``ratio`` times larger
+    (the last cell absorbs the remainder)."""
+    if not (0 < h0 < length and ratio >= 1):
+        raise ValueError("graded_axis: need 0 < h0 < length and ratio >= 1")
+    x = [0.0]
+    h = h0
+    while x[-1] + h < length - 0.5 * h:
+        x.append(x[-1] + h)
+        h *= ratio
+    x.append(length)
+    return np.array(x)
+
+
+def grid_mesh(xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> TetMesh:
+    """Tensor-product grid with the given node coordinates along each axis, 6 tets per cell."""
+    axes = [np.asarray(a, float) for a in (xs, ys, zs)]
+    nx, ny, nz = (len(a) - 1 for a in axes)
     X, Y, Z = np.meshgrid(*axes, indexing="ij")
     nodes = np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
     idx = np.arange(nodes.shape[0]).reshape(nx + 1, ny + 1, nz + 1)
