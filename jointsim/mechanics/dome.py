@@ -1,0 +1,189 @@
+"""The dome membrane as a 3-D solid: prism layers through the thickness on the inner chamber
+surface, split into tetrahedra and raised to P2; rim bonded to the base; saline pressure on the
+inner surface; a rigid spherical target pressed onto the outer surface.
+
+``press_dome`` is the function the coupled pipeline calls: a scene, a target pose, and back
+comes the deformed inner chamber surface (a DomeSurface, ready for ``morph_chamber`` or a
+remesh), with the contact force, contact area, displaced saline volume and solver figures.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry import DomeSurface
+from ..mesh.tetmesh import TetMesh
+from .contact import SphereContact, nodal_areas
+from .fem import ElasticTerm, P2Mesh
+from .materials import Material
+from .newton import NewtonError, minimize_energy
+from .pressure import PressureTerm, linear_subtriangles
+
+__all__ = ["MembraneModel", "MembraneState", "membrane_mesh", "ECOFLEX_00_50"]
+
+ECOFLEX_00_50 = Material.neo_hookean(22e3)  # DESIGN.md: μ ≈ 22 kPa, κ = 1000 μ
+
+
+def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    vn = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(vn, f[:, k], n)
+    return vn / np.linalg.norm(vn, axis=1, keepdims=True)
+
+
+def membrane_mesh(dome: DomeSurface, thickness: float, layers: int = 2) -> tuple[TetMesh, int]:
+    """Tetrahedra of the membrane: ``layers`` prism layers from the inner surface ``dome``
+    outward by ``thickness`` along the vertex normals (kept horizontal at the rim so the bonded
+    edge stays on the base plane). Layer l's copy of dome vertex i is node l·n + i.
+    Returns the mesh and n (the number of dome vertices)."""
+    if thickness <= 0:
+        raise ValueError(f"thickness = {thickness}: must be > 0 m")
+    v, f = np.asarray(dome.vertices, float), np.asarray(dome.faces)
+    n = len(v)
+    normal = _vertex_normals(v, f)
+    normal[dome.rim, 2] = 0.0  # the rim grows outward in the base plane
+    normal[dome.rim] /= np.linalg.norm(normal[dome.rim], axis=1, keepdims=True)
+    nodes = np.vstack([v + (l / layers) * thickness * normal for l in range(layers + 1)])
+    tets = []
+    for l in range(layers):
+        a, b = l * n + f, (l + 1) * n + f  # bottom and top triangles of each prism
+        # split each prism into 3 tets by the rule "start from the smallest vertex index", which
+        # makes the diagonals on shared quad faces agree between neighbouring prisms
+        tets.append(_split_prisms(a, b))
+    t = np.vstack(tets)
+    return TetMesh(nodes, t).oriented(), n
+
+
+def _split_prisms(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Prisms (a0 a1 a2 / b0 b1 b2), ai below bi, into 3 tetrahedra each, conforming."""
+    # rotate each triangle so its smallest global index comes first
+    r = np.argmin(a, axis=1)
+    idx = (r[:, None] + np.arange(3)) % 3
+    a = np.take_along_axis(a, idx, 1)
+    b = np.take_along_axis(b, idx, 1)
+    a0, a1, a2 = a.T
+    b0, b1, b2 = b.T
+    # the quad (a1 a2 b2 b1) is cut along the diagonal from its smallest index
+    use1 = np.minimum(a1, b2) < np.minimum(a2, b1)
+    t1 = np.column_stack([a0, a1, a2, b0])
+    t2 = np.where(use1[:, None], np.column_stack([a1, a2, b2, b0]), np.column_stack([a1, a2, b1, b0]))
+    t3 = np.where(use1[:, None], np.column_stack([a1, b2, b1, b0]), np.column_stack([a2, b2, b1, b0]))
+    return np.vstack([t1, t2, t3])
+
+
+@dataclass
+class MembraneState:
+    """One equilibrium: the deformed inner ``dome``, the contact ``force`` (3,) N the membrane
+    exerts on the target, ``contact_area`` m², ``displaced_volume`` m³ (saline pushed out to
+    the reservoir), ``peak_strain`` (largest principal Green–Lagrange strain), Newton
+    ``iterations`` and ``residual``, and ``penetration`` m (largest, at the surface nodes)."""
+
+    dome: DomeSurface
+    u: np.ndarray
+    force: np.ndarray
+    contact_area: float
+    displaced_volume: float
+    peak_strain: float
+    iterations: int
+    residual: float
+    penetration: float
+
+
+class MembraneModel:
+    """The membrane of a dome with its loads; call :meth:`press` for target poses in order
+    (each solve warm-starts from the previous one)."""
+
+    def __init__(
+        self,
+        dome: DomeSurface,
+        thickness: float = 2e-3,
+        material: Material = ECOFLEX_00_50,
+        layers: int = 2,
+        pressure: float = 0.0,
+        target_radius: float = 7.5e-3,
+        penalty: float | None = None,
+    ):
+        self.dome = dome
+        lin, self.n_surface = membrane_mesh(dome, thickness, layers)
+        self.mesh = P2Mesh.from_linear(lin)
+        X = self.mesh.nodes
+        self.elastic = ElasticTerm(self.mesh, material)
+        bf = self.mesh.boundary_faces
+        n = self.n_surface
+        on_inner = np.all(bf[:, :3] < n, axis=1)
+        on_outer = np.all(bf[:, :3] >= layers * n, axis=1) & np.all(bf[:, :3] < (layers + 1) * n, axis=1)
+        # the inner faces point into the chamber (out of the solid): the chamber volume has sign −1
+        self.inner_tris = linear_subtriangles(bf[on_inner])
+        self.pressure = PressureTerm(X, self.inner_tris, pressure, sign=-1.0)
+        nodes, w = nodal_areas(X, linear_subtriangles(bf[on_outer]))
+        h = thickness / layers
+        k = penalty if penalty is not None else 100 * 3 * material.mu / h
+        self.contact = SphereContact(X, nodes, w, target_radius, k)
+        self.contact.centre = np.array([0.0, 0.0, 1e3])  # far away until pressed
+        self.fixed = np.zeros_like(X, bool)
+        self.fixed[np.abs(X[:, 2]) < 1e-9 * np.ptp(X)] = True  # the bonded rim
+        self.u = np.zeros_like(X)
+        if pressure != 0.0:
+            # the reservoir head inflates the stress-free dome before any contact
+            self.u = minimize_energy([self.elastic, self.pressure], self.u, self.fixed).u
+        # displaced volume is counted from the pressurised, untouched dome
+        self.V0 = self.pressure.volume(self.u)
+
+    def first_contact_height(self, xy: np.ndarray) -> float:
+        """Centre height of the target coming down at ``xy`` when it touches the outer surface
+        of the current (deformed) membrane."""
+        x = self.contact.X[self.contact.nodes] + self.u[self.contact.nodes]
+        R = self.contact.radius
+        d2 = ((x[:, :2] - np.asarray(xy)) ** 2).sum(axis=1)
+        near = d2 < R * R
+        if not near.any():
+            raise ValueError(f"target at xy = {np.asarray(xy) * 1e3} mm misses the dome")
+        return float((x[near, 2] + np.sqrt(R * R - d2[near])).max())
+
+    def press(self, centre: np.ndarray, substeps: int = 1) -> MembraneState:
+        """Move the target centre to ``centre`` (3,) m in ``substeps`` straight-line steps and
+        solve for equilibrium. Raises NewtonError (with the step) on failure."""
+        start = self.contact.centre.copy()
+        if np.linalg.norm(start) > 1e2:  # first call: start from first contact above
+            start = np.array([centre[0], centre[1], self.first_contact_height(centre[:2])])
+        res = None
+        terms = [self.elastic, self.pressure, self.contact]
+        for s in range(1, substeps + 1):
+            self.contact.centre = start + (np.asarray(centre, float) - start) * s / substeps
+            try:
+                res = minimize_energy(terms, self.u, self.fixed)
+            except NewtonError as e:
+                raise NewtonError(f"target step {s}/{substeps} to centre {self.contact.centre * 1e3} mm: {e}") from e
+            self.u = res.u
+        return self.state(res.iterations, res.residual)
+
+    def state(self, iterations: int = 0, residual: float = 0.0) -> MembraneState:
+        u = self.u
+        n = self.n_surface
+        dome = DomeSurface(self.dome.vertices + u[:n], self.dome.faces, self.dome.rim)
+        s = self.elastic.kernel(u, hessian=False)
+        return MembraneState(
+            dome=dome,
+            u=u.copy(),
+            force=self.contact.force(u),
+            contact_area=self.contact.contact_area(u),
+            displaced_volume=self.V0 - self.pressure.volume(u),
+            peak_strain=_peak_green_strain(self.mesh, u),
+            iterations=iterations,
+            residual=residual,
+            penetration=self.contact.penetration(u),
+        )
+
+
+def _peak_green_strain(mesh: P2Mesh, u: np.ndarray) -> float:
+    """Largest principal Green–Lagrange strain at the element centroids (corner-node gradient)."""
+    p = mesh.nodes[mesh.tets[:, :4]]
+    Dm = np.swapaxes(p[:, 1:] - p[:, :1], 1, 2)
+    x = p + u[mesh.tets[:, :4]]
+    Ds = np.swapaxes(x[:, 1:] - x[:, :1], 1, 2)
+    F = Ds @ np.linalg.inv(Dm)
+    Egl = 0.5 * (np.swapaxes(F, 1, 2) @ F - np.eye(3))
+    return float(np.linalg.eigvalsh(Egl).max())

@@ -1,0 +1,54 @@
+"""The dome membrane pressed by a rigid sphere (coarse dome, one layer: a quick physical check)."""
+
+import numpy as np
+import pytest
+
+from jointsim.geometry import chamber_surface, spherical_cap
+from jointsim.mechanics.dome import MembraneModel, membrane_mesh
+from jointsim.mesh.tetmesh import mesh_quality
+
+
+def test_membrane_mesh_is_valid_and_keeps_the_inner_surface():
+    dome = spherical_cap(0.02, 0.01, 48)
+    mesh, n = membrane_mesh(dome, 2e-3, layers=2)
+    q = mesh_quality(mesh)
+    assert q.n_inverted == 0
+    np.testing.assert_array_equal(mesh.nodes[:n], dome.vertices)
+    # the membrane is the spherical shell R … R + t over the cap's solid angle (R = 25 mm,
+    # cos θ = 0.6); the rim grows horizontally instead of radially, adding ~2 %
+    R, t = 0.025, 2e-3
+    shell = 2 * np.pi * (1 - 0.6) / 3 * ((R + t) ** 3 - R**3)
+    assert q.volume == pytest.approx(shell, rel=0.03)
+    with pytest.raises(ValueError, match="thickness"):
+        membrane_mesh(dome, 0.0)
+
+
+@pytest.fixture(scope="module")
+def pressed():
+    dome = spherical_cap(0.02, 0.01, 48)
+    model = MembraneModel(dome, 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3)
+    top = model.first_contact_height((0.0, 0.0))
+    states = [model.press(np.array([0.0, 0.0, top - d])) for d in (0.5e-3, 1.0e-3)]
+    return model, states
+
+
+def test_force_and_displaced_volume_grow_with_depth(pressed):
+    model, (a, b) = pressed
+    # the membrane pushes the target up; nothing sideways for an on-axis press
+    assert 0 < a.force[2] < b.force[2]
+    assert abs(a.force[0]) < 0.02 * a.force[2] and abs(a.force[1]) < 0.02 * a.force[2]
+    assert 0 < a.displaced_volume < b.displaced_volume
+    assert a.contact_area > 0
+    assert chamber_surface(b.dome).is_watertight
+
+
+def test_penetration_is_below_one_percent_of_the_indentation(pressed):
+    model, (a, b) = pressed
+    assert a.penetration < 0.01 * 0.5e-3
+    assert b.penetration < 0.01 * 1.0e-3
+
+
+def test_a_target_beside_the_dome_is_rejected(pressed):
+    model, _ = pressed
+    with pytest.raises(ValueError, match="misses the dome"):
+        model.first_contact_height((0.05, 0.0))
