@@ -114,3 +114,33 @@ def test_newton_refuses_an_inverted_start():
     u[:, 2] = -2.0 * m.nodes[:, 2]  # mirror every element through z = 0
     with pytest.raises(NewtonError, match="inverted"):
         minimize_energy([term], u, np.zeros_like(u, bool))
+
+
+def test_rigid_sphere_into_a_thick_block_follows_hertz():
+    from jointsim.mechanics.contact import SphereContact, nodal_areas
+    from jointsim.mesh.shapes import graded_axis, grid_mesh
+
+    R, W, h0, d, mu = 10e-3, 80e-3, 0.25e-3, 0.2e-3, 22e3
+    E = 3 * mu  # ν = 0.5
+    # a quarter of a block 16 × 16 × 8 cm (40 contact radii: the rigid base and far sides do not
+    # stiffen it), cells growing from 0.25 mm at the contact by 1.4× per cell
+    ax = graded_axis(W, h0, 1.4)
+    m = P2Mesh.from_linear(grid_mesh(ax, ax, -ax[::-1]))
+    bf = m.boundary_faces
+    top = bf[np.all(np.isclose(m.nodes[bf[:, :3], 2], 0.0), axis=1)]
+    nodes, w = nodal_areas(m.nodes, linear_subtriangles(top))
+    contact = SphereContact(m.nodes, nodes, w, R, stiffness=100 * E / h0)
+    contact.centre = np.array([0.0, 0.0, R - d])
+    X = m.nodes
+    fixed = np.zeros_like(X, bool)
+    fixed[np.isclose(X[:, 0], 0), 0] = True  # symmetry planes
+    fixed[np.isclose(X[:, 1], 0), 1] = True
+    fixed[np.isclose(X[:, 2], -W), :] = True  # the base
+    res = minimize_energy([ElasticTerm(m, Material.neo_hookean(mu)), contact], np.zeros_like(X), fixed)
+    F = 4 * contact.force(res.u)[2]
+    hertz = 16 / 9 * E * np.sqrt(R) * d**1.5
+    # d/R = 0.02: measured +1.5 % (small-strain theory, finite block, 7 cells across the contact)
+    assert F == pytest.approx(hertz, rel=0.05)
+    assert contact.penetration(res.u) < 0.01 * d
+    a = np.sqrt(4 * contact.contact_area(res.u) / np.pi)  # a quarter of the contact disc
+    assert a == pytest.approx(np.sqrt(R * d), rel=0.15)

@@ -47,6 +47,23 @@ def default_backend(n_unknowns: int | None = None) -> str:
     return "pardiso" if "pardiso" in available_backends() else "superlu"
 
 
+# pypardiso searches for the MKL library (find_library, then a recursive glob of the Python
+# prefix) every time a solver is constructed: ~0.2-4 s. Solvers are therefore kept and reused
+# once their factor has been freed.
+_PARDISO_IDLE: dict[int, list] = {}
+
+
+def _pardiso_solver(mtype: int):
+    idle = _PARDISO_IDLE.get(mtype)
+    if idle:
+        return idle.pop()
+    import pypardiso
+
+    solver = pypardiso.PyPardisoSolver(mtype=mtype)
+    solver.set_statistical_info_off()
+    return solver
+
+
 class Factorization:
     """A factorised matrix: ``fac(B)`` solves A X = B for B (n,) or (n, k). ``free()`` releases
     the factor now; it is also released when the object is garbage-collected (PARDISO keeps
@@ -96,11 +113,9 @@ def factorize(A: sp.spmatrix, backend: str = "auto", spd: bool = True) -> Factor
         f = cholesky(A)
         return Factorization(lambda b: f(np.asarray(b, float)))
     if backend == "pardiso":
-        import pypardiso
-
         # real SPD (Cholesky) or real symmetric indefinite (LDLᵀ), on the upper triangle
-        solver = pypardiso.PyPardisoSolver(mtype=2 if spd else -2)
-        solver.set_statistical_info_off()
+        mtype = 2 if spd else -2
+        solver = _pardiso_solver(mtype)
         Au = sp.triu(A, format="csr")
         Au.sort_indices()
         solver.factorize(Au)
@@ -109,5 +124,9 @@ def factorize(A: sp.spmatrix, backend: str = "auto", spd: bool = True) -> Factor
             x = solver.solve(Au, np.ascontiguousarray(b, dtype=float))
             return x.reshape(np.shape(b))
 
-        return Factorization(solve, lambda: solver.free_memory(everything=True))
+        def release() -> None:
+            solver.free_memory(everything=True)
+            _PARDISO_IDLE.setdefault(mtype, []).append(solver)
+
+        return Factorization(solve, release)
     raise ValueError(f"backend = {backend!r}: allowed values are {available_backends()}")
