@@ -20,7 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 import warp as wp
 
-from ..mesh.tetmesh import _EDGES, TetMesh
+from ..mesh.tetmesh import TetMesh, edge_midpoints
 from .materials import Material, first_piola, strain_energy
 
 __all__ = ["P2Mesh", "ElementState", "element_terms", "assemble_hessian"]
@@ -49,12 +49,9 @@ class P2Mesh:
 
     @classmethod
     def from_linear(cls, mesh: TetMesh) -> "P2Mesh":
-        t = mesh.tets
-        e = np.sort(t[:, _EDGES].reshape(-1, 2), axis=1)
-        uniq, inv = np.unique(e, axis=0, return_inverse=True)
-        mid = mesh.nodes[uniq].mean(axis=1)
-        nodes = np.vstack([mesh.nodes, mid])
-        tets = np.hstack([t, mesh.n_nodes + inv.reshape(-1, 6)])
+        points, index = edge_midpoints(mesh)
+        nodes = np.vstack([mesh.nodes, points])
+        tets = np.hstack([mesh.tets, mesh.n_nodes + index])
         return cls(nodes, tets.astype(np.int32))
 
     @property

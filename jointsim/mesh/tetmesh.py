@@ -8,9 +8,9 @@ from functools import cached_property
 
 import numpy as np
 
-__all__ = ["TetMesh", "MeshQuality", "mesh_quality", "refine_uniform"]
+__all__ = ["TetMesh", "MeshQuality", "mesh_quality", "refine_uniform", "edge_midpoints"]
 
-# the six edges of a tetrahedron and, for each, the two faces that meet on it
+# the six edges of a tetrahedron, in the order P2 midpoint nodes follow
 _EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 _FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])  # face i is opposite vertex i, outward
 
@@ -141,16 +141,22 @@ def _circumradius(p: np.ndarray) -> np.ndarray:
     return np.linalg.norm(c, axis=1)
 
 
+def edge_midpoints(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
+    """The midpoints (k, 3) of the mesh's k unique edges, and for each element the index (m, 6)
+    of the midpoint of each of its edges, in the order of ``_EDGES``."""
+    key = np.sort(mesh.tets[:, _EDGES].reshape(-1, 2), axis=1)
+    uniq, inv = np.unique(key, axis=0, return_inverse=True)
+    return mesh.nodes[uniq].mean(axis=1), inv.reshape(-1, 6)
+
+
 def refine_uniform(mesh: TetMesh) -> TetMesh:
     """Red refinement: every tetrahedron split into 8 through its edge midpoints (the inner
     octahedron cut along one diagonal). Boundary faces stay in their planes, so flat electrodes
     can be re-clipped exactly on the refined mesh."""
     t = mesh.tets
-    e = t[:, _EDGES].reshape(-1, 2)
-    key = np.sort(e, axis=1)
-    uniq, inv = np.unique(key, axis=0, return_inverse=True)
-    mid = mesh.n_nodes + inv.reshape(-1, 6)  # midpoint node of each of the 6 edges
-    nodes = np.vstack([mesh.nodes, mesh.nodes[uniq].mean(axis=1)])
+    points, index = edge_midpoints(mesh)
+    mid = mesh.n_nodes + index  # midpoint node of each of the 6 edges
+    nodes = np.vstack([mesh.nodes, points])
     m01, m02, m03, m12, m13, m23 = mid.T
     v0, v1, v2, v3 = t.T
     children = np.stack(
