@@ -1,11 +1,12 @@
-"""Sparse direct factorisation of the SPD CEM system, factorised once and solved for many
-right-hand sides.
+"""Sparse direct factorisation of symmetric systems (the SPD CEM matrix, the symmetric
+indefinite Newton Hessians of the mechanics), factorised once and solved for many right-hand
+sides.
 
 "auto" picks by size, from results/eit_forward_benchmark.md (2-core machine): scipy's SuperLU
-for systems below 40 k unknowns (it beat PARDISO 0.18 s to 0.48 s at 21 k nodes, where MKL's
-set-up dominates), PARDISO (pypardiso) above (0.85 s against SuperLU's 1.20 s at 68 k nodes;
-SuperLU's fill-in grows fastest on 3-D meshes). CHOLMOD (scikit-sparse, optional, needs
-SuiteSparse from the system) is used when asked for.
+for systems below 40 k unknowns (0.25 s against PARDISO's 0.48 s at 21 k nodes, where MKL's
+set-up dominates), PARDISO (pypardiso) above (0.81 s against SuperLU's 1.74 s at 68 k nodes,
+2.6 s against 22.8 s at 211 k: SuperLU's fill-in grows fastest on 3-D meshes). CHOLMOD
+(scikit-sparse < 0.5, optional, needs SuiteSparse from the system) is used when asked for.
 """
 
 from __future__ import annotations
