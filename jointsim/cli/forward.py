@@ -17,7 +17,7 @@ from ..eit.noise import add_noise, noise_std
 from ..eit.protocol import skip_protocol
 from ..io.export import atomic_path, write_mat, write_npz, write_vtu
 from ..mesh.chamber import chamber_mesh
-from ..reconstruction.grid import VoxelGrid, element_voxel_map
+from ..reconstruction.grid import ChamberGrid
 from .common import add_scene_arguments, scene_from_args, stage
 
 HELP = "EIT forward solve of a scene's chamber: voltages, Jacobian, VTU and .mat"
@@ -27,7 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
     p.add_argument("--out", type=Path, default=Path("out/forward"), help="output folder (default: out/forward)")
     p.add_argument("--skip", type=int, help="override the scene's skip-N injection protocol")
-    p.add_argument("--voxels", type=int, default=7000, help="coarse grid cells for the Jacobian (default 7000)")
+    p.add_argument("--voxels", type=int, default=7000, help="reconstruction voxels in the chamber for the Jacobian (default 7000)")
     p.add_argument("--no-jacobian", action="store_true", help="skip the Jacobian")
     p.add_argument("--solver", default="auto", help="sparse direct backend: auto (default: pardiso if installed), pardiso, cholmod, superlu")
 
@@ -67,11 +67,17 @@ def run(args: argparse.Namespace) -> int:
     arrays = dict(voltages=v, voltages_noisy=noisy, stim=protocol.stim, meas=protocol.meas, transfer=fields.transfer)
     J = None
     if not args.no_jacobian:
-        grid = VoxelGrid.covering(ch.mesh, args.voxels)
-        C = element_voxel_map(ch.mesh, grid)
+        grid = ChamberGrid.over(ch.mesh, args.voxels)
         with stage(f"Jacobian on {grid.n_cells} voxels", t):
-            J = jacobian(fields, protocol, coarse=C)
-        arrays.update(jacobian_voxels=J, voxel_origin=grid.origin, voxel_spacing=grid.spacing, voxel_shape=np.array(grid.shape))
+            J = jacobian(fields, protocol, coarse=grid.C)
+        arrays.update(
+            jacobian_voxels=J,
+            voxel_active=grid.active,
+            voxel_volume=grid.volume,
+            voxel_origin=grid.grid.origin,
+            voxel_spacing=grid.grid.spacing,
+            voxel_shape=np.array(grid.grid.shape),
+        )
     with stage("write outputs", t):
         write_npz(out / "forward.npz", **arrays)
         pot = fields.potentials(protocol)
