@@ -23,6 +23,7 @@ __all__ = [
     "Drive",
     "Noise",
     "MeshSpec",
+    "Membrane",
     "Scene",
     "load_scene",
     "scene_from_dict",
@@ -78,6 +79,20 @@ class Drive:
 
 
 @dataclass(frozen=True)
+class Membrane:
+    """The dome membrane's material (SI): ``law`` "neo-hookean" (``shear_modulus``) or "yeoh"
+    (``yeoh_c``), ``bulk_ratio`` κ/μ, prism ``layers`` through the thickness, and the
+    reservoir's hydrostatic ``reservoir_pressure`` on the inner surface (Pa)."""
+
+    law: str = "neo-hookean"
+    shear_modulus: float = 22e3
+    yeoh_c: tuple[float, float, float] = (9.8e3, 0.91e3, -0.16e3)
+    bulk_ratio: float = 1000.0
+    layers: int = 2
+    reservoir_pressure: float = 0.0
+
+
+@dataclass(frozen=True)
 class Noise:
     snr_db: float = 74.2
     seed: int = 0
@@ -118,6 +133,7 @@ class Scene:
     drive: Drive = field(default_factory=Drive)
     noise: Noise = field(default_factory=Noise)
     mesh: MeshSpec = field(default_factory=MeshSpec)
+    membrane: Membrane = field(default_factory=Membrane)
 
     def with_mesh_preset(self, preset: str) -> "Scene":
         if preset not in MESH_PRESETS:
@@ -225,7 +241,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     data = dict(data)
     name = str(data.pop("name", name))
     data.pop("description", None)
-    known = {"chamber", "electrodes", "saline", "drive", "noise", "mesh"}
+    known = {"chamber", "electrodes", "saline", "drive", "noise", "mesh", "membrane"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise SceneError(f"unknown section(s): {', '.join(unknown)}; known are {', '.join(sorted(known))}")
@@ -304,6 +320,19 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     if preset != "custom" and ("max_edge_mm" in data.get("mesh", {}) or "electrode_refinement" in data.get("mesh", {})):
         preset = "custom"
 
+    t = _Table(data.get("membrane", {}), "membrane")
+    law = t.raw("law", "neo-hookean")
+    if law not in ("neo-hookean", "yeoh"):
+        raise SceneError(f"membrane.law = {law!r}: allowed values are 'neo-hookean', 'yeoh'")
+    mu = t.number("shear_modulus_kpa", 22.0, 0.0, 1e6, lo_open=True)
+    yc = _number_list("membrane.yeoh_c_kpa", t.raw("yeoh_c_kpa", [9.8, 0.91, -0.16]), 3, -1e6, 1e6, False)
+    if law == "yeoh" and yc[0] <= 0:
+        raise SceneError(f"membrane.yeoh_c_kpa[0] = {yc[0]:g}: must be > 0 (C1 is half the shear modulus)")
+    bulk_ratio = t.number("bulk_ratio", 1000.0, 1.0, 1e5)
+    layers = t.integer("layers", 2, 1, 8)
+    p_res = t.number("reservoir_pressure_pa", 0.0, -1e4, 1e5)
+    t.finish()
+
     return Scene(
         name=name,
         chamber=chamber,
@@ -312,6 +341,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         drive=Drive(current * 1e-6, freqs, skip),
         noise=Noise(snr, seed, drift, rate),
         mesh=MeshSpec(preset, max_edge * MM, refine, zone * MM, grading, eps, stop_energy, max_opt_iter),
+        membrane=Membrane(law, mu * 1e3, tuple(c * 1e3 for c in yc), bulk_ratio, layers, p_res),
     )
 
 

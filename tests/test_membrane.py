@@ -52,3 +52,12 @@ def test_a_target_beside_the_dome_is_rejected(pressed):
     model, _ = pressed
     with pytest.raises(ValueError, match="misses the dome"):
         model.first_contact_height((0.05, 0.0))
+
+
+def test_membrane_from_the_paper_scene(paper_scene):
+    model = MembraneModel.from_scene(paper_scene, 7.5e-3, dome=spherical_cap(0.02, 0.01, 32))
+    assert model.elastic.kernel.mesh is model.mesh
+    assert model.contact.radius == 7.5e-3
+    assert model.pressure.pressure == pytest.approx(paper_scene.membrane.reservoir_pressure)
+    # the reservoir head inflates the dome before contact: the counted volume is the inflated one
+    assert model.V0 > model.pressure.volume(np.zeros_like(model.u))

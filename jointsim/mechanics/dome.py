@@ -132,6 +132,26 @@ class MembraneModel:
         # displaced volume is counted from the pressurised, untouched dome
         self.V0 = self.pressure.volume(self.u)
 
+    @classmethod
+    def from_scene(cls, scene, target_radius: float, dome: DomeSurface | None = None) -> "MembraneModel":
+        """The membrane of ``scene`` (its [membrane] section and chamber), for a rigid target of
+        ``target_radius`` m; ``dome`` defaults to the scene's undeformed dome."""
+        from ..geometry import dome_from_scene
+
+        m = scene.membrane
+        if m.law == "yeoh":
+            material = Material.yeoh(*m.yeoh_c, bulk_ratio=m.bulk_ratio)
+        else:
+            material = Material.neo_hookean(m.shear_modulus, bulk_ratio=m.bulk_ratio)
+        return cls(
+            dome_from_scene(scene) if dome is None else dome,
+            scene.chamber.membrane_thickness,
+            material,
+            m.layers,
+            m.reservoir_pressure,
+            target_radius,
+        )
+
     def first_contact_height(self, xy: np.ndarray) -> float:
         """Centre height of the target coming down at ``xy`` when it touches the outer surface
         of the current (deformed) membrane."""
