@@ -105,7 +105,11 @@ class MembraneModel:
         pressure: float = 0.0,
         target_radius: float = 7.5e-3,
         penalty: float | None = None,
+        force_tol: float | None = None,
     ):
+        # converged when the out-of-balance nodal force is below force_tol (N): by default
+        # 1e-6·μ·t², a millionth of the force that strains a membrane-thick cube by one
+        self.force_tol = force_tol if force_tol is not None else 1e-6 * material.mu * thickness**2
         self.dome = dome
         lin, self.n_surface = membrane_mesh(dome, thickness, layers)
         self.mesh = P2Mesh.from_linear(lin)
@@ -131,6 +135,7 @@ class MembraneModel:
             self.u = minimize_energy([self.elastic, self.pressure], self.u, self.fixed).u
         # displaced volume is counted from the pressurised, untouched dome
         self.V0 = self.pressure.volume(self.u)
+        self._history: list[tuple[np.ndarray, np.ndarray]] = []
 
     @classmethod
     def from_scene(cls, scene, target_radius: float, dome: DomeSurface | None = None) -> "MembraneModel":
@@ -172,13 +177,33 @@ class MembraneModel:
         res = None
         terms = [self.elastic, self.pressure, self.contact]
         for s in range(1, substeps + 1):
-            self.contact.centre = start + (np.asarray(centre, float) - start) * s / substeps
+            new = start + (np.asarray(centre, float) - start) * s / substeps
+            guess = self._extrapolate(new)
+            self.contact.centre = new
             try:
-                res = minimize_energy(terms, self.u, self.fixed)
-            except NewtonError as e:
-                raise NewtonError(f"target step {s}/{substeps} to centre {self.contact.centre * 1e3} mm: {e}") from e
+                res = minimize_energy(terms, guess, self.fixed, rtol=0.0, atol=self.force_tol)
+            except NewtonError:
+                try:  # the extrapolation may have overshot: start from the last equilibrium
+                    res = minimize_energy(terms, self.u, self.fixed, rtol=0.0, atol=self.force_tol)
+                except NewtonError as e:
+                    raise NewtonError(f"target step {s}/{substeps} to centre {new * 1e3} mm: {e}") from e
+            self._history.append((new.copy(), res.u.copy()))
+            self._history = self._history[-2:]
             self.u = res.u
         return self.state(res.iterations, res.residual)
+
+    def _extrapolate(self, centre: np.ndarray) -> np.ndarray:
+        """Initial guess for the target at ``centre``: the last equilibrium moved along the
+        secant of the last two (the response to a small target motion is nearly linear)."""
+        if len(self._history) < 2:
+            return self.u
+        (c0, u0), (c1, u1) = self._history
+        step = np.linalg.norm(c1 - c0)
+        if step == 0:
+            return self.u
+        t = float(np.dot(centre - c1, c1 - c0) / step**2)
+        guess = u1 + t * (u1 - u0)
+        return guess if self.elastic.evaluate(guess, False)[3] else self.u
 
     def state(self, iterations: int = 0, residual: float = 0.0) -> MembraneState:
         u = self.u
