@@ -54,6 +54,14 @@ def test_a_target_beside_the_dome_is_rejected(pressed):
         model.first_contact_height((0.05, 0.0))
 
 
+def test_an_indentation_into_the_base_is_rejected(pressed):
+    model, _ = pressed
+    u = model.u.copy()
+    with pytest.raises(ValueError, match="beyond what the dome can take"):
+        model.press(np.array([0.0, 0.0, model.contact.radius + 1e-3]))
+    np.testing.assert_array_equal(model.u, u)  # nothing was changed
+
+
 def test_membrane_from_the_paper_scene(paper_scene):
     model = MembraneModel.from_scene(paper_scene, 7.5e-3, dome=spherical_cap(0.02, 0.01, 32))
     assert model.elastic.kernel.mesh is model.mesh

@@ -111,6 +111,7 @@ class MembraneModel:
         # 1e-6·μ·t², a millionth of the force that strains a membrane-thick cube by one
         self.force_tol = force_tol if force_tol is not None else 1e-6 * material.mu * thickness**2
         self.dome = dome
+        self.thickness = thickness
         lin, self.n_surface = membrane_mesh(dome, thickness, layers)
         self.mesh = P2Mesh.from_linear(lin)
         X = self.mesh.nodes
@@ -171,6 +172,14 @@ class MembraneModel:
     def press(self, centre: np.ndarray, substeps: int = 1) -> MembraneState:
         """Move the target centre to ``centre`` (3,) m in ``substeps`` straight-line steps and
         solve for equilibrium. Raises NewtonError (with the step) on failure."""
+        centre = np.asarray(centre, float)
+        lowest = centre[2] - self.contact.radius
+        if lowest < self.thickness:
+            raise ValueError(
+                f"target centre z = {centre[2] * 1e3:.3g} mm: the sphere's lowest point would be "
+                f"{lowest * 1e3:.3g} mm above the base, less than the membrane thickness "
+                f"{self.thickness * 1e3:.3g} mm; indentation beyond what the dome can take"
+            )
         start = self.contact.centre.copy()
         if np.linalg.norm(start) > 1e2:  # first call: start from first contact above
             start = np.array([centre[0], centre[1], self.first_contact_height(centre[:2])])
