@@ -93,3 +93,20 @@ def test_fem_dome_drives_the_eit_chamber(test_chamber, pressed):
     va = ForwardModel.from_chamber(ma, scene).solve(scene.saline.conductivity).voltages(p)
     vb = ForwardModel.from_chamber(m, scene).solve(scene.saline.conductivity).voltages(p)
     assert np.all(np.diag((vb - va).reshape(16, 16)) > 0)
+
+
+def test_indent_command_writes_the_curve(tmp_path):
+    import csv
+    import subprocess
+    import sys
+
+    out = tmp_path / "ind"
+    cmd = [sys.executable, "-m", "jointsim", "indent", "--dome-rim", "32", "--layers", "1", "--depth-mm", "1", "--out", str(out)]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = list(csv.DictReader((out / "force_indentation.csv").open()))
+    assert [float(x["depth_mm"]) for x in rows] == [0.5, 1.0]
+    assert 0 < float(rows[0]["force_N"]) < float(rows[1]["force_N"])
+    assert (out / "force_indentation.png").is_file() and (out / "membrane_001.vtu").is_file()
+    bad = subprocess.run(cmd[:-2] + ["--depth-mm", "50", "--out", str(out)], capture_output=True, text=True)
+    assert bad.returncode == 2 and "beyond what the dome can take" in bad.stderr

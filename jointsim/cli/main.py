@@ -6,9 +6,9 @@ import argparse
 import sys
 
 from ..scene import SceneError
-from . import forward, mesh, protocol_study
+from . import forward, indent, mesh, protocol_study
 
-SUBCOMMANDS = {"forward": forward, "mesh": mesh, "protocol-study": protocol_study}
+SUBCOMMANDS = {"forward": forward, "mesh": mesh, "protocol-study": protocol_study, "indent": indent}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -25,7 +25,6 @@ from .materials import Material, first_piola, strain_energy
 
 __all__ = ["P2Mesh", "ElementState", "element_terms", "assemble_hessian"]
 
-wp.config.quiet = True
 # the element loops are short but deeply nested: unrolling them makes compile times explode,
 # and no adjoint kernels are needed (derivatives are formed explicitly)
 wp.set_module_options({"max_unroll": 1, "enable_backward": False})

@@ -16,10 +16,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import logging
+
 import numpy as np
 import warp as wp
 
-wp.config.quiet = True
+# Warp's start-up banner and per-module load lines are noise on a command line
+wp.config.log_level = max(getattr(wp.config, "log_level", logging.WARNING), logging.WARNING)
 
 __all__ = ["Material", "first_piola", "strain_energy"]
 
