@@ -4,6 +4,7 @@ cached on disk by content hash so one scene is never meshed twice."""
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import tempfile
@@ -120,18 +121,21 @@ def _tetrahedralise(surface: trimesh.Trimesh, layout: ElectrodeLayout, spec: Mes
 
     bg_p, bg_t, bg_h = sizing_field(layout, spec, surface.bounds)
     diag = float(np.linalg.norm(np.ptp(surface.vertices, axis=0)))
-    v, t = pytetwild.tetrahedralize(
-        np.asarray(surface.vertices, float),
-        np.asarray(surface.faces, np.int32),
-        edge_length_abs=spec.max_edge,
-        epsilon=spec.epsilon_rel,
-        stop_energy=spec.stop_energy,
-        num_opt_iter=spec.max_opt_iter,
-        num_threads=num_threads,
-        bg_vertices=bg_p,
-        bg_tets=bg_t,
-        bg_values=bg_h,
-    )
+    # fTetWild writes a side file (__tracked_surface.stl) into the working directory: keep it
+    # out of the user's folder
+    with tempfile.TemporaryDirectory() as scratch, contextlib.chdir(scratch):
+        v, t = pytetwild.tetrahedralize(
+            np.asarray(surface.vertices, float),
+            np.asarray(surface.faces, np.int32),
+            edge_length_abs=spec.max_edge,
+            epsilon=spec.epsilon_rel,
+            stop_energy=spec.stop_energy,
+            num_opt_iter=spec.max_opt_iter,
+            num_threads=num_threads,
+            bg_vertices=bg_p,
+            bg_tets=bg_t,
+            bg_values=bg_h,
+        )
     mesh = TetMesh(v, t).oriented()
     # fTetWild keeps the boundary within an envelope of the input; put the base back on z = 0
     # exactly so the electrode integrals are taken on the true plane
