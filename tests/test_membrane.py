@@ -110,3 +110,16 @@ def test_indent_command_writes_the_curve(tmp_path):
     assert (out / "force_indentation.png").is_file() and (out / "membrane_001.vtu").is_file()
     bad = subprocess.run(cmd[:-2] + ["--depth-mm", "50", "--out", str(out)], capture_output=True, text=True)
     assert bad.returncode == 2 and "beyond what the dome can take" in bad.stderr
+
+
+def test_force_control_settles_at_the_commanded_force():
+    dome = spherical_cap(0.02, 0.01, 32)
+    model = MembraneModel(dome, 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3)
+    st = model.press_to_force((0.0, 0.0), 0.02)  # 20 mN
+    assert st.force[2] == pytest.approx(0.02, rel=1e-3)
+    # and it is the equilibrium that position control reaches at that target position
+    again = MembraneModel(dome, 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3)
+    same = again.press(model.contact.centre.copy(), substeps=2)
+    assert same.force[2] == pytest.approx(st.force[2], rel=1e-4)
+    with pytest.raises(ValueError, match="force"):
+        model.press_to_force((0.0, 0.0), -1.0)

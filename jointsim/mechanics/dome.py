@@ -201,6 +201,32 @@ class MembraneModel:
             self.u = res.u
         return self.state(res.iterations, res.residual)
 
+    def press_to_force(self, xy: np.ndarray, force: float, rtol: float = 1e-3, max_iter: int = 30) -> MembraneState:
+        """Force control: lower the target at ``xy`` until the contact force along z equals
+        ``force`` (N) within ``rtol``, by secant steps on the depth (the force grows
+        monotonically with depth). The depth reached is ``first contact − centre z``."""
+        if force <= 0:
+            raise ValueError(f"force = {force}: must be > 0 N")
+        xy = np.asarray(xy, float)
+        top = self.first_contact_height(xy) if np.linalg.norm(self.contact.centre) > 1e2 else None
+        z0 = self.contact.centre[2] if top is None else top
+        f0 = 0.0 if top is not None else float(self.contact.force(self.u)[2])
+        z1 = z0 - 0.25 * self.thickness  # a first guess: a fraction of the membrane thickness
+        st = self.press(np.array([xy[0], xy[1], z1]))
+        f1 = float(st.force[2])
+        for _ in range(max_iter):
+            if abs(f1 - force) <= rtol * force:
+                return st
+            slope = (f1 - f0) / (z1 - z0) if z1 != z0 else -1.0
+            # the force rises as z falls: slope < 0; guard against flat or wrong-signed secants
+            dz = (force - f1) / slope if slope < 0 else -0.25 * self.thickness
+            dz = float(np.clip(dz, -0.5 * self.thickness, 0.5 * self.thickness))
+            z0, f0 = z1, f1
+            z1 = z1 + dz
+            st = self.press(np.array([xy[0], xy[1], z1]))
+            f1 = float(st.force[2])
+        raise NewtonError(f"force control: {f1:.4g} N after {max_iter} depth updates, commanded {force:.4g} N")
+
     def _extrapolate(self, centre: np.ndarray) -> np.ndarray:
         """Initial guess for the target at ``centre``: the last equilibrium moved along the
         secant of the last two (the response to a small target motion is nearly linear)."""
