@@ -23,7 +23,7 @@ import warp as wp
 from ..mesh.tetmesh import TetMesh, edge_midpoints
 from .materials import Material, first_piola, strain_energy
 
-__all__ = ["P2Mesh", "ElementState", "element_terms", "assemble_hessian"]
+__all__ = ["P2Mesh", "ElementState", "ElementKernel", "ElasticTerm", "project_psd", "assemble_hessian", "assemble_gradient"]
 
 # the element loops are short but deeply nested: unrolling them makes compile times explode,
 # and no adjoint kernels are needed (derivatives are formed explicitly)
@@ -233,11 +233,6 @@ class ElementKernel:
             self._hess.numpy().copy() if hessian else None,
             self._mindet.numpy().copy(),
         )
-
-
-def element_terms(mesh: P2Mesh, material: Material, u: np.ndarray, hessian: bool = True) -> ElementState:
-    """One-off evaluation (builds the Warp arrays each call; use :class:`ElementKernel` in loops)."""
-    return ElementKernel(mesh, material)(u, hessian)
 
 
 def project_psd(H: np.ndarray) -> np.ndarray:

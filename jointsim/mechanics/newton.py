@@ -15,7 +15,7 @@ import scipy.sparse as sp
 
 from ..eit.solver import available_backends, factorize
 
-__all__ = ["EnergyTerm", "NewtonResult", "NewtonError", "minimize_energy"]
+__all__ = ["EnergyTerm", "NewtonResult", "NewtonError", "minimize_energy", "step_to"]
 
 
 class NewtonError(RuntimeError):
@@ -148,7 +148,6 @@ def step_to(
     tangent at ``u_eq``), then Newton corrects. When Newton fails, the increment is halved
     and taken in two sub-steps, up to ``max_halvings`` times, before the error is raised."""
     fixed = np.asarray(fixed, bool)
-    free = ~fixed.ravel()
     try:
         return minimize_energy(terms, _predict(terms, u_eq, fixed, target), fixed, **newton_kw)
     except NewtonError:
