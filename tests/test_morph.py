@@ -1,0 +1,178 @@
+"""The prepared chamber morpher, its quality check and the automatic fallback to a remesh."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import trimesh
+
+import jointsim.mesh.morph as morph
+from jointsim.eit.fem import element_stiffness
+from jointsim.eit.forward import ForwardModel
+from jointsim.eit.protocol import skip_protocol
+from jointsim.geometry import DomeSurface, chamber_surface, dome_from_scene
+from jointsim.mechanics.geometric import indent_dome
+from jointsim.mesh.electrodes import disc_patches
+from jointsim.mesh.morph import (
+    ChamberMorpher,
+    MeshInversionError,
+    deform_chamber,
+    dome_nodes,
+    element_quality,
+    morph_chamber,
+)
+from jointsim.mesh.tetmesh import TetMesh, mesh_quality
+
+
+def _reference_morph(chamber, dome, deformed):
+    """The one-off algorithm written out step by step (closest points, assembly, a fresh
+    factorisation, one solve): the nodes the prepared morpher must reproduce."""
+    mesh = chamber.mesh
+    disp = deformed.vertices - dome.vertices
+    top = dome_nodes(mesh)
+    surf = trimesh.Trimesh(dome.vertices, dome.faces, process=False)
+    closest, _, tri = trimesh.proximity.closest_point(surf, mesh.nodes[top])
+    bary = trimesh.triangles.points_to_barycentric(surf.triangles[tri], closest)
+    u = np.zeros_like(mesh.nodes)
+    u[top] = np.einsum("na,nai->ni", bary, disp[dome.faces[tri]])
+    fixed = np.zeros(mesh.n_nodes, bool)
+    fixed[np.unique(mesh.boundary_faces)] = True
+    k = element_stiffness(mesh)
+    rows, cols = np.repeat(mesh.tets, 4, axis=1).ravel(), np.tile(mesh.tets, (1, 4)).ravel()
+    K = sp.csr_matrix((k.ravel(), (rows, cols)), shape=(mesh.n_nodes,) * 2)
+    u[~fixed] = spla.spsolve(K[~fixed][:, ~fixed].tocsc(), -(K[~fixed][:, fixed] @ u[fixed]))
+    return mesh.nodes + u
+
+
+@pytest.fixture(scope="module")
+def morpher(test_chamber):
+    scene, ch = test_chamber
+    with ChamberMorpher(ch, dome_from_scene(scene)) as m:
+        yield m
+
+
+def _press(scene, xy, depth):
+    return indent_dome(dome_from_scene(scene), xy, depth, 7.5e-3, scene.chamber.membrane_thickness).dome
+
+
+def _fold(dome):
+    """A huge non-physical deformation: the dome mirrored through the base at half height.
+    The harmonic extension of this linear map is the map itself, so every element inverts."""
+    v = dome.vertices.copy()
+    v[:, 2] *= -0.5
+    v[dome.rim, 2] = 0.0
+    return DomeSurface(v, dome.faces, dome.rim)
+
+
+@pytest.mark.parametrize("xy, depth", [((0.0, 0.0), 1.5e-3), ((0.008, -0.004), 2.5e-3)])
+def test_prepared_morpher_matches_the_one_off_morph(test_chamber, morpher, xy, depth):
+    scene, ch = test_chamber
+    deformed = _press(scene, xy, depth)
+    m = morpher(deformed)
+    np.testing.assert_array_equal(m.mesh.tets, ch.mesh.tets)
+    np.testing.assert_allclose(m.mesh.nodes, _reference_morph(ch, morpher.dome, deformed), rtol=0, atol=1e-12)
+    # the one-off wrapper is the same computation
+    np.testing.assert_array_equal(morph_chamber(ch, morpher.dome, deformed).mesh.nodes, m.mesh.nodes)
+    # a ChamberMesh source is prepared on the spot and gives the same morph
+    r = deform_chamber(ch, deformed, scene)
+    assert r.path == "morph" and r.reason.startswith("morphed")
+    np.testing.assert_array_equal(r.chamber.mesh.nodes, m.mesh.nodes)
+
+
+def test_zero_deformation_is_the_reference_mesh_and_has_no_mesh_noise(chamber_fields, morpher):
+    scene, ch, model, f0 = chamber_fields
+    m = morpher(morpher.dome)
+    np.testing.assert_array_equal(m.mesh.nodes, ch.mesh.nodes)
+    p = skip_protocol(16, 8, scene.drive.current)
+    v = ForwardModel.from_chamber(m, scene).solve(scene.saline.conductivity).voltages(p)
+    np.testing.assert_array_equal(v, f0.voltages(p))
+
+
+def test_morph_keeps_the_electrode_patches_exact(test_chamber, morpher):
+    scene, ch = test_chamber
+    m = morpher(_press(scene, (0.012, 0.003), 2e-3))
+    assert m.electrodes is ch.electrodes
+    # the base does not move, so clipping the electrodes on the morphed mesh gives the same
+    # patches, integrals included
+    for a, b in zip(disc_patches(m.mesh, ch.layout.centres, ch.layout.radii), ch.electrodes):
+        for f in ("faces", "area", "m1", "m2"):
+            np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+        np.testing.assert_array_equal(m.mesh.nodes[b.faces], ch.mesh.nodes[b.faces])
+    assert m.key.startswith(ch.key) and m.key != ch.key
+
+
+def test_element_quality_agrees_with_mesh_quality(test_chamber, morpher):
+    scene, ch = test_chamber
+    for mesh in (ch.mesh, morpher(_press(scene, (0.0, 0.0), 2.5e-3)).mesh):
+        fast, full = element_quality(mesh.nodes, mesh.tets), mesh_quality(mesh)
+        assert fast.n_inverted == full.n_inverted == 0
+        assert fast.min_dihedral_deg == pytest.approx(full.min_dihedral_deg, abs=1e-9)
+        assert fast.max_dihedral_deg == pytest.approx(full.max_dihedral_deg, abs=1e-9)
+    # η: 1 for the regular tetrahedron, negative once inverted, 0 when flat
+    reg = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+    tet = TetMesh(reg, [[0, 1, 2, 3]]).oriented().tets
+    q = element_quality(reg, tet)
+    assert q.min_shape == pytest.approx(1.0, abs=1e-12) and q.n_inverted == 0
+    assert q.min_dihedral_deg == pytest.approx(np.degrees(np.arccos(1 / 3)), abs=1e-9)
+    flipped = element_quality(reg, tet[:, [0, 1, 3, 2]])
+    assert flipped.n_inverted == 1 and flipped.min_shape == pytest.approx(-1.0, abs=1e-12)
+    flat = reg.copy()
+    flat[:, 2] = 0.0
+    assert element_quality(flat, tet).min_shape == 0.0
+
+
+def test_an_inverting_deformation_remeshes_in_auto_and_raises_in_morph(test_chamber, morpher):
+    scene, ch = test_chamber
+    fold = _fold(morpher.dome)
+    with pytest.raises(MeshInversionError, match="remesh"):
+        deform_chamber(morpher, fold, scene, mode="morph")
+    r = deform_chamber(morpher, fold, scene)  # the one real remesh of these tests
+    assert r.path == "remesh" and "inverted" in r.reason
+    assert r.quality.n_inverted == 0
+    # fTetWild keeps the surface within its envelope, not on it: ~0.1 % of the volume here
+    assert r.chamber.mesh.volumes.sum() == pytest.approx(chamber_surface(fold).volume, rel=5e-3)
+    # electrodes are clipped exactly on the new base: the same areas as on the reference mesh
+    np.testing.assert_allclose(
+        [e.total_area for e in r.chamber.electrodes], [e.total_area for e in ch.electrodes], rtol=1e-12
+    )
+
+
+def test_auto_remeshes_when_the_quality_drops_below_the_threshold(test_chamber, morpher, monkeypatch):
+    scene, ch = test_chamber
+    calls = []
+    monkeypatch.setattr(morph, "_remesh", lambda deformed, scene, use_cache: calls.append(deformed) or ch)
+    deformed = _press(scene, (0.0, 0.0), 2.5e-3)
+    _, q = morpher.morph(deformed)
+    ratio = q.min_shape / morpher.reference_quality.min_shape
+    assert 0 < ratio < 1
+    below = deform_chamber(morpher, deformed, scene, min_quality_ratio=min(1.0, 1.01 * ratio))
+    assert below.path == "remesh" and "quality" in below.reason and len(calls) == 1
+    above = deform_chamber(morpher, deformed, scene, min_quality_ratio=0.99 * ratio)
+    assert above.path == "morph" and above.quality == q
+    # "morph" never falls back on quality; "remesh" always remeshes
+    assert deform_chamber(morpher, deformed, scene, "morph", min_quality_ratio=1.0).path == "morph"
+    r = deform_chamber(morpher, deformed, scene, "remesh")
+    assert r.path == "remesh" and "mode = 'remesh'" in r.reason and len(calls) == 2
+
+
+def test_bad_arguments_name_the_parameter(test_chamber, morpher):
+    scene, ch = test_chamber
+    dome = morpher.dome
+    with pytest.raises(ValueError, match="mode"):
+        deform_chamber(morpher, dome, scene, mode="smooth")
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="min_quality_ratio"):
+            deform_chamber(morpher, dome, scene, min_quality_ratio=bad)
+    with pytest.raises(ValueError, match="min_dihedral_deg"):
+        ChamberMorpher(ch, dome, min_dihedral_deg=75.0)
+    coarse = dome_from_scene(scene, n_rim=32)
+    with pytest.raises(ValueError, match="same vertices and faces"):
+        morpher(coarse)
+
+
+def test_a_freed_morpher_refuses_to_solve(test_chamber):
+    scene, ch = test_chamber
+    m = ChamberMorpher(ch, dome_from_scene(scene))
+    m.free()
+    with pytest.raises(RuntimeError, match="freed"):
+        m(_press(scene, (0.0, 0.0), 1e-3))
