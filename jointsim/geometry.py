@@ -92,6 +92,67 @@ def spherical_cap(base_radius: float, height: float, n_rim: int = 192, n_rings: 
     return DomeSurface(verts, faces.astype(np.int64), np.arange(n_rim))
 
 
+def isotropic_cap(base_radius: float, height: float, n_rim: int = 96) -> DomeSurface:
+    """Spherical cap triangulated with near-equilateral triangles of edge ≈ 2π·base_radius/n_rim.
+
+    Rings at equal geodesic spacing from the apex, each with a vertex count proportional to its
+    circumference (unlike :func:`spherical_cap`, whose rings all have n_rim vertices and whose
+    triangles near the apex become slivers — exactly where a target presses). Ring counts are
+    multiples of the largest power of two ≤ 16 dividing ``n_rim`` and rings are stitched by exact
+    integer comparison of angles, so the triangulation has that rotational symmetry exactly.
+    The rim is vertices 0 … n_rim−1, anticlockwise seen from +z."""
+    if base_radius <= 0 or height <= 0:
+        raise ValueError(f"base_radius = {base_radius}, height = {height}: both must be > 0 m")
+    if n_rim < 8:
+        raise ValueError(f"n_rim = {n_rim}: must be >= 8")
+    a, h = base_radius, height
+    R = (a * a + h * h) / (2 * h)
+    theta_max = np.arcsin(a / R) if h <= R else np.pi - np.arcsin(a / R)
+    edge = 2 * np.pi * a / n_rim
+    sym = next(s for s in (16, 8, 4, 2, 1) if n_rim % s == 0)
+    n_rings = max(2, int(round(R * theta_max / edge)))
+    theta = theta_max * np.arange(n_rings, 0, -1) / n_rings  # rim first, apex excluded
+    counts = np.maximum(sym, sym * np.round(2 * np.pi * R * np.sin(theta) / (sym * edge))).astype(int)
+    counts[0] = n_rim
+    # alternate rings are rotated by half a spacing, so stitched triangles are not right-angled
+    half = np.arange(n_rings) % 2
+    start = np.concatenate([[0], np.cumsum(counts)])
+    verts = []
+    for k in range(n_rings):
+        phi = 2 * np.pi * (np.arange(counts[k]) + 0.5 * half[k]) / counts[k]
+        r, z = R * np.sin(theta[k]), h - R + R * np.cos(theta[k])
+        verts.append(np.column_stack([r * np.cos(phi), r * np.sin(phi), np.full(counts[k], z)]))
+    verts = np.vstack(verts + [np.array([[0.0, 0.0, h]])])
+    verts[:n_rim, 2] = 0.0  # the rim is exactly on the base plane, on the circle r = a
+    verts[:n_rim, :2] *= a / np.hypot(verts[:n_rim, 0], verts[:n_rim, 1])[:, None]
+    faces = [_stitch_rings(start[k], counts[k], half[k], start[k + 1], counts[k + 1], half[k + 1]) for k in range(n_rings - 1)]
+    last = start[n_rings - 1] + np.arange(counts[-1])
+    faces.append(np.column_stack([last, np.roll(last, -1), np.full(counts[-1], len(verts) - 1)]))
+    return DomeSurface(verts, np.vstack(faces).astype(np.int64), np.arange(n_rim))
+
+
+def _stitch_rings(s0: int, n0: int, o0: int, s1: int, n1: int, o1: int) -> np.ndarray:
+    """Triangles between an outer ring (first vertex s0, n0 vertices, half-offset o0) and the
+    next ring inward, walking both by angle. Angles are compared as exact fractions
+    (2j + o)/(2n), so every symmetry sector is stitched identically."""
+    # unwrapped angles × 2·n0·n1: outer (2i + o0)·n1, inner (2j + o1)·n0; the walk starts at
+    # the inner vertex at or just before outer vertex 0, so the seam is stitched like any sector
+    j0 = -1 if o1 * n0 > o0 * n1 else 0
+    tris = []
+    i, j = 0, j0
+    while i < n0 or j < j0 + n1:
+        ai = (2 * (i + 1) + o0) * n1
+        aj = (2 * (j + 1) + o1) * n0
+        a, b = s0 + i % n0, s1 + j % n1
+        if j >= j0 + n1 or (i < n0 and ai <= aj):
+            tris.append((a, s0 + (i + 1) % n0, b))
+            i += 1
+        else:
+            tris.append((a, s1 + (j + 1) % n1, b))
+            j += 1
+    return np.array(tris)
+
+
 def chamber_surface(dome: DomeSurface) -> trimesh.Trimesh:
     """Close ``dome`` with the flat base (a fan from the centre to the rim) into a watertight,
     outward-oriented surface. Raises ValueError naming what is wrong if it is not closed."""

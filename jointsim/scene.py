@@ -24,6 +24,7 @@ __all__ = [
     "Noise",
     "MeshSpec",
     "Membrane",
+    "Target",
     "Scene",
     "load_scene",
     "scene_from_dict",
@@ -82,7 +83,9 @@ class Drive:
 class Membrane:
     """The dome membrane's material (SI): ``law`` "neo-hookean" (``shear_modulus``) or "yeoh"
     (``yeoh_c``), ``bulk_ratio`` κ/μ, prism ``layers`` through the thickness, and the
-    reservoir's hydrostatic ``reservoir_pressure`` on the inner surface (Pa)."""
+    reservoir's hydrostatic ``reservoir_pressure`` on the inner surface (Pa); ``chamber``
+    "open" (the reservoir takes the displaced saline) or "closed" (the saline volume is held by
+    the pressure); ``rim_vertices`` sets the membrane mesh (edge ≈ 2π·base radius / rim_vertices)."""
 
     law: str = "neo-hookean"
     shear_modulus: float = 22e3
@@ -90,6 +93,18 @@ class Membrane:
     bulk_ratio: float = 1000.0
     layers: int = 2
     reservoir_pressure: float = 0.0
+    chamber: str = "open"
+    rim_vertices: int = 64
+
+
+@dataclass(frozen=True)
+class Target:
+    """The pressing object: a rigid sphere of ``radius`` (m) with Coulomb ``friction``
+    coefficient against the membrane (0: frictionless)."""
+
+    radius: float = 7.5 * MM
+    kind: str = "rigid"
+    friction: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -134,6 +149,7 @@ class Scene:
     noise: Noise = field(default_factory=Noise)
     mesh: MeshSpec = field(default_factory=MeshSpec)
     membrane: Membrane = field(default_factory=Membrane)
+    target: Target = field(default_factory=Target)
 
     def with_mesh_preset(self, preset: str) -> "Scene":
         if preset not in MESH_PRESETS:
@@ -241,7 +257,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     data = dict(data)
     name = str(data.pop("name", name))
     data.pop("description", None)
-    known = {"chamber", "electrodes", "saline", "drive", "noise", "mesh", "membrane"}
+    known = {"chamber", "electrodes", "saline", "drive", "noise", "mesh", "membrane", "target"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise SceneError(f"unknown section(s): {', '.join(unknown)}; known are {', '.join(sorted(known))}")
@@ -331,7 +347,13 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     bulk_ratio = t.number("bulk_ratio", 1000.0, 1.0, 1e5)
     layers = t.integer("layers", 2, 1, 8)
     p_res = t.number("reservoir_pressure_pa", 0.0, -1e4, 1e5)
+    closed = t.raw("chamber", "open")
+    if closed not in ("open", "closed"):
+        raise SceneError(f"membrane.chamber = {closed!r}: allowed values are 'open', 'closed'")
+    rim_vertices = t.integer("rim_vertices", 64, 16, 1024)
     t.finish()
+
+    target = _target(data.get("target", {}), base_r)
 
     return Scene(
         name=name,
@@ -341,8 +363,27 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         drive=Drive(current * 1e-6, freqs, skip),
         noise=Noise(snr, seed, drift, rate),
         mesh=MeshSpec(preset, max_edge * MM, refine, zone * MM, grading, eps, stop_energy, max_opt_iter),
-        membrane=Membrane(law, mu * 1e3, tuple(c * 1e3 for c in yc), bulk_ratio, layers, p_res),
+        membrane=Membrane(law, mu * 1e3, tuple(c * 1e3 for c in yc), bulk_ratio, layers, p_res, closed, rim_vertices),
+        target=target,
     )
+
+
+def _target(data: dict[str, Any], base_r: float) -> Target:
+    t = _Table(data, "target")
+    has_r, has_d = "radius_mm" in data, "diameter_mm" in data
+    if has_r and has_d:
+        raise SceneError("[target]: give radius_mm or diameter_mm, not both")
+    if has_d:
+        radius = t.number("diameter_mm", 15.0, 0.0, 10 * base_r, lo_open=True) / 2
+    else:
+        radius = t.number("radius_mm", 7.5, 0.0, 5 * base_r, lo_open=True)
+    kind = t.raw("kind", "rigid")
+    if kind != "rigid":
+        # a deformable (hyperelastic) target needs deformable-deformable contact, not built yet
+        raise SceneError(f"target.kind = {kind!r}: only 'rigid' targets are available in this version")
+    friction = t.number("friction", 0.0, 0.0, 2.0)
+    t.finish()
+    return Target(radius * MM, kind, friction)
 
 
 def load_scene(path: str | Path) -> Scene:

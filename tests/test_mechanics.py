@@ -144,3 +144,67 @@ def test_rigid_sphere_into_a_thick_block_follows_hertz():
     assert contact.penetration(res.u) < 0.01 * d
     a = np.sqrt(4 * contact.contact_area(res.u) / np.pi)  # a quarter of the contact disc
     assert a == pytest.approx(np.sqrt(R * d), rel=0.15)
+
+
+def test_friction_term_gradient_and_hessian_match_finite_differences():
+    from jointsim.mechanics.contact import SphereContact, SphereFriction
+
+    rng = np.random.default_rng(1)
+    X = rng.uniform(-1e-3, 1e-3, (6, 3))
+    X[:, 2] = 0.0
+    c = SphereContact(X, np.arange(6), np.full(6, 1e-7), 5e-3, stiffness=1e9)
+    c.centre = np.array([0.0, 0.0, 5e-3 - 1e-5])  # every node 10 µm inside
+    fr = SphereFriction(c, 0.4, slip=1e-6)
+    fr.lag(np.zeros_like(X), c.centre)
+    c.centre = c.centre + np.array([3e-6, 0.0, 0.0])  # some nodes stick, some slip
+    u = rng.normal(0, 1e-6, X.shape)
+    E, g, H, _ = fr.evaluate(u, True)
+    h = 1e-10
+    for i in rng.choice(u.size, 6, replace=False):
+        du = np.zeros(u.size)
+        du[i] = h
+        Ep, gp = fr.evaluate(u + du.reshape(u.shape), False)[:2]
+        Em, gm = fr.evaluate(u - du.reshape(u.shape), False)[:2]
+        assert g[i] == pytest.approx((Ep - Em) / (2 * h), rel=1e-5, abs=1e-12 * np.abs(g).max())
+        np.testing.assert_allclose(H.toarray()[:, i], (gp - gm) / (2 * h), rtol=1e-4, atol=1e-6 * np.abs(H).max())
+
+
+def test_a_sliding_sphere_feels_coulomb_friction():
+    """A rigid sphere pressed into a block and dragged sideways well past the stick limit: the
+    tangential force is μ times the normal force (gross sliding; the normal forces are re-lagged
+    twice per step, as in the membrane model)."""
+    from jointsim.mechanics.contact import SphereContact, SphereFriction, nodal_areas
+    from jointsim.mesh.shapes import grid_mesh
+
+    R, d, mu, cof = 10e-3, 0.3e-3, 22e3, 0.3
+    xs = np.linspace(-8e-3, 8e-3, 17)
+    ys = np.linspace(0.0, 8e-3, 9)  # half block: y = 0 is a symmetry plane of x-sliding
+    zs = np.linspace(-6e-3, 0.0, 5)
+    m = P2Mesh.from_linear(grid_mesh(xs, ys, zs))
+    bf = m.boundary_faces
+    top = bf[np.all(np.isclose(m.nodes[bf[:, :3], 2], 0.0), axis=1)]
+    nodes, w = nodal_areas(m.nodes, linear_subtriangles(top))
+    contact = SphereContact(m.nodes, nodes, w, R, stiffness=100 * 3 * mu / 1e-3)
+    friction = SphereFriction(contact, cof, slip=1e-6)
+    X = m.nodes
+    fixed = np.zeros_like(X, bool)
+    fixed[np.isclose(X[:, 1], 0), 1] = True
+    fixed[np.isclose(X[:, 2], zs[0]), :] = True
+    terms = [ElasticTerm(m, Material.neo_hookean(mu)), contact, friction]
+    u = np.zeros_like(X)
+    c = np.array([0.0, 0.0, R - d])
+    contact.centre = c
+    u = minimize_energy(terms[:2], u, fixed).u
+    for step in range(4):  # drag 0.2 mm per step
+        start, c = c.copy(), c + np.array([0.2e-3, 0.0, 0.0])
+        u_start = u
+        friction.lag(u_start, start)
+        contact.centre = c
+        for _ in range(3):
+            u = minimize_energy(terms, u, fixed, rtol=1e-10).u
+            friction.lag(u_start, start, u_normal=u)
+    Fn = contact.force(u)
+    Ft = friction.force(u)
+    # the block drags the sphere back (−x) with μ·N; the sphere's normal force is mostly z
+    assert Ft[0] < 0
+    assert abs(Ft[0]) == pytest.approx(cof * Fn[2], rel=0.03)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["SphereContact", "nodal_areas"]
+__all__ = ["SphereContact", "SphereFriction", "nodal_areas"]
 
 
 def nodal_areas(X: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -84,3 +84,86 @@ class SphereContact:
 
     def penetration(self, u: np.ndarray) -> float:
         return float(max(self._gap(u)[2].max(), 0.0))
+
+
+class SphereFriction:
+    """Coulomb friction between the sphere of ``contact`` and its surface nodes, as a lagged,
+    smoothed dissipation potential (the incremental-potential form of Li et al., IPC 2020):
+
+        D = Σ_n μ λ_n f(‖T_n (Δx_n − Δc)‖),  f(s) = s²/(2ε) for s < ε, s − ε/2 beyond,
+
+    with Δx_n the node's motion and Δc the sphere's over the load step, T_n = I − n nᵀ the
+    tangent projector and λ_n the normal force, both frozen at the start of the step (call
+    :meth:`lag`). Below a slip of ε a node sticks elastically; beyond it the tangential force
+    is μ λ_n, opposing the slip. ``updates`` re-lagging passes make λ_n consistent with the
+    end of the step."""
+
+    def __init__(self, contact: SphereContact, coefficient: float, slip: float = 1e-6):
+        if coefficient < 0:
+            raise ValueError(f"friction coefficient = {coefficient}: must be >= 0")
+        if slip <= 0:
+            raise ValueError(f"slip = {slip}: must be > 0 m")
+        self.contact = contact
+        self.mu = float(coefficient)
+        self.eps = float(slip)
+        self._lam = np.zeros(0)
+        self._act = np.zeros(0, int)
+        self._T = np.zeros((0, 3, 3))
+        self._x0 = np.zeros((0, 3))
+        self._c0 = np.zeros(3)
+
+    def lag(self, u_start: np.ndarray, centre_start: np.ndarray, u_normal: np.ndarray | None = None) -> None:
+        """Freeze the step's reference: positions at its start (``u_start``, sphere at
+        ``centre_start``) and normal forces and directions from ``u_normal`` (default the start)."""
+        c = self.contact
+        un = u_start if u_normal is None else u_normal
+        d = c.X[c.nodes] + un[c.nodes] - c.centre
+        r = np.linalg.norm(d, axis=1)
+        pen = c.radius - r
+        act = pen > 0
+        n = d[act] / r[act, None]
+        self._act = c.nodes[act]
+        self._lam = c.stiffness * c.weights[act] * pen[act]
+        self._T = np.eye(3) - np.einsum("ki,kj->kij", n, n)
+        self._x0 = c.X[self._act] + u_start[self._act]
+        self._c0 = np.asarray(centre_start, float).copy()
+
+    def _slip(self, u):
+        dx = self.contact.X[self._act] + u[self._act] - self._x0 - (self.contact.centre - self._c0)
+        t = np.einsum("kij,kj->ki", self._T, dx)
+        return t, np.linalg.norm(t, axis=1)
+
+    def evaluate(self, u: np.ndarray, hessian: bool, projected: bool = False):
+        n3 = 3 * len(self.contact.X)
+        if self.mu == 0 or len(self._act) == 0:
+            return 0.0, np.zeros(n3), (sp.csr_matrix((n3, n3)) if hessian else None), True
+        t, s = self._slip(u)
+        eps, ml = self.eps, self.mu * self._lam
+        stick = s < eps
+        E = float(np.where(stick, ml * s**2 / (2 * eps), ml * (s - eps / 2)).sum())
+        # f'(s)/s: 1/ε sticking, 1/s slipping; the gradient is μλ f'(s)/s · Tᵀ t (T symmetric)
+        fs = np.where(stick, 1 / eps, 1 / np.maximum(s, eps))
+        gi = (ml * fs)[:, None] * np.einsum("kij,kj->ki", self._T, t)
+        g = np.zeros(n3)
+        idx = (3 * self._act[:, None] + np.arange(3)).ravel()
+        np.add.at(g, idx, gi.ravel())
+        H = None
+        if hessian:
+            # sticking: μλ/ε TᵀT; slipping: μλ/s Tᵀ(I − t̂t̂ᵀ)T (PSD: f is convex in the slip)
+            that = t / np.maximum(s, 1e-300)[:, None]
+            P = np.eye(3) - np.where(stick[:, None, None], 0.0, np.einsum("ki,kj->kij", that, that))
+            blocks = (ml * fs)[:, None, None] * np.einsum("kji,kjl,klm->kim", self._T, P, self._T)
+            rows = np.repeat(3 * self._act[:, None] + np.arange(3), 3, axis=1).ravel()
+            cols = np.tile(3 * self._act[:, None] + np.arange(3), (1, 3)).ravel()
+            H = sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(n3, n3))
+        return E, g, H, True
+
+    def projected_hessian(self, u: np.ndarray) -> sp.csr_matrix:
+        return self.evaluate(u, True)[2]
+
+    def force(self, u: np.ndarray) -> np.ndarray:
+        """Friction force (3,) N that the body exerts on the sphere (opposing its slip)."""
+        if self.mu == 0 or len(self._act) == 0:
+            return np.zeros(3)
+        g = self.evaluate(u, False)[1]
+        return g.reshape(-1, 3).sum(axis=0)

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..geometry import DomeSurface
 from ..mesh.tetmesh import TetMesh
-from .contact import SphereContact, nodal_areas
+from .contact import SphereContact, SphereFriction, nodal_areas
 from .fem import ElasticTerm, P2Mesh
 from .materials import Material
 from .newton import NewtonError, minimize_energy
@@ -24,6 +24,9 @@ from .pressure import PressureTerm, linear_subtriangles
 __all__ = ["MembraneModel", "MembraneState", "membrane_mesh", "ECOFLEX_00_50"]
 
 ECOFLEX_00_50 = Material.neo_hookean(22e3)  # DESIGN.md: μ ≈ 22 kPa, κ = 1000 μ
+# re-lagging passes of the friction's normal forces per load step (tests/test_mechanics.py
+# checks the sliding force against μ·N with this many)
+FRICTION_PASSES = 2
 
 
 def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -79,7 +82,9 @@ class MembraneState:
     """One equilibrium: the deformed inner ``dome``, the contact ``force`` (3,) N the membrane
     exerts on the target, ``contact_area`` m², ``displaced_volume`` m³ (saline pushed out to
     the reservoir), ``peak_strain`` (largest principal Green–Lagrange strain), Newton
-    ``iterations`` and ``residual``, and ``penetration`` m (largest, at the surface nodes)."""
+    ``iterations`` and ``residual``, ``penetration`` m (largest, at the surface nodes), the
+    saline ``pressure`` Pa (the reservoir's, or the closed chamber's multiplier) and the element
+    quality ``min_jacobian`` (smallest det F over the quadrature points; ≤ 0 would be inverted)."""
 
     dome: DomeSurface
     u: np.ndarray
@@ -90,6 +95,8 @@ class MembraneState:
     iterations: int
     residual: float
     penetration: float
+    pressure: float = 0.0
+    min_jacobian: float = 1.0
 
 
 class MembraneModel:
@@ -106,6 +113,8 @@ class MembraneModel:
         target_radius: float = 7.5e-3,
         penalty: float | None = None,
         force_tol: float | None = None,
+        friction: float = 0.0,
+        closed: bool = False,
     ):
         # converged when the out-of-balance nodal force is below force_tol (N): by default
         # 1e-6·μ·t², a millionth of the force that strains a membrane-thick cube by one
@@ -128,34 +137,46 @@ class MembraneModel:
         k = penalty if penalty is not None else 100 * 3 * material.mu / h
         self.contact = SphereContact(X, nodes, w, target_radius, k)
         self.contact.centre = np.array([0.0, 0.0, 1e3])  # far away until pressed
+        self.friction = SphereFriction(self.contact, friction, slip=1e-3 * h) if friction > 0 else None
+        self.closed = bool(closed)
         self.fixed = np.zeros_like(X, bool)
         self.fixed[np.abs(X[:, 2]) < 1e-9 * np.ptp(X)] = True  # the bonded rim
         self.u = np.zeros_like(X)
         if pressure != 0.0:
             # the reservoir head inflates the stress-free dome before any contact
             self.u = minimize_energy([self.elastic, self.pressure], self.u, self.fixed).u
-        # displaced volume is counted from the pressurised, untouched dome
+        # displaced volume is counted from the pressurised, untouched dome; a closed chamber is
+        # sealed in that state and keeps this volume
         self.V0 = self.pressure.volume(self.u)
         self._history: list[tuple[np.ndarray, np.ndarray]] = []
+        self._compliance: float | None = None  # dV/dp of the chamber, for the closed-chamber secant
+
+    @property
+    def terms(self) -> list:
+        return [self.elastic, self.pressure, self.contact] + ([self.friction] if self.friction else [])
 
     @classmethod
-    def from_scene(cls, scene, target_radius: float, dome: DomeSurface | None = None) -> "MembraneModel":
-        """The membrane of ``scene`` (its [membrane] section and chamber), for a rigid target of
-        ``target_radius`` m; ``dome`` defaults to the scene's undeformed dome."""
-        from ..geometry import dome_from_scene
+    def from_scene(cls, scene, target_radius: float | None = None, dome: DomeSurface | None = None) -> "MembraneModel":
+        """The membrane of ``scene`` (its [membrane] and [target] sections and chamber); the
+        target's radius may be overridden by ``target_radius`` m; ``dome`` defaults to the
+        scene's undeformed dome, meshed isotropically with [membrane] rim_vertices."""
+        from ..geometry import isotropic_cap
 
         m = scene.membrane
         if m.law == "yeoh":
             material = Material.yeoh(*m.yeoh_c, bulk_ratio=m.bulk_ratio)
         else:
             material = Material.neo_hookean(m.shear_modulus, bulk_ratio=m.bulk_ratio)
+        c = scene.chamber
         return cls(
-            dome_from_scene(scene) if dome is None else dome,
-            scene.chamber.membrane_thickness,
+            isotropic_cap(c.base_radius, c.dome_height, m.rim_vertices) if dome is None else dome,
+            c.membrane_thickness,
             material,
             m.layers,
             m.reservoir_pressure,
-            target_radius,
+            scene.target.radius if target_radius is None else target_radius,
+            friction=scene.target.friction,
+            closed=m.chamber == "closed",
         )
 
     def first_contact_height(self, xy: np.ndarray) -> float:
@@ -184,22 +205,58 @@ class MembraneModel:
         if np.linalg.norm(start) > 1e2:  # first call: start from first contact above
             start = np.array([centre[0], centre[1], self.first_contact_height(centre[:2])])
         res = None
-        terms = [self.elastic, self.pressure, self.contact]
         for s in range(1, substeps + 1):
             new = start + (np.asarray(centre, float) - start) * s / substeps
-            guess = self._extrapolate(new)
-            self.contact.centre = new
             try:
-                res = minimize_energy(terms, guess, self.fixed, rtol=0.0, atol=self.force_tol)
-            except NewtonError:
-                try:  # the extrapolation may have overshot: start from the last equilibrium
-                    res = minimize_energy(terms, self.u, self.fixed, rtol=0.0, atol=self.force_tol)
-                except NewtonError as e:
-                    raise NewtonError(f"target step {s}/{substeps} to centre {new * 1e3} mm: {e}") from e
+                res = self._solve_step(new)
+            except NewtonError as e:
+                raise NewtonError(f"target step {s}/{substeps} to centre {new * 1e3} mm: {e}") from e
             self._history.append((new.copy(), res.u.copy()))
             self._history = self._history[-2:]
             self.u = res.u
         return self.state(res.iterations, res.residual)
+
+    def _solve_step(self, centre: np.ndarray):
+        """Equilibrium with the target at ``centre``: friction re-lagged ``FRICTION_PASSES``
+        times, and in a closed chamber the pressure adjusted until the volume is the sealed one."""
+        old_centre, u_start = self.contact.centre.copy(), self.u
+        if self.friction is not None:
+            self.friction.lag(u_start, old_centre if np.linalg.norm(old_centre) < 1e2 else centre)
+        self.contact.centre = centre
+        res = self._newton(self._extrapolate(centre))
+        for _ in range(FRICTION_PASSES if self.friction is not None else 0):
+            self.friction.lag(u_start, old_centre if np.linalg.norm(old_centre) < 1e2 else centre, u_normal=res.u)
+            res = self._newton(res.u)
+        if self.closed:
+            res = self._hold_volume(res)
+        return res
+
+    def _newton(self, guess: np.ndarray):
+        try:
+            return minimize_energy(self.terms, guess, self.fixed, rtol=0.0, atol=self.force_tol)
+        except NewtonError:
+            # the extrapolation may have overshot: start from the last equilibrium
+            return minimize_energy(self.terms, self.u, self.fixed, rtol=0.0, atol=self.force_tol)
+
+    def _hold_volume(self, res, rtol: float = 1e-6, max_iter: int = 20):
+        """Closed chamber: the saline pressure p is the multiplier of the constraint V = V0, found
+        by secant steps on p (V decreases monotonically with −p; dV/dp starts from a probe)."""
+        p0, V = self.pressure.pressure, self.pressure.volume(res.u)
+        if self._compliance is None:
+            self.pressure.pressure = p0 + 1.0  # 1 Pa probe of the chamber compliance
+            probe = self._newton(res.u)
+            self._compliance = max((self.pressure.volume(probe.u) - V) / 1.0, 1e-300)
+            self.pressure.pressure = p0
+        for _ in range(max_iter):
+            if abs(V - self.V0) <= rtol * self.V0:
+                return res
+            p_prev, V_prev = self.pressure.pressure, V
+            self.pressure.pressure = p_prev + (self.V0 - V) / self._compliance
+            res = self._newton(res.u)
+            V = self.pressure.volume(res.u)
+            if V != V_prev:
+                self._compliance = max((V - V_prev) / (self.pressure.pressure - p_prev), 1e-300)
+        raise NewtonError(f"closed chamber: volume {V * 1e9:.6g} mm³ after {max_iter} pressure updates, sealed {self.V0 * 1e9:.6g} mm³")
 
     def press_to_force(self, xy: np.ndarray, force: float, rtol: float = 1e-3, max_iter: int = 30) -> MembraneState:
         """Force control: lower the target at ``xy`` until the contact force along z equals
@@ -248,13 +305,15 @@ class MembraneModel:
         return MembraneState(
             dome=dome,
             u=u.copy(),
-            force=self.contact.force(u),
+            force=self.contact.force(u) + (self.friction.force(u) if self.friction is not None else 0.0),
             contact_area=self.contact.contact_area(u),
             displaced_volume=self.V0 - self.pressure.volume(u),
             peak_strain=_peak_green_strain(self.mesh, u),
             iterations=iterations,
             residual=residual,
             penetration=self.contact.penetration(u),
+            pressure=self.pressure.pressure,
+            min_jacobian=float(s.min_det.min()),
         )
 
 
