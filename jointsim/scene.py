@@ -25,6 +25,7 @@ __all__ = [
     "MeshSpec",
     "Membrane",
     "Target",
+    "PalpationSpec",
     "Scene",
     "load_scene",
     "scene_from_dict",
@@ -150,6 +151,7 @@ class Scene:
     mesh: MeshSpec = field(default_factory=MeshSpec)
     membrane: Membrane = field(default_factory=Membrane)
     target: Target = field(default_factory=Target)
+    palpation: "PalpationSpec" = field(default_factory=lambda: PalpationSpec())
 
     def with_mesh_preset(self, preset: str) -> "Scene":
         if preset not in MESH_PRESETS:
@@ -257,7 +259,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     data = dict(data)
     name = str(data.pop("name", name))
     data.pop("description", None)
-    known = {"chamber", "electrodes", "saline", "drive", "noise", "mesh", "membrane", "target"}
+    known = {"chamber", "electrodes", "saline", "drive", "noise", "mesh", "membrane", "target", "palpation"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise SceneError(f"unknown section(s): {', '.join(unknown)}; known are {', '.join(sorted(known))}")
@@ -365,6 +367,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         mesh=MeshSpec(preset, max_edge * MM, refine, zone * MM, grading, eps, stop_energy, max_opt_iter),
         membrane=Membrane(law, mu * 1e3, tuple(c * 1e3 for c in yc), bulk_ratio, layers, p_res, closed, rim_vertices),
         target=target,
+        palpation=_palpation(data.get("palpation", {}), base_r, height, thick, zf is not None),
     )
 
 
@@ -396,3 +399,94 @@ def load_scene(path: str | Path) -> Scene:
     except tomllib.TOMLDecodeError as e:
         raise SceneError(f"{path}: not valid TOML: {e}") from None
     return scene_from_dict(data, name=path.stem)
+
+
+# --------------------------------------------------------------------------------------------
+# [palpation]: the virtual palpation experiment (jointsim.palpation, `jointsim palpate`)
+
+PALPATION_MODES = ("position", "force", "compliant")
+MESH_UPDATES = ("auto", "morph", "remesh")
+LAMBDA_METHODS = ("kfold", "loo", "gcv", "lcurve")
+
+
+@dataclass(frozen=True)
+class PalpationSpec:
+    """The palpation program (SI): targets of ``target_radii`` (m) pressed one after the other
+    at ``xy`` (m) by the bench rig in ``mode`` "position" (the stage goes from ``gap`` above
+    first contact to ``depth`` past it at ``speed`` m/s, holds ``hold`` s, retracts), "force"
+    (the press force ramps to ``force`` N in ``force_ramp`` s, holds ``hold`` s, ramps back)
+    or "compliant" (the position program through the probe spring ``probe_stiffness`` N/m,
+    ``probe_damping`` N s/m; None keeps the rig's). The reference ("steady state") is the mean
+    of ``reference_frames`` noisy frames of the untouched sensor; images on ``cells`` voxels,
+    λ by ``lambda_method``; the chamber mesh follows the membrane by ``mesh_update`` ("auto":
+    morph, remesh when the morph inverts or degrades); ``fdm_contact_impedance`` runs each
+    injection at its own FDM carrier with that carrier's contact impedances."""
+
+    mode: str = "position"
+    target_radii: tuple[float, ...] = (4 * MM, 7.5 * MM, 15 * MM)
+    depth: float = 3 * MM
+    speed: float = 25 * MM
+    hold: float = 0.5
+    gap: float = 0.0
+    xy: tuple[float, float] = (0.0, 0.0)
+    force: float = 0.05
+    force_ramp: float = 0.2
+    probe_stiffness: float | None = None
+    probe_damping: float | None = None
+    reference_frames: int = 50
+    cells: int = 7000
+    lambda_method: str = "kfold"
+    mesh_update: str = "auto"
+    fdm_contact_impedance: bool = False
+
+
+def _palpation(data: dict[str, Any], base_r: float, height: float, thick: float, has_zf: bool) -> PalpationSpec:
+    """Parse [palpation] (mm, s, N in the key names); ``base_r``, ``height``, ``thick`` in mm;
+    ``has_zf``: the scene gives per-carrier contact impedances."""
+    t = _Table(data, "palpation")
+    mode = t.raw("mode", "position")
+    if mode not in PALPATION_MODES:
+        raise SceneError(f"palpation.mode = {mode!r}: allowed values are {', '.join(map(repr, PALPATION_MODES))}")
+    has_r, has_d = "target_radii_mm" in data, "target_diameters_mm" in data
+    if has_r and has_d:
+        raise SceneError("[palpation]: give target_radii_mm or target_diameters_mm, not both")
+    if has_r:
+        radii = _number_list("palpation.target_radii_mm", t.raw("target_radii_mm", None), None, 0.0, 5 * base_r, True)
+    else:
+        diam = _number_list("palpation.target_diameters_mm", t.raw("target_diameters_mm", [8.0, 15.0, 30.0]), None, 0.0, 10 * base_r, True)
+        radii = tuple(d / 2 for d in diam)
+    if not radii:
+        raise SceneError("palpation.target_diameters_mm: must list at least one target")
+    depth = t.number("depth_mm", 3.0, 0.0, height + thick)
+    if mode != "force" and depth == 0:
+        raise SceneError(f"palpation.depth_mm = 0: must be in (0, {height + thick:g}] in {mode} mode")
+    speed = t.number("speed_mm_per_s", 25.0, 0.0, 1000.0, lo_open=True)
+    hold = t.number("hold_s", 0.5, 0.0, 60.0)
+    gap = t.number("gap_mm", 0.0, 0.0, 50.0)
+    xy = _number_list("palpation.xy_mm", t.raw("xy_mm", [0.0, 0.0]), 2, -base_r, base_r, True)
+    if math.hypot(*xy) >= base_r:
+        raise SceneError(f"palpation.xy_mm = {list(xy)}: must lie within the base radius {base_r:g} mm of the axis")
+    force = t.number("force_n", 0.05, 0.0, 10.0, lo_open=True)
+    ramp = t.number("force_ramp_s", 0.2, 0.0, 60.0)
+    k = t.raw("probe_stiffness_n_per_m", None)
+    c = t.raw("probe_damping_ns_per_m", None)
+    k = None if k is None else _check_number("palpation.probe_stiffness_n_per_m", k, 0.0, 1e6, True, False)
+    c = None if c is None else _check_number("palpation.probe_damping_ns_per_m", c, 0.0, 1e4, True, False)
+    n_ref = t.integer("reference_frames", 50, 1, 100_000)
+    cells = t.integer("cells", 7000, 100, 200_000)
+    lam = t.raw("lambda_method", "kfold")
+    if lam not in LAMBDA_METHODS:
+        raise SceneError(f"palpation.lambda_method = {lam!r}: allowed values are {', '.join(map(repr, LAMBDA_METHODS))}")
+    upd = t.raw("mesh_update", "auto")
+    if upd not in MESH_UPDATES:
+        raise SceneError(f"palpation.mesh_update = {upd!r}: allowed values are {', '.join(map(repr, MESH_UPDATES))}")
+    fdm = t.raw("fdm_contact_impedance", False)
+    if not isinstance(fdm, bool):
+        raise SceneError(f"palpation.fdm_contact_impedance = {fdm!r}: must be true or false")
+    if fdm and not has_zf:
+        raise SceneError("palpation.fdm_contact_impedance = true: needs electrodes.contact_impedance_by_freq_ohm_m2 (one row per carrier)")
+    t.finish()
+    return PalpationSpec(
+        mode, tuple(r * MM for r in radii), depth * MM, speed * MM, hold, gap * MM, (xy[0] * MM, xy[1] * MM),
+        force, ramp, k, c, n_ref, cells, lam, upd, fdm,
+    )
