@@ -6,9 +6,9 @@ import argparse
 import sys
 
 from ..scene import SceneError
-from . import forward, indent, mesh, protocol_study
+from . import forward, indent, mesh, palpate, protocol_study
 
-SUBCOMMANDS = {"forward": forward, "mesh": mesh, "protocol-study": protocol_study, "indent": indent}
+SUBCOMMANDS = {"forward": forward, "mesh": mesh, "protocol-study": protocol_study, "indent": indent, "palpate": palpate}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -55,6 +55,7 @@ from ..io.store import Field, RecordStore, Schema
 from ..mechanics.dome import MembraneModel, MembraneState
 from ..mechanics.geometric import indent_dome
 from ..mesh.chamber import ChamberMesh, chamber_mesh, mesh_chamber
+from ..mesh.tetmesh import TetMesh
 from ..mesh.morph import ChamberMorpher, DeformedChamber, MeshInversionError, element_quality
 from ..metrics import ImageMetrics, image_metrics, rms
 from ..reconstruction.grid import ChamberGrid
@@ -70,6 +71,7 @@ __all__ = [
     "Palpation",
     "run_palpation",
     "force_profile",
+    "program_params",
 ]
 
 STAGES = ("mujoco", "mechanics", "mesh", "forward", "reconstruction")
@@ -261,6 +263,8 @@ class Palpation:
             self.membrane_dome = self._surface.dome(None)  # the undeformed inner surface the morpher maps from
             self.reference_dome = self._surface.dome(model.u)
             self.membrane_nodes = model.mesh.n_nodes
+            # the membrane's corner tetrahedra (the P2 mesh without midside nodes), for export
+            self.membrane_mesh = TetMesh(model.mesh.nodes, model.mesh.tets[:, :4])
         with _timed(t, "chamber"):
             self.chamber = chamber_mesh(scene) if chamber is None else chamber
             self.morpher = ChamberMorpher(self.chamber, self.membrane_dome)
@@ -433,19 +437,8 @@ class Palpation:
         )
 
     def params(self) -> dict[str, Any]:
-        """What shapes the data beyond the scene file: the effective program, mesh and
-        membrane resolution, the rig model (for the store's identity and the summary)."""
-        d = asdict(self.spec)
-        d["target_radii"] = list(d["target_radii"])
-        d["xy"] = list(d["xy"])
-        return {
-            "palpation": d,
-            "mesh": asdict(self.scene.mesh),
-            "membrane": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self.scene.membrane).items()},
-            "noise": asdict(self.scene.noise),
-            "rig": str(self.rig_path) if self.rig_path else "scenes/bench_rig.xml",
-            "n_records": self.n_records,
-        }
+        """What shapes the data beyond the scene file (see :func:`program_params`)."""
+        return program_params(self.scene, self.spec, self.rig_path)
 
     def free(self) -> None:
         self.morpher.free()
@@ -454,6 +447,27 @@ class Palpation:
 # ---------------------------------------------------------------------------------------------
 # The loop
 # ---------------------------------------------------------------------------------------------
+
+
+def program_params(scene: Scene, spec: PalpationSpec | None = None, rig_path: str | Path | None = None) -> dict[str, Any]:
+    """The run settings that shape a palpation's data beyond the scene file's text: the
+    effective program (after command-line overrides), the mesh and membrane resolution, the
+    noise, the rig model and the number of frames. JSON-ready; the store's identity uses it,
+    so a run resumes only with the same settings."""
+    spec = scene.palpation if spec is None else spec
+    d = asdict(spec)
+    d["target_radii"] = list(d["target_radii"])
+    d["xy"] = list(d["xy"])
+    segs = _segments(spec, scene.noise.frame_rate_hz)
+    return {
+        "palpation": d,
+        "mesh": asdict(scene.mesh),
+        "membrane": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(scene.membrane).items()},
+        "noise": asdict(scene.noise),
+        "rig": str(rig_path) if rig_path else "scenes/bench_rig.xml",
+        "n_records": segs[-1].start + segs[-1].n_frames,
+        "frames_per_target": [sg.n_frames for sg in segs],
+    }
 
 
 def _checkpoint(model: MembraneModel, rig: Rig, force: np.ndarray) -> dict[str, np.ndarray]:
@@ -551,8 +565,8 @@ def run_palpation(
                 export(frame)
             if store is not None:
                 store.put(frame.index, frame.record, checkpoint=_checkpoint(model, rig, force))
-            tick(1)
             yield frame
+            tick(1)
 
 
 def _frame(pal: Palpation, seg: Segment, k: int, model: MembraneModel, rig: Rig, force: np.ndarray, contact_z: float) -> Frame:

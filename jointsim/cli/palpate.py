@@ -1,0 +1,146 @@
+"""Virtual palpation (paper III.C, Fig. 4): the MuJoCo bench rig presses each target into the FEM
+dome at 50 Hz; every frame records the 256 noisy voltages, pose, contact force, displaced
+volume, the difference image and its metrics. Writes OUT/palpation.h5 (all frames, with the
+scene, settings, seed and package versions), a VTU time series (OUT/*.pvd, OUT/vtu/), Fig. 4-like
+PNGs and OUT/summary.{json,md}. An interrupted run resumes where it stopped when run again with
+the same settings; nothing is half-written."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+from tqdm import tqdm
+
+from ..io.store import open_records, open_store
+from ..palpation import Palpation, program_params, run_palpation
+from ..palpation.report import VtuSeries, summarise, write_pvd, write_report, write_setup
+from ..scene import PALPATION_MODES
+from .common import add_scene_arguments, scene_from_args
+
+HELP = "virtual palpation with the MuJoCo rig (paper Fig. 4): HDF5 frames, VTU series, PNG, summary"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_scene_arguments(p)
+    p.add_argument("--out", type=Path, default=Path("out/palpation"), help="output folder (default out/palpation)")
+    p.add_argument("--targets", help="target diameters in mm, comma-separated (default: the scene's [palpation], 8,15,30)")
+    p.add_argument("--depth", type=float, help="indentation past first contact, mm (position and compliant modes)")
+    p.add_argument("--mode", choices=PALPATION_MODES, help="stage control (default: the scene's, position)")
+    p.add_argument("--force", type=float, help="press force, N (force mode)")
+    p.add_argument("--speed", type=float, help="stage speed, mm/s (default 25)")
+    p.add_argument("--hold", type=float, help="hold at depth or force, s")
+    p.add_argument("--xy", help="where the target comes down, 'x,y' in mm (default 0,0)")
+    p.add_argument("--seed", type=int, help="noise seed (default: the scene's [noise] seed)")
+    p.add_argument("--membrane-rim", type=int, help="membrane resolution: vertices on its rim (default: the scene's)")
+    p.add_argument("--membrane-layers", type=int, help="membrane element layers through the thickness (default: the scene's)")
+    p.add_argument("--vtu-every", type=int, default=1, help="write the VTU series every N frames of each target (0: none; default 1)")
+    p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                   help="show a progress bar (default: when the output is a terminal)")
+
+
+def _floats(text: str, name: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise ValueError(f"{name} = {text!r}: must be comma-separated numbers") from None
+
+
+def configure(args: argparse.Namespace):
+    """The scene with the command line's overrides applied (validated as scene values)."""
+    scene = scene_from_args(args)
+    m = scene.membrane
+    if args.membrane_rim is not None:
+        if not 16 <= args.membrane_rim <= 1024:
+            raise ValueError(f"--membrane-rim = {args.membrane_rim}: must be in [16, 1024]")
+        m = replace(m, rim_vertices=args.membrane_rim)
+    if args.membrane_layers is not None:
+        if not 1 <= args.membrane_layers <= 8:
+            raise ValueError(f"--membrane-layers = {args.membrane_layers}: must be in [1, 8]")
+        m = replace(m, layers=args.membrane_layers)
+    spec = scene.palpation
+    c = scene.chamber
+    if args.targets is not None:
+        d = _floats(args.targets, "--targets")
+        if not d or any(not 0 < v <= 10 * c.base_radius * 1e3 for v in d):
+            raise ValueError(f"--targets = {args.targets!r}: diameters in (0, {10 * c.base_radius * 1e3:g}] mm, at least one")
+        spec = replace(spec, target_radii=tuple(v * 1e-3 / 2 for v in d))
+    if args.mode is not None:
+        spec = replace(spec, mode=args.mode)
+    if args.depth is not None:
+        hi = (c.dome_height + c.membrane_thickness) * 1e3
+        if not 0 < args.depth <= hi:
+            raise ValueError(f"--depth = {args.depth}: must be in (0, {hi:g}] mm")
+        spec = replace(spec, depth=args.depth * 1e-3)
+    if args.force is not None:
+        if not 0 < args.force <= 10:
+            raise ValueError(f"--force = {args.force}: must be in (0, 10] N")
+        spec = replace(spec, force=args.force)
+    if args.speed is not None:
+        if not 0 < args.speed <= 1000:
+            raise ValueError(f"--speed = {args.speed}: must be in (0, 1000] mm/s")
+        spec = replace(spec, speed=args.speed * 1e-3)
+    if args.hold is not None:
+        if not 0 <= args.hold <= 60:
+            raise ValueError(f"--hold = {args.hold}: must be in [0, 60] s")
+        spec = replace(spec, hold=args.hold)
+    if args.xy is not None:
+        xy = _floats(args.xy, "--xy")
+        if len(xy) != 2 or (xy[0] ** 2 + xy[1] ** 2) ** 0.5 >= c.base_radius * 1e3:
+            raise ValueError(f"--xy = {args.xy!r}: two numbers 'x,y' in mm within the base radius {c.base_radius * 1e3:g} mm")
+        spec = replace(spec, xy=(xy[0] * 1e-3, xy[1] * 1e-3))
+    noise = scene.noise
+    if args.seed is not None:
+        if args.seed < 0:
+            raise ValueError(f"--seed = {args.seed}: must be >= 0")
+        noise = replace(noise, seed=args.seed)
+    if args.vtu_every < 0:
+        raise ValueError(f"--vtu-every = {args.vtu_every}: must be >= 0")
+    return replace(scene, membrane=m, palpation=spec, noise=noise)
+
+
+def run(args: argparse.Namespace) -> int:
+    scene = configure(args)
+    spec = scene.palpation
+    out: Path = args.out
+    h5 = out / "palpation.h5"
+    command = "jointsim palpate " + " ".join(shlex.quote(a) for a in (sys.argv[2:] if sys.argv[1:2] == ["palpate"] else []))
+    params = program_params(scene, spec)
+    diam = ", ".join(f"{2e3 * r:g}" for r in spec.target_radii)
+    print(f"jointsim palpate: scene {scene.name}, mesh {scene.mesh.preset}, {spec.mode} mode, targets {diam} mm, "
+          f"{params['n_records']} frames at {scene.noise.frame_rate_hz:g} Hz -> {out}")
+    if h5.exists():
+        rec = open_records(h5)
+        if rec.provenance["params"] != json.loads(json.dumps(params)):
+            raise ValueError(f"{h5} holds a finished run with other settings; remove it or use another --out")
+        print(f"  {h5} is complete ({len(rec)} frames): reports rewritten from it")
+    else:
+        pal = Palpation(scene, spec)
+        print("  set-up: " + ", ".join(f"{k} {v:.1f} s" for k, v in pal.setup_timings.items())
+              + f"; chamber {pal.reference.mesh.n_tets:,} tets, membrane {pal.membrane_nodes:,} P2 nodes, "
+              f"{pal.grid.n_cells:,} voxels, lambda {pal.reconstructor.lam:.3g}")
+        store = open_store(h5, pal.schema(), scene_toml=Path(args.scene).read_text(), seed=scene.noise.seed,
+                           n_records=pal.n_records, params=params, command=shlex.split(command))
+        done = len(store.done())
+        if done:
+            print(f"  resuming: {done} of {pal.n_records} frames already stored")
+        write_setup(out, pal)
+        export = VtuSeries(out, pal, args.vtu_every) if args.vtu_every else None
+        with tqdm(total=pal.n_records, unit="frame", disable=None if args.progress is None else not args.progress) as bar:
+            for f in run_palpation(pal, store, export=export, progress=bar.update):
+                bar.set_postfix_str(f"target {2e3 * f.segment.radius:g} mm, depth {f.record['depth'] * 1e3:.2f} mm, "
+                                    f"F {f.state.force[2] * 1e3:.1f} mN", refresh=False)
+        store.finalize()
+        pal.free()
+        rec = open_records(h5)
+    written = write_pvd(out, scene.noise.frame_rate_hz) + write_report(out, rec, command)
+    for r in summarise(rec):
+        print(f"  {r['diameter_mm']:g} mm: depth {r['max_depth_mm']:.2f} mm, F {r['max_force_mN']:.1f} mN, "
+              f"displaced {r['max_displaced_mm3']:.0f} mm^3, peak RMS dV {r['peak_rms_dv_uV']:.0f} uV, "
+              f"image diameter {r['peak_image_diameter_mm']:.1f} mm, sum sigma {r['peak_sum_sigma']:.3g}")
+    print(f"  wrote {h5}, {len(written)} report files to {out}")
+    return 0
