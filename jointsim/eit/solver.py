@@ -18,7 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-__all__ = ["Factorization", "factorize", "available_backends", "default_backend"]
+__all__ = ["Factorization", "PatternSolver", "factorize", "available_backends", "default_backend"]
 
 
 def available_backends() -> list[str]:
@@ -131,3 +131,73 @@ def factorize(A: sp.spmatrix, backend: str = "auto", spd: bool = True) -> Factor
 
         return Factorization(solve, release)
     raise ValueError(f"backend = {backend!r}: allowed values are {available_backends()}")
+
+
+class PatternSolver:
+    """Repeated factorisations of symmetric matrices that share one sparsity pattern — Newton's
+    Hessians on a fixed mesh. The pattern is the upper triangle ``(indptr, indices)`` (CSR,
+    sorted); PARDISO's ordering and symbolic analysis are done once and each :meth:`factor`
+    is numerical only, which at 30 k unknowns of P2 elasticity saves ~40 % of a factorisation.
+    Without PARDISO every factor call is a fresh SuperLU. ``mtype``: 2 SPD, −2 indefinite.
+    ``negative_eigenvalues`` (PARDISO, indefinite) is the inertia of the last factor."""
+
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray, spd: bool, backend: str = "auto"):
+        self.indptr = np.asarray(indptr, np.int64)
+        self.indices = np.asarray(indices, np.int64)
+        self.n = len(self.indptr) - 1
+        self.spd = spd
+        if backend == "auto":
+            # with the analysis reused, PARDISO's numerical factorisation beats a fresh SuperLU
+            # from a few thousand unknowns of P2 elasticity (its fill-in grows fastest)
+            big = self.n >= 5_000 and "pardiso" in available_backends()
+            backend = "pardiso" if big else "superlu"
+        self.backend = backend
+        self.negative_eigenvalues: int | None = None
+        self._solver = None
+        self._analysed = False
+        self._A: sp.csr_matrix | None = None
+        self._lu = None
+
+    def factor(self, data: np.ndarray) -> None:
+        A = sp.csr_matrix((np.asarray(data, float), self.indices, self.indptr), shape=(self.n, self.n))
+        self._A = A
+        if self.backend != "pardiso":
+            full = A + sp.triu(A, k=1).T
+            self._lu = factorize(full, "superlu", spd=self.spd)
+            return
+        if self._solver is None:
+            self._solver = _pardiso_solver(2 if self.spd else -2)
+        b = np.zeros(self.n)
+        if not self._analysed:
+            self._solver.set_phase(11)
+            self._solver._call_pardiso(A, b)
+            self._analysed = True
+        self._solver.set_phase(22)
+        self._solver._call_pardiso(A, b)
+        # iparm(23) (1-based): the number of negative pivots of the LDLᵀ factor
+        self.negative_eigenvalues = None if self.spd else int(self._solver.iparm[22])
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        if self._A is None:
+            raise RuntimeError("factor() first")
+        if self.backend != "pardiso":
+            return self._lu(b)
+        self._solver.set_phase(33)
+        x = self._solver._call_pardiso(self._A, np.asfortranarray(b, dtype=float))
+        return x.reshape(np.shape(b))
+
+    def free(self) -> None:
+        if self._solver is not None:
+            self._solver.free_memory(everything=True)
+            _PARDISO_IDLE.setdefault(self._solver.mtype, []).append(self._solver)
+            self._solver = None
+        self._analysed = False
+        if self._lu is not None:
+            self._lu.free()
+            self._lu = None
+
+    def __del__(self):
+        try:
+            self.free()
+        except Exception:
+            pass

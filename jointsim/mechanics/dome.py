@@ -18,7 +18,7 @@ from ..mesh.tetmesh import TetMesh
 from .contact import SphereContact, SphereFriction, nodal_areas
 from .fem import ElasticTerm, P2Mesh
 from .materials import Material
-from .newton import NewtonError, minimize_energy
+from .newton import NewtonError, NewtonSystem, minimize_energy
 from .pressure import PressureTerm, linear_subtriangles
 
 __all__ = ["MembraneModel", "MembraneState", "membrane_mesh", "ECOFLEX_00_50"]
@@ -142,9 +142,11 @@ class MembraneModel:
         self.fixed = np.zeros_like(X, bool)
         self.fixed[np.abs(X[:, 2]) < 1e-9 * np.ptp(X)] = True  # the bonded rim
         self.u = np.zeros_like(X)
+        indptr, indices, _ = self.mesh.sparsity
+        self.system = NewtonSystem(indptr, indices, ~self.fixed.ravel())
         if pressure != 0.0:
             # the reservoir head inflates the stress-free dome before any contact
-            self.u = minimize_energy([self.elastic, self.pressure], self.u, self.fixed).u
+            self.u = minimize_energy([self.elastic, self.pressure], self.u, self.fixed, system=self.system).u
         # displaced volume is counted from the pressurised, untouched dome; a closed chamber is
         # sealed in that state and keeps this volume
         self.V0 = self.pressure.volume(self.u)
@@ -233,10 +235,10 @@ class MembraneModel:
 
     def _newton(self, guess: np.ndarray):
         try:
-            return minimize_energy(self.terms, guess, self.fixed, rtol=0.0, atol=self.force_tol)
+            return minimize_energy(self.terms, guess, self.fixed, rtol=0.0, atol=self.force_tol, system=self.system)
         except NewtonError:
             # the extrapolation may have overshot: start from the last equilibrium
-            return minimize_energy(self.terms, self.u, self.fixed, rtol=0.0, atol=self.force_tol)
+            return minimize_energy(self.terms, self.u, self.fixed, rtol=0.0, atol=self.force_tol, system=self.system)
 
     def _hold_volume(self, res, rtol: float = 1e-6, max_iter: int = 20):
         """Closed chamber: the saline pressure p is the multiplier of the constraint V = V0, found

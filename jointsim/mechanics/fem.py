@@ -19,6 +19,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 import warp as wp
+from threadpoolctl import threadpool_limits
 
 from ..mesh.tetmesh import TetMesh, edge_midpoints
 from .materials import Material, first_piola, strain_energy
@@ -237,7 +238,10 @@ class ElementKernel:
 
 def project_psd(H: np.ndarray) -> np.ndarray:
     """Clamp each element Hessian's negative eigenvalues to zero: (m, 30, 30) → same."""
-    w, V = np.linalg.eigh(H)
+    # thousands of 30 × 30 problems: a threaded LAPACK only adds synchronisation (3-6x slower
+    # on 2 busy cores, measured), so BLAS runs single-threaded here
+    with threadpool_limits(1, user_api="blas"):
+        w, V = np.linalg.eigh(H)
     if (w >= 0).all():
         return H
     return np.einsum("mij,mj,mkj->mik", V, np.maximum(w, 0.0), V)

@@ -13,9 +13,9 @@ from typing import Protocol
 import numpy as np
 import scipy.sparse as sp
 
-from ..eit.solver import available_backends, factorize
+from ..eit.solver import PatternSolver, available_backends, factorize
 
-__all__ = ["EnergyTerm", "NewtonResult", "NewtonError", "minimize_energy", "step_to"]
+__all__ = ["EnergyTerm", "NewtonResult", "NewtonError", "NewtonSystem", "minimize_energy", "step_to"]
 
 
 class NewtonError(RuntimeError):
@@ -42,36 +42,109 @@ class NewtonResult:
 _BACKEND = "pardiso" if "pardiso" in available_backends() else "superlu"
 
 
-def _full_step(u, H, free, g) -> np.ndarray | None:
-    """The Newton step with the full Hessian, or None when it is not a descent direction."""
+class NewtonSystem:
+    """Newton's linear systems on a fixed sparsity pattern ``(indptr, indices)`` of the full
+    3n × 3n Hessian (a superset of every term's entries: the P2 element pattern covers the
+    pressure's face couplings and the contact's nodal blocks), restricted to the ``free``
+    components. The fill-reducing ordering and symbolic analysis are done once per model, not
+    once per iteration (:class:`PatternSolver`)."""
+
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray, free: np.ndarray):
+        n = len(indptr) - 1
+        rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr))
+        cols = np.asarray(indices, np.int64)
+        self.n, self._indptr, self._cols = n, np.asarray(indptr), cols
+        self.keys = rows * n + cols  # sorted: CSR rows in order, columns sorted within rows
+        self.free = np.asarray(free, bool)
+        keep = self.free[rows] & self.free[cols] & (cols >= rows)
+        self.n_kept = int(keep.sum())
+        self.slot = np.full(len(cols), -1, np.int64)
+        self.slot[keep] = np.arange(self.n_kept)
+        new = np.cumsum(self.free) - 1
+        r = new[rows[keep]]
+        indptr_f = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=int(self.free.sum())))])
+        self.full = PatternSolver(indptr_f, new[cols[keep]], spd=False)
+        self.projected = PatternSolver(indptr_f, new[cols[keep]], spd=True)
+
+    def data(self, matrices: list) -> np.ndarray:
+        """The free upper-triangle values of Σ matrices, in the pattern's order."""
+        out = np.zeros(self.n_kept)
+        for H in matrices:
+            if H is None or H.nnz == 0:
+                continue
+            H = sp.csr_matrix(H)
+            if H.nnz == len(self._cols) and np.array_equal(H.indptr, self._indptr) and np.array_equal(H.indices, self._cols):
+                vals, slot = H.data, self.slot  # assembled on the pattern itself (the elastic term)
+            else:
+                coo = H.tocoo()
+                k = coo.row.astype(np.int64) * self.n + coo.col
+                pos = np.minimum(np.searchsorted(self.keys, k), len(self.keys) - 1)
+                if not np.array_equal(self.keys[pos], k):
+                    raise ValueError("a Hessian term has entries outside the system's sparsity pattern")
+                vals, slot = coo.data, self.slot[pos]
+            m = slot >= 0
+            out += np.bincount(slot[m], weights=vals[m], minlength=self.n_kept)
+        return out
+
+    def free_factors(self) -> None:
+        self.full.free()
+        self.projected.free()
+
+
+def _full_step(u, Hs, free, g, system) -> tuple[np.ndarray | None, bool]:
+    """The Newton step with the full Hessian (None when it is not a descent direction), and
+    whether the free Hessian is known to be positive definite (from the LDLᵀ inertia)."""
     try:
-        with factorize(sp.csr_matrix(H)[free][:, free], _BACKEND, spd=False) as solve:
-            d = solve(-g[free])
+        if system is not None:
+            system.full.factor(system.data(Hs))
+            d = system.full.solve(-g[free])
+            spd = system.full.negative_eigenvalues == 0
+        else:
+            with factorize(sp.csr_matrix(sum(Hs[1:], Hs[0]))[free][:, free], _BACKEND, spd=False) as solve:
+                d = solve(-g[free])
+            spd = False
     except Exception:  # singular or the factorisation broke down
-        return None
-    return d if np.all(np.isfinite(d)) and g[free] @ d < 0 else None
+        return None, False
+    ok = np.all(np.isfinite(d)) and g[free] @ d < 0
+    return (d if ok else None), bool(ok and spd)
 
 
-def _projected_step(terms, u, free, g) -> np.ndarray:
+def _projected_step(terms, u, free, g, system) -> np.ndarray:
     """The Newton step with every term's Hessian projected to PSD (always a descent step)."""
-    Hp = None
-    for t in terms:
-        Ht = t.projected_hessian(u) if hasattr(t, "projected_hessian") else t.evaluate(u, True)[2]
-        Hp = Ht if Hp is None else Hp + Ht
-    with factorize(sp.csr_matrix(Hp)[free][:, free], _BACKEND) as solve:
+    Hs = [t.projected_hessian(u) if hasattr(t, "projected_hessian") else t.evaluate(u, True)[2] for t in terms]
+    if system is not None:
+        system.projected.factor(system.data(Hs))
+        return -system.projected.solve(g[free])
+    with factorize(sp.csr_matrix(sum(Hs[1:], Hs[0]))[free][:, free], _BACKEND) as solve:
         return -solve(g[free])
 
 
 def _total(terms, u, hessian):
-    E, g, H, ok = 0.0, None, None, True
+    """(energy, gradient, [each term's Hessian] or None, admissible)."""
+    E, g, Hs, ok = 0.0, None, [], True
     for t in terms:
         e, gi, Hi, oki = t.evaluate(u, hessian)
         ok &= oki
         E += e
         g = gi if g is None else g + gi
-        if hessian:
-            H = Hi if H is None else H + Hi
-    return E, g, H, ok
+        Hs.append(Hi)
+    return E, g, (Hs if hessian else None), ok
+
+
+def _line_search(terms, u, E, g, d, it):
+    """Armijo backtracking along d; (u_new, E_new) or None when at round-off already."""
+    slope = float(g @ d)
+    alpha = 1.0
+    while True:
+        u_try = u + alpha * d.reshape(u.shape)
+        E_try, _, _, ok_try = _total(terms, u_try, False)
+        if ok_try and E_try <= E + 1e-4 * alpha * slope:
+            return u_try
+        if ok_try and abs(E_try - E) <= 1e-14 * max(abs(E), 1e-300) and alpha < 1e-3:
+            return None  # at round-off: no further decrease is measurable
+        alpha *= 0.5
+        if alpha < 1e-10:
+            raise NewtonError(f"iteration {it}: line search failed (inverted elements or no decrease)")
 
 
 def minimize_energy(
@@ -81,14 +154,18 @@ def minimize_energy(
     rtol: float = 1e-9,
     atol: float = 0.0,
     max_iter: int = 50,
+    system: NewtonSystem | None = None,
 ) -> NewtonResult:
     """Minimise Σ terms over u (n, 3) with u[fixed] held at u0[fixed] (fixed: (n, 3) bool).
 
     Converged when ‖g_free‖ ≤ max(atol, rtol·‖g_free at the start‖) or the energy stops
-    decreasing at round-off level. Raises :class:`NewtonError` otherwise."""
+    decreasing at round-off level. Raises :class:`NewtonError` otherwise. A ``system`` built
+    for these fixed components keeps the linear solver's analysis between calls."""
     u = np.array(u0, dtype=float)
     free = ~np.asarray(fixed, bool).ravel()
-    E, g, H, ok = _total(terms, u, True)
+    if system is not None and not np.array_equal(system.free, free):
+        raise ValueError("system: built for other fixed components")
+    E, g, Hs, ok = _total(terms, u, True)
     if not ok:
         raise NewtonError("the initial state has inverted elements")
     r0 = np.linalg.norm(g[free])
@@ -98,36 +175,33 @@ def minimize_energy(
         r = np.linalg.norm(g[free])
         if r <= tol or r == 0.0:
             return NewtonResult(u, E, g, it, r, history)
-        # the full-Hessian step converges quadratically near equilibrium; where it is not a
-        # descent direction or the full step is rejected (active-set changes in contact, large
-        # load increments), the SPD-projected step is taken instead
+        # the full-Hessian step converges quadratically near equilibrium. Where the free Hessian
+        # is positive definite (LDLᵀ inertia) it is a descent direction and is line-searched;
+        # otherwise it is taken only when the whole step lowers the energy, and the
+        # SPD-projected step is taken instead (active-set changes in contact, large increments)
         d = np.zeros(u.size)
-        full = _full_step(u, H, free, g)
-        accepted = False
+        full, spd = _full_step(u, Hs, free, g, system)
+        u_new = None
         if full is not None:
             d[free] = full
-            u_try = u + d.reshape(u.shape)
-            E_try, _, _, ok_try = _total(terms, u_try, False)
-            accepted = ok_try and E_try <= E + 1e-4 * float(g @ d)
-        if not accepted:
-            d[free] = _projected_step(terms, u, free, g)
-            slope = float(g @ d)
-            if slope >= 0:
-                raise NewtonError(f"iteration {it}: the projected Newton direction is not a descent direction")
-            alpha = 1.0
-            while True:
-                u_try = u + alpha * d.reshape(u.shape)
-                E_try, _, _, ok_try = _total(terms, u_try, False)
-                if ok_try and E_try <= E + 1e-4 * alpha * slope:
-                    break
-                if ok_try and abs(E_try - E) <= 1e-14 * max(abs(E), 1e-300) and alpha < 1e-3:
-                    # at round-off: no further decrease is measurable
+            if spd:
+                u_new = _line_search(terms, u, E, g, d, it)
+                if u_new is None:
                     return NewtonResult(u, E, g, it, r, history)
-                alpha *= 0.5
-                if alpha < 1e-10:
-                    raise NewtonError(f"iteration {it}: line search failed (inverted elements or no decrease)")
-        u = u_try
-        E, g, H, ok = _total(terms, u, True)
+            else:
+                u_try = u + d.reshape(u.shape)
+                E_try, _, _, ok_try = _total(terms, u_try, False)
+                if ok_try and E_try <= E + 1e-4 * float(g @ d):
+                    u_new = u_try
+        if u_new is None:
+            d[free] = _projected_step(terms, u, free, g, system)
+            if float(g @ d) >= 0:
+                raise NewtonError(f"iteration {it}: the projected Newton direction is not a descent direction")
+            u_new = _line_search(terms, u, E, g, d, it)
+            if u_new is None:
+                return NewtonResult(u, E, g, it, r, history)
+        u = u_new
+        E, g, Hs, ok = _total(terms, u, True)
         history.append(float(np.linalg.norm(g[free])))
     err = NewtonError(f"no convergence in {max_iter} iterations: residual {np.linalg.norm(g[free]):.3e} > {tol:.3e}")
     err.history = history
@@ -166,8 +240,8 @@ def _predict(terms, u_eq, fixed, target) -> np.ndarray:
     du[~free] = (target - u_eq).ravel()[~free]
     if not du.any():
         return u_eq.copy()
-    _, _, H, _ = _total(terms, u_eq, True)
-    H = sp.csr_matrix(H)
+    _, _, Hs, _ = _total(terms, u_eq, True)
+    H = sp.csr_matrix(sum(Hs[1:], Hs[0]))
     try:
         with factorize(H[free][:, free], _BACKEND, spd=False) as solve:
             du[free] = solve(-(H[free][:, ~free] @ du[~free]))
