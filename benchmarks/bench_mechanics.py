@@ -1,8 +1,8 @@
-"""Mechanics benchmark: quasi-static 0.5 mm steps (one 50 Hz frame at 25 mm/s) of a rigid
-15 mm target pressed on the axis of the paper's dome, warm-started, at several membrane
-resolutions. Reports wall time per step, Newton iterations, and the split between the Warp
-element kernel, the sparse factorisations and the rest; with force and displaced volume at
-3 mm depth to show how far each resolution is from the next.
+"""Mechanics benchmark and mesh-convergence study: quasi-static 0.5 mm steps (one 50 Hz frame
+at 25 mm/s) of a rigid 15 mm target pressed on the axis of the paper's dome, warm-started, at
+several membrane meshes (uniform isotropic caps, and caps graded from a fine apex). Reports the
+contact force at 1, 2 and 3 mm against the finest mesh, wall time per step, Newton iterations,
+and the split between the Warp element kernel, the sparse factorisations and the rest.
 
     python benchmarks/bench_mechanics.py            # writes results/mechanics_benchmark.{md,json}
 """
@@ -19,13 +19,15 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-RESOLUTIONS = [(32, 1), (48, 1), (48, 2), (96, 2)]  # (dome rim vertices, layers through the thickness)
+# (rim vertices, layers through the thickness, apex edge mm or 0 for uniform); the last is the reference
+RESOLUTIONS = [(32, 2, 0.0), (48, 2, 0.0), (64, 2, 0.0), (32, 2, 1.3), (48, 2, 1.3), (32, 2, 0.9), (48, 3, 0.9), (96, 2, 0.0)]
+DEPTHS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 
 
-def run(n_rim: int, layers: int) -> dict:
+def run(n_rim: int, layers: int, apex_mm: float) -> dict:
     import jointsim.eit.solver as solver
     import jointsim.mechanics.fem as fem
-    from jointsim.geometry import spherical_cap
+    from jointsim.geometry import isotropic_cap
     from jointsim.mechanics.dome import MembraneModel
     from jointsim.scene import load_scene
 
@@ -41,28 +43,21 @@ def run(n_rim: int, layers: int) -> dict:
         return g
 
     fem.ElementKernel.__call__ = timed("kernel", fem.ElementKernel.__call__)
-    orig_factorize = solver.factorize
-
-    def factorize(*a, **k):
-        t0 = time.perf_counter()
-        fac = orig_factorize(*a, **k)
-        timers["factorise+solve"] += time.perf_counter() - t0
-        fac._solve = timed("factorise+solve", fac._solve)
-        return fac
-
-    import jointsim.mechanics.newton as newton
-
-    newton.factorize = factorize
+    solver.PatternSolver.factor = timed("factorise+solve", solver.PatternSolver.factor)
+    solver.PatternSolver.solve = timed("factorise+solve", solver.PatternSolver.solve)
 
     from dataclasses import replace
 
     scene = load_scene(ROOT / "scenes" / "paper_sensor.toml")
     scene = replace(scene, membrane=replace(scene.membrane, layers=layers))
     c = scene.chamber
-    model = MembraneModel.from_scene(scene, 7.5e-3, dome=spherical_cap(c.base_radius, c.dome_height, n_rim))
+    dome = isotropic_cap(c.base_radius, c.dome_height, n_rim, apex_mm * 1e-3 if apex_mm else None)
+    t0 = time.perf_counter()
+    model = MembraneModel.from_scene(scene, 7.5e-3, dome=dome)
+    setup = time.perf_counter() - t0
     top = model.first_contact_height((0.0, 0.0))
     steps = []
-    for d in np.arange(0.5, 3.01, 0.5) * 1e-3:
+    for d in np.array(DEPTHS_MM) * 1e-3:
         for k in timers:
             timers[k] = 0.0
         t0 = time.perf_counter()
@@ -70,38 +65,47 @@ def run(n_rim: int, layers: int) -> dict:
         wall = time.perf_counter() - t0
         steps.append({"depth_mm": d * 1e3, "wall_s": wall, "iterations": st.iterations, **{f"{k}_s": v for k, v in timers.items()},
                       "force_mN": st.force[2] * 1e3, "displaced_mm3": st.displaced_volume * 1e9, "penetration_um": st.penetration * 1e6})
-    return {"n_rim": n_rim, "layers": layers, "p2_nodes": model.mesh.n_nodes, "tets": model.mesh.n_tets, "steps": steps}
+    return {"n_rim": n_rim, "layers": layers, "apex_mm": apex_mm, "p2_nodes": model.mesh.n_nodes, "tets": model.mesh.n_tets,
+            "setup_s": setup, "steps": steps}
+
+
+def _force(r: dict, depth: float) -> float:
+    return next(x["force_mN"] for x in r["steps"] if abs(x["depth_mm"] - depth) < 1e-9)
 
 
 def main() -> int:
     if len(sys.argv) > 1 and sys.argv[1] == "--one":
-        print(json.dumps(run(int(sys.argv[2]), int(sys.argv[3]))))
+        print(json.dumps(run(int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]))))
         return 0
     import subprocess
 
     rows = []
-    for n_rim, layers in RESOLUTIONS:
-        r = subprocess.run([sys.executable, __file__, "--one", str(n_rim), str(layers)], capture_output=True, text=True)
+    for n_rim, layers, apex in RESOLUTIONS:
+        r = subprocess.run([sys.executable, __file__, "--one", str(n_rim), str(layers), str(apex)], capture_output=True, text=True)
         if r.returncode:
             print(r.stderr[-2000:], file=sys.stderr)
             continue
         rows.append(json.loads(r.stdout.strip().splitlines()[-1]))
         s = rows[-1]["steps"]
-        print(f"{n_rim} rim, {layers} layers: {np.mean([x['wall_s'] for x in s[1:]]):.2f} s/step, F(3 mm) {s[-1]['force_mN']:.2f} mN", flush=True)
+        print(f"{n_rim} rim, {layers} layers, apex {apex} mm: {np.mean([x['wall_s'] for x in s[1:]]):.2f} s/step, F(3 mm) {s[-1]['force_mN']:.2f} mN", flush=True)
     meta = {"command": "python benchmarks/bench_mechanics.py", "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
             "date": time.strftime("%Y-%m-%d")}
+    ref = rows[-1]
     out = ROOT / "results" / "mechanics_benchmark"
-    lines = ["# Mechanics benchmark", "", f"Command: `{meta['command']}`  ", f"Machine: {meta['machine']}; run {meta['date']}.  ",
+    lines = ["# Mechanics benchmark and mesh convergence", "", f"Command: `{meta['command']}`  ", f"Machine: {meta['machine']}; run {meta['date']}.  ",
              "Rigid 15 mm sphere pressed on the axis of the paper's dome (neo-Hookean μ 22 kPa, κ = 1000 μ, 50 Pa reservoir), 0.5 mm steps",
-             "to 3 mm, each warm-started from the previous (secant extrapolation). Per-step means exclude the first step.", "",
-             "| dome rim vertices | layers | P2 nodes | s / step | Newton its / step | kernel s | factorise+solve s | F at 3 mm, mN | displaced at 3 mm, mm³ |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "to 3 mm, each warm-started from the previous (secant extrapolation). Per-step means exclude the first step (first contact,",
+             "no extrapolation yet). Membrane meshes: the inner surface as an isotropic cap of edge 2π·20 mm / rim vertices, either",
+             "uniform or graded from the apex edge to the rim edge; P2 tetrahedra in prism layers through the 2 mm thickness.",
+             f"Force error: against the last row ({ref['n_rim']} rim, {ref['layers']} layers, uniform).", "",
+             "| rim | layers | apex edge mm | P2 nodes | s / step | Newton its / step | kernel s | factorise+solve s | F 1 mm | F 2 mm | F 3 mm, mN | error at 1 / 2 / 3 mm |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         s = r["steps"][1:]
-        lines.append(f"| {r['n_rim']} | {r['layers']} | {r['p2_nodes']:,} | {np.mean([x['wall_s'] for x in s]):.2f} | {np.mean([x['iterations'] for x in s]):.1f} | "
-                     f"{np.mean([x['kernel_s'] for x in s]):.2f} | {np.mean([x['factorise+solve_s'] for x in s]):.2f} | {r['steps'][-1]['force_mN']:.2f} | {r['steps'][-1]['displaced_mm3']:.1f} |")
-    lines += ["", "The resolution at which force is converged to 2 % is not established yet: compare the force column",
-              "between rows (issue 4)."]
+        err = " / ".join(f"{100 * (_force(r, d) / _force(ref, d) - 1):+.1f} %" for d in (1.0, 2.0, 3.0))
+        lines.append(f"| {r['n_rim']} | {r['layers']} | {r['apex_mm'] or 'uniform'} | {r['p2_nodes']:,} | {np.mean([x['wall_s'] for x in s]):.2f} | "
+                     f"{np.mean([x['iterations'] for x in s]):.1f} | {np.mean([x['kernel_s'] for x in s]):.2f} | {np.mean([x['factorise+solve_s'] for x in s]):.2f} | "
+                     f"{_force(r, 1.0):.2f} | {_force(r, 2.0):.2f} | {_force(r, 3.0):.2f} | {err} |")
     for suffix, text in ((".json", json.dumps({"meta": meta, "rows": rows}, indent=2)), (".md", "\n".join(lines) + "\n")):
         tmp = out.with_suffix(suffix + ".tmp")
         tmp.write_text(text)

@@ -92,8 +92,9 @@ def spherical_cap(base_radius: float, height: float, n_rim: int = 192, n_rings: 
     return DomeSurface(verts, faces.astype(np.int64), np.arange(n_rim))
 
 
-def isotropic_cap(base_radius: float, height: float, n_rim: int = 96) -> DomeSurface:
-    """Spherical cap triangulated with near-equilateral triangles of edge ≈ 2π·base_radius/n_rim.
+def isotropic_cap(base_radius: float, height: float, n_rim: int = 96, apex_edge: float | None = None) -> DomeSurface:
+    """Spherical cap triangulated with near-equilateral triangles of edge ≈ 2π·base_radius/n_rim,
+    or graded from ``apex_edge`` (m) at the apex linearly (in geodesic distance) to that at the rim.
 
     Rings at equal geodesic spacing from the apex, each with a vertex count proportional to its
     circumference (unlike :func:`spherical_cap`, whose rings all have n_rim vertices and whose
@@ -110,9 +111,21 @@ def isotropic_cap(base_radius: float, height: float, n_rim: int = 96) -> DomeSur
     theta_max = np.arcsin(a / R) if h <= R else np.pi - np.arcsin(a / R)
     edge = 2 * np.pi * a / n_rim
     sym = next(s for s in (16, 8, 4, 2, 1) if n_rim % s == 0)
-    n_rings = max(2, int(round(R * theta_max / edge)))
-    theta = theta_max * np.arange(n_rings, 0, -1) / n_rings  # rim first, apex excluded
-    counts = np.maximum(sym, sym * np.round(2 * np.pi * R * np.sin(theta) / (sym * edge))).astype(int)
+    S = R * theta_max  # geodesic distance apex → rim
+    e0 = edge if apex_edge is None else float(apex_edge)
+    if not 0 < e0 <= S:
+        raise ValueError(f"apex_edge = {apex_edge}: must be in (0, {S:.3g}] m")
+
+    def spacing(s):  # the edge length at geodesic distance s from the apex
+        return e0 + (edge - e0) * s / S
+
+    rings = [0.0]
+    while rings[-1] < S - 0.5 * spacing(rings[-1]):
+        rings.append(rings[-1] + spacing(rings[-1]))
+    s_ring = np.array(rings[1:]) * S / rings[-1] if len(rings) > 2 else np.array([0.5 * S, S])
+    n_rings = len(s_ring)
+    theta = s_ring[::-1] / R  # rim first, apex excluded
+    counts = np.maximum(sym, sym * np.round(2 * np.pi * R * np.sin(theta) / (sym * spacing(R * theta)))).astype(int)
     counts[0] = n_rim
     # alternate rings are rotated by half a spacing, so stitched triangles are not right-angled
     half = np.arange(n_rings) % 2
