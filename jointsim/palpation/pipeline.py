@@ -385,7 +385,13 @@ class Palpation:
         if c.mode == "force":
             return rig
         sag = rig.moving_mass * rig.gravity / rig.servo_gains[0]
-        return load_rig(self.rig_path, segment.radius, c, self.frame_rate, contact_z + sag)
+        z = contact_z + sag
+        for _ in range(16):  # (contact + sag) − sag may round below contact: never press at rest
+            rig = load_rig(self.rig_path, segment.radius, c, self.frame_rate, z)
+            if rig.current.position[2] >= contact_z:
+                break
+            z = float(np.nextafter(z, np.inf))
+        return rig
 
     # -- the record --------------------------------------------------------------------
 
@@ -558,8 +564,8 @@ def run_palpation(
         for k in range(k0, seg.n_frames):
             try:
                 frame = _frame(pal, seg, k, model, rig, force, contact_z)
-            except Exception as e:
-                raise type(e)(f"target {seg.target} (radius {seg.radius * 1e3:g} mm), frame {k}: {e}") from e
+            except (ValueError, RuntimeError) as e:
+                raise _in_context(e, f"target {seg.target} (radius {seg.radius * 1e3:g} mm), frame {k}") from e
             force = frame.state.force
             if export is not None:
                 export(frame)
@@ -567,6 +573,15 @@ def run_palpation(
                 store.put(frame.index, frame.record, checkpoint=_checkpoint(model, rig, force))
             yield frame
             tick(1)
+
+
+def _in_context(e: Exception, where: str) -> Exception:
+    """``e`` of the same type with ``where`` in front of its message (or ``e`` with a note)."""
+    try:
+        return type(e)(f"{where}: {e}")
+    except Exception:
+        e.add_note(where)
+        return e
 
 
 def _frame(pal: Palpation, seg: Segment, k: int, model: MembraneModel, rig: Rig, force: np.ndarray, contact_z: float) -> Frame:
