@@ -123,3 +123,24 @@ def test_force_control_settles_at_the_commanded_force():
     assert same.force[2] == pytest.approx(st.force[2], rel=1e-4)
     with pytest.raises(ValueError, match="force"):
         model.press_to_force((0.0, 0.0), -1.0)
+
+
+def test_a_closed_chamber_holds_its_volume_and_stiffens_the_dome():
+    """Sealed saline is incompressible: pressing the dome raises the pressure (the multiplier of
+    the volume constraint) instead of displacing volume, and the press needs more force."""
+    from jointsim.geometry import isotropic_cap
+
+    dome = isotropic_cap(0.02, 0.01, 32)
+    states = {}
+    for closed in (False, True):
+        model = MembraneModel(dome, 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3, closed=closed)
+        top = model.first_contact_height((0.0, 0.0))
+        for d in (0.5e-3, 1.0e-3):
+            st = model.press(np.array([0.0, 0.0, top - d]))
+        states[closed] = (model, st)
+    (m_open, s_open), (m_closed, s_closed) = states[False], states[True]
+    assert s_open.displaced_volume > 1e-9  # tens of mm³ leave an open chamber
+    # the secant on the pressure stops at |ΔV| ≤ 1e-6 V0
+    assert abs(s_closed.displaced_volume) <= 1.01e-6 * m_closed.V0
+    assert s_closed.pressure > 50.0 and s_open.pressure == 50.0
+    assert s_closed.force[2] > 1.2 * s_open.force[2]
