@@ -144,3 +144,25 @@ def test_a_closed_chamber_holds_its_volume_and_stiffens_the_dome():
     assert abs(s_closed.displaced_volume) <= 1.01e-6 * m_closed.V0
     assert s_closed.pressure > 50.0 and s_open.pressure == 50.0
     assert s_closed.force[2] > 1.1 * s_open.force[2]  # measured 30.3 against 25.1 mN
+
+
+def test_force_and_shape_converge_under_mesh_refinement():
+    """Refining the membrane (isotropic caps of 24, 32, 48 rim vertices, one P2 layer) the
+    contact force, the displaced volume and the apex deflection at 1 mm change less and less
+    (measured: force 31.7 → 25.1 → 23.0 mN, volume 105.5 → 85.5 → 81.8 mm³; the second change
+    is 0.32, 0.19 and 0.60 of the first for force, volume and apex). The full study at two layers
+    is results/mechanics_benchmark.md."""
+    from jointsim.geometry import isotropic_cap
+
+    out = []
+    for n in (24, 32, 48):
+        dome = isotropic_cap(0.02, 0.01, n)
+        model = MembraneModel(dome, 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3)
+        top = model.first_contact_height((0.0, 0.0))
+        for d in (0.5e-3, 1.0e-3):
+            st = model.press(np.array([0.0, 0.0, top - d]))
+        apex = np.argmax(dome.vertices[:, 2])
+        out.append((st.force[2], st.displaced_volume, st.dome.vertices[apex, 2] - dome.vertices[apex, 2]))
+    out = np.array(out)
+    steps = np.abs(np.diff(out, axis=0))
+    assert np.all(steps[1] < 0.75 * steps[0])
