@@ -166,3 +166,19 @@ def test_force_and_shape_converge_under_mesh_refinement():
     out = np.array(out)
     steps = np.abs(np.diff(out, axis=0))
     assert np.all(steps[1] < 0.75 * steps[0])
+
+
+def test_a_restored_state_continues_exactly(pressed):
+    """get_state/set_state carry everything the next press depends on (checkpoint/resume)."""
+    model, _ = pressed
+    saved = model.get_state()
+    top = saved["centre"]
+    nxt = top - np.array([0.0, 0.0, 0.25e-3])
+    a = model.press(nxt)
+    twin = MembraneModel(model.dome, 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3)
+    twin.set_state(saved)
+    b = twin.press(nxt)
+    np.testing.assert_array_equal(a.u, b.u)
+    model.set_state(saved)  # leave the shared fixture as it was
+    with pytest.raises(ValueError, match="another mesh"):
+        MembraneModel(spherical_cap(0.02, 0.01, 32), 2e-3, layers=1).set_state(saved)

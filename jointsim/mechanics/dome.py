@@ -181,6 +181,32 @@ class MembraneModel:
             closed=m.chamber == "closed",
         )
 
+    def get_state(self) -> dict[str, np.ndarray]:
+        """Everything the next :meth:`press` depends on, as plain arrays (for checkpoints):
+        displacement, the last two equilibria (the secant predictor), target centre, pressure
+        and the closed chamber's compliance estimate."""
+        hist = self._history
+        return {
+            "u": self.u.copy(),
+            "hist_centre": np.array([c for c, _ in hist]).reshape(len(hist), 3),
+            "hist_u": np.array([u for _, u in hist]).reshape((len(hist),) + self.u.shape),
+            "centre": self.contact.centre.copy(),
+            "pressure": np.float64(self.pressure.pressure),
+            "compliance": np.float64(np.nan if self._compliance is None else self._compliance),
+        }
+
+    def set_state(self, state: dict[str, np.ndarray]) -> None:
+        """Restore a :meth:`get_state` of a model built from the same scene and mesh."""
+        u = np.asarray(state["u"], float)
+        if u.shape != self.u.shape:
+            raise ValueError(f"state['u']: shape {u.shape}, this membrane has {self.u.shape} (another mesh?)")
+        self.u = u.copy()
+        self._history = [(np.array(c, float), np.array(v, float)) for c, v in zip(state["hist_centre"], state["hist_u"])]
+        self.contact.centre = np.array(state["centre"], float)
+        self.pressure.pressure = float(state["pressure"])
+        c = float(state.get("compliance", np.nan))
+        self._compliance = None if np.isnan(c) else c
+
     def first_contact_height(self, xy: np.ndarray) -> float:
         """Centre height of the target coming down at ``xy`` when it touches the outer surface
         of the current (deformed) membrane."""
