@@ -15,7 +15,6 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import __version__
-from ..geometry import spherical_cap
 from ..io.export import atomic_path, write_npz, write_vtu
 from ..mechanics.dome import MembraneModel
 from ..mesh.tetmesh import TetMesh
@@ -28,34 +27,35 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
     p.add_argument("--out", type=Path, default=Path("results/indentation"), help="output folder")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--target-radius-mm", type=float, help="target sphere radius (default 7.5)")
+    g.add_argument("--target-radius-mm", type=float, help="target sphere radius (default: the scene's [target])")
     g.add_argument("--target-diameter-mm", type=float, help="target sphere diameter")
     p.add_argument("--x-mm", type=float, default=0.0, help="contact position x (default 0)")
     p.add_argument("--y-mm", type=float, default=0.0, help="contact position y (default 0)")
     p.add_argument("--depth-mm", type=float, default=3.0, help="final indentation past first contact (default 3)")
     p.add_argument("--step-mm", type=float, default=0.5, help="step (default 0.5: one 50 Hz frame at 25 mm/s)")
-    p.add_argument("--dome-rim", type=int, default=48, help="membrane resolution: vertices on the rim (default 48)")
+    p.add_argument("--dome-rim", type=int, help="membrane resolution: vertices on the rim (default: the scene's membrane.rim_vertices)")
     p.add_argument("--layers", type=int, help="element layers through the thickness (default: the scene's)")
 
 
 def run(args: argparse.Namespace) -> int:
     scene = scene_from_args(args)
-    radius = 7.5 if args.target_radius_mm is None and args.target_diameter_mm is None else (
+    radius = scene.target.radius * 1e3 if args.target_radius_mm is None and args.target_diameter_mm is None else (
         args.target_radius_mm if args.target_radius_mm is not None else args.target_diameter_mm / 2
     )
     if not 0 < radius <= 100:
         raise ValueError(f"target radius = {radius} mm: must be in (0, 100]")
     if not 0 < args.step_mm <= args.depth_mm:
         raise ValueError(f"--step-mm = {args.step_mm}: must be in (0, --depth-mm = {args.depth_mm}]")
-    if not 8 <= args.dome_rim <= 512:
-        raise ValueError(f"--dome-rim = {args.dome_rim}: must be in [8, 512]")
+    if args.dome_rim is not None:
+        if not 16 <= args.dome_rim <= 1024:
+            raise ValueError(f"--dome-rim = {args.dome_rim}: must be in [16, 1024]")
+        scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=args.dome_rim))
     if args.layers is not None:
         if not 1 <= args.layers <= 8:
             raise ValueError(f"--layers = {args.layers}: must be in [1, 8]")
         scene = replace(scene, membrane=replace(scene.membrane, layers=args.layers))
     c = scene.chamber
-    dome = spherical_cap(c.base_radius, c.dome_height, args.dome_rim)
-    model = MembraneModel.from_scene(scene, radius * 1e-3, dome=dome)
+    model = MembraneModel.from_scene(scene, radius * 1e-3)
     xy = np.array([args.x_mm, args.y_mm]) * 1e-3
     top = model.first_contact_height(xy)
     depths = np.arange(1, int(round(args.depth_mm / args.step_mm)) + 1) * args.step_mm
@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     corners = TetMesh(model.mesh.nodes, model.mesh.tets[:, :4])
     print(
         f"jointsim indent: scene {scene.name}, target r = {radius:g} mm at ({args.x_mm:g}, {args.y_mm:g}) mm, "
-        f"membrane {model.mesh.n_nodes} P2 nodes ({args.dome_rim} rim vertices, {scene.membrane.layers} layers)"
+        f"membrane {model.mesh.n_nodes} P2 nodes ({scene.membrane.rim_vertices} rim vertices, {scene.membrane.layers} layers)"
     )
     for i, d in enumerate(tqdm(depths, unit="step", disable=None)):
         st = model.press(np.array([xy[0], xy[1], top - d * 1e-3]))
@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     _plot(out / "force_indentation.png", rows, radius)
     with atomic_path(out / "indentation.json") as tmp:
         tmp.write_text(json.dumps({"jointsim": __version__, "scene": scene.to_dict(), "target_radius_mm": radius,
-                                   "xy_mm": [args.x_mm, args.y_mm], "dome_rim": args.dome_rim, "rows": rows}, indent=2, default=float))
+                                   "xy_mm": [args.x_mm, args.y_mm], "rim_vertices": scene.membrane.rim_vertices, "rows": rows}, indent=2, default=float))
     for r in rows:
         print(f"  {r['depth_mm']:.2f} mm: F {r['force_N'] * 1e3:7.2f} mN, displaced {r['displaced_volume_mm3']:6.1f} mm^3, "
               f"{r['newton_iterations']} Newton iterations")
