@@ -80,6 +80,7 @@ def main() -> int:
     import subprocess
 
     rows = []
+    load0 = os.getloadavg()[0]
     for n_rim, layers, apex in RESOLUTIONS:
         r = subprocess.run([sys.executable, __file__, "--one", str(n_rim), str(layers), str(apex)], capture_output=True, text=True)
         if r.returncode:
@@ -89,7 +90,7 @@ def main() -> int:
         s = rows[-1]["steps"]
         print(f"{n_rim} rim, {layers} layers, apex {apex} mm: {np.mean([x['wall_s'] for x in s[1:]]):.2f} s/step, F(3 mm) {s[-1]['force_mN']:.2f} mN", flush=True)
     meta = {"command": "python benchmarks/bench_mechanics.py", "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
-            "date": time.strftime("%Y-%m-%d")}
+            "date": time.strftime("%Y-%m-%d"), "load_average_start_end": [load0, os.getloadavg()[0]]}
     ref = rows[-1]
     out = ROOT / "results" / "mechanics_benchmark"
     lines = ["# Mechanics benchmark and mesh convergence", "", f"Command: `{meta['command']}`  ", f"Machine: {meta['machine']}; run {meta['date']}.  ",
@@ -97,7 +98,9 @@ def main() -> int:
              "to 3 mm, each warm-started from the previous (secant extrapolation). Per-step means exclude the first step (first contact,",
              "no extrapolation yet). Membrane meshes: the inner surface as an isotropic cap of edge 2π·20 mm / rim vertices, either",
              "uniform or graded from the apex edge to the rim edge; P2 tetrahedra in prism layers through the 2 mm thickness.",
-             f"Force error: against the last row ({ref['n_rim']} rim, {ref['layers']} layers, uniform).", "",
+             f"Force error: against the last row ({ref['n_rim']} rim, {ref['layers']} layers, uniform).  ",
+             f"1-min load average {meta['load_average_start_end'][0]:.1f} at the start, {meta['load_average_start_end'][1]:.1f} at the end "
+             "(on 2 cores a load above 1 inflates the times; the forces do not depend on it).", "",
              "| rim | layers | apex edge mm | P2 nodes | s / step | Newton its / step | kernel s | factorise+solve s | F 1 mm | F 2 mm | F 3 mm, mN | error at 1 / 2 / 3 mm |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
