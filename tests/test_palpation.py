@@ -172,19 +172,81 @@ def test_force_mode_settles_at_the_commanded_force(test_chamber):
     assert np.isnan(frames[-1].record["command_depth"])
 
 
-def test_an_interrupted_run_resumes_to_the_same_result(pal, run, tmp_path):
-    """Crash inside the second target (record 7 not stored), rerun: the resumed target
-    restarts from record 6's checkpoint and the finished file equals the uninterrupted one
-    (the digest covers every field but the wall-clock timings)."""
-    rec, _ = run
-    path = tmp_path / "resumed.h5"
-    store, frames = _run(pal, path, stop_at=7)
-    assert len(frames) == 7 and store.done().tolist() == list(range(7))
-    _, rest = _run(pal, path)
-    assert [f.index for f in rest] == list(range(7, 15))
-    again = open_records(path)
-    assert again.data_sha256 == rec.data_sha256
-    assert len(again.run["sessions"]) == 2
+_RESUME_SCRIPT = """
+import json, sys
+from dataclasses import replace
+import numpy as np
+from jointsim.io.store import open_records, open_store
+from jointsim.palpation import Palpation, run_palpation
+from jointsim.scene import load_scene
+
+scene = load_scene(sys.argv[1]).with_mesh_preset("test")
+scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=32, layers=1))
+pal = Palpation(scene, replace(scene.palpation, target_radii=(4e-3, 7.5e-3), depth=2e-3, speed=50e-3, hold=0.0, cells=1000))
+
+def run(path, stop_at=None):
+    store = open_store(path, pal.schema(), scene_toml="", seed=0, n_records=pal.n_records, params=pal.params())
+    def export(frame):
+        if frame.index == stop_at:
+            raise KeyboardInterrupt
+    done = []
+    try:
+        for f in run_palpation(pal, store, export=export):
+            done.append(f.index)
+    except KeyboardInterrupt:
+        return done, store.done().tolist()
+    store.finalize()
+    return done, None
+
+a = sys.argv[2]
+run(a + "/straight.h5")
+first, stored = run(a + "/resumed.h5", stop_at=7)
+rest, _ = run(a + "/resumed.h5")
+x, y = open_records(a + "/straight.h5"), open_records(a + "/resumed.h5")
+print(json.dumps({"first": first, "stored": stored, "rest": rest, "sha": [x.data_sha256, y.data_sha256],
+                  "sessions": len(y.run["sessions"]), "n": len(y)}))
+"""
+
+
+def test_an_interrupted_run_resumes_to_the_same_result(tmp_path, test_chamber):
+    """Crash inside the second target (record 7 computed but not stored), rerun: the resumed
+    target restarts from record 6's checkpoint (rig and membrane state) and the finished file
+    holds the same data bit for bit as an uninterrupted run's (its digest covers every field
+    but the wall-clock timings). Run in a fresh process with MKL_CBWR=AUTO, as `jointsim
+    palpate` sets it: threaded MKL PARDISO is otherwise not reproducible from run to run
+    (differences of ~1e-15 in the membrane's Newton steps)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from pathlib import Path
+
+    scene_file = Path(__file__).resolve().parents[1] / "scenes" / "paper_sensor.toml"
+    env = dict(os.environ, MKL_CBWR="AUTO")
+    r = subprocess.run([sys.executable, "-c", _RESUME_SCRIPT, str(scene_file), str(tmp_path)],
+                       capture_output=True, text=True, env=env)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["first"] == list(range(7)) and out["stored"] == list(range(7))
+    assert out["rest"] == [7, 8, 9] and out["n"] == 10 and out["sessions"] == 2
+    assert out["sha"][0] == out["sha"][1]
+
+
+def test_per_carrier_contact_impedance_option(pal):
+    """With ``fdm_contact_impedance``, injection s runs at FDM carrier s with that carrier's
+    contact impedances: doubling carrier 3's changes injection 3's voltages and no other."""
+    import copy
+
+    e = pal.scene.electrodes
+    rows = [tuple(e.contact_impedance)] * 16
+    rows[3] = tuple(2 * z for z in e.contact_impedance)
+    fdm = copy.copy(pal)
+    fdm.scene = replace(pal.scene, electrodes=replace(e, contact_impedance_by_freq=tuple(rows)))
+    fdm.spec = replace(pal.spec, fdm_contact_impedance=True)
+    v, v0 = fdm.voltages(pal.reference).reshape(16, 16), pal.v_ref.reshape(16, 16)
+    np.testing.assert_allclose(np.delete(v, 3, axis=0), np.delete(v0, 3, axis=0), rtol=1e-9)
+    assert np.abs(v[3] - v0[3]).max() > 1e-3 * np.abs(v0[3]).max()
 
 
 def test_force_profile_and_bad_settings():

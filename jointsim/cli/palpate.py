@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import sys
 from dataclasses import replace
@@ -104,6 +105,10 @@ def configure(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    # threaded MKL (PARDISO, in the mechanics and the forward solves) is not reproducible from run
+    # to run unless its conditional numerical reproducibility is on; a resumed run must give the
+    # frames an uninterrupted one gives. Read by MKL when it first runs, i.e. after this line.
+    os.environ.setdefault("MKL_CBWR", "AUTO")
     scene = configure(args)
     spec = scene.palpation
     out: Path = args.out
@@ -134,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
             for f in run_palpation(pal, store, export=export, progress=bar.update):
                 bar.set_postfix_str(f"target {2e3 * f.segment.radius:g} mm, depth {f.record['depth'] * 1e3:.2f} mm, "
                                     f"F {f.state.force[2] * 1e3:.1f} mN", refresh=False)
-        store.finalize()
+        store.finalize(compression="gzip")
         pal.free()
         rec = open_records(h5)
     written = write_pvd(out, scene.noise.frame_rate_hz) + write_report(out, rec, command)

@@ -476,26 +476,23 @@ def program_params(scene: Scene, spec: PalpationSpec | None = None, rig_path: st
     }
 
 
+_MEMBRANE_KEYS = ("u", "hist_centre", "hist_u", "centre", "pressure", "compliance")
+
+
 def _checkpoint(model: MembraneModel, rig: Rig, force: np.ndarray) -> dict[str, np.ndarray]:
     """What continuing after this frame needs: the rig (MuJoCo's full integration state, its
-    frame counter and recent heights), the membrane (displacement, the two equilibria its next
-    Newton start extrapolates from, the target centre, the pressure, a closed chamber's
-    compliance) and the force to hold over the next frame.
-    ASK(mechanics): a MembraneModel.get_state/set_state would replace the private reads here."""
+    frame counter and recent heights), the membrane (:meth:`MembraneModel.get_state`) and the
+    force to hold over the next frame."""
     state = np.empty(mujoco.mj_stateSize(rig.model, mujoco.mjtState.mjSTATE_INTEGRATION))
     mujoco.mj_getState(rig.model, rig.data, state, mujoco.mjtState.mjSTATE_INTEGRATION)
-    hist = model._history
-    n = model.u.shape
+    membrane = model.get_state()
+    if set(membrane) != set(_MEMBRANE_KEYS):  # the checkpoint's layout is fixed: say so if it changes
+        raise RuntimeError(f"MembraneModel.get_state gave {sorted(membrane)}, palpation checkpoints hold {sorted(_MEMBRANE_KEYS)}")
     return {
         "mj_state": state,
         "rig_index": np.int64(rig.index),
         "rig_recent": np.array(rig._recent, float),
-        "u": model.u,
-        "hist_centre": np.array([c for c, _ in hist], float).reshape(-1, 3),
-        "hist_u": np.array([u for _, u in hist], float).reshape(-1, *n),
-        "centre": model.contact.centre,
-        "pressure": np.float64(model.pressure.pressure),
-        "compliance": np.float64(np.nan if model._compliance is None else model._compliance),
+        **membrane,
         "force": np.asarray(force, float),
     }
 
@@ -507,13 +504,7 @@ def _restore(model: MembraneModel, rig: Rig, ck: dict[str, np.ndarray]) -> np.nd
     rig.index = int(ck["rig_index"])
     rig._recent.clear()
     rig._recent.extend(float(z) for z in ck["rig_recent"])
-    if ck["u"].shape != model.u.shape:
-        raise ValueError(f"checkpoint: membrane with {ck['u'].shape[0]} nodes, this model has {model.u.shape[0]}")
-    model.u = ck["u"].copy()
-    model._history = [(c.copy(), u.copy()) for c, u in zip(ck["hist_centre"], ck["hist_u"])]
-    model.contact.centre = ck["centre"].copy()
-    model.pressure.pressure = float(ck["pressure"])
-    model._compliance = None if np.isnan(ck["compliance"]) else float(ck["compliance"])
+    model.set_state({k: ck[k] for k in _MEMBRANE_KEYS})
     return ck["force"].copy()
 
 
