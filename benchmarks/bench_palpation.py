@@ -157,13 +157,17 @@ def write(results: list[dict], command: str) -> None:
         st = r["stats"]
         goal = GOALS[r["preset"]]
         ok = "meets" if st["total"]["median"] <= goal else "misses"
+        sp, sh = r["stats_press"], r["stats_hold"]
+        split = (f" (frames that move the target {sp['total']['median']:.2f} s, hold frames {sh['total']['median']:.2f} s)"
+                 if sh is not None else "")
         lines.append(
-            f"- {r['preset']} ({r['chamber_tets']:,} tets): {st['total']['median']:.2f} s per frame (median), which {ok} the "
-            f"{goal:g} s goal; without the mechanics {r['without_mechanics_median']:.2f} s. The mechanics step takes "
-            f"{st['mechanics']['median']:.2f} s ({st['mechanics']['median'] / st['total']['median']:.0%} of the frame); "
-            f"the mesh step (fixed-topology morph) {st['mesh']['median'] * 1e3:.0f} ms against the {MESH_GOAL:g} s goal; "
-            f"the forward solve {st['forward']['median']:.2f} s; the image and its metrics {st['reconstruction']['median'] * 1e3:.0f} ms; "
-            f"MuJoCo {st['mujoco']['median'] * 1e3:.1f} ms."
+            f"- {r['preset']} ({r['chamber_tets']:,} tets): {st['total']['median']:.2f} s per frame (median){split}, which {ok} "
+            f"the {goal:g} s goal; without the mechanics {r['without_mechanics_median']:.2f} s. The mechanics step takes "
+            f"{st['mechanics']['median']:.2f} s ({st['mechanics']['median'] / st['total']['median']:.0%} of the frame; "
+            f"{sp['mechanics']['median']:.2f} s when the target moves); the mesh step (fixed-topology morph) "
+            f"{st['mesh']['median'] * 1e3:.0f} ms against the {MESH_GOAL:g} s goal; the forward solve (CEM assembly, "
+            f"factorisation, 16 lead fields) {st['forward']['median']:.2f} s; the image and its metrics "
+            f"{st['reconstruction']['median'] * 1e3:.0f} ms; MuJoCo {st['mujoco']['median'] * 1e3:.1f} ms."
         )
     lines.append("- The mechanics (the membrane's Newton solve, independent of the chamber resolution) is the bottleneck; "
                  "its speed-up is work in progress elsewhere (results/mechanics_benchmark.md). Hold frames need fewer "
