@@ -249,6 +249,16 @@ def test_per_carrier_contact_impedance_option(pal):
     assert np.abs(v[3] - v0[3]).max() > 1e-3 * np.abs(v0[3]).max()
 
 
+def test_a_chamber_pressed_flat_is_refused_naming_the_depth(pal):
+    from jointsim.geometry import DomeSurface
+
+    d = pal.reference_dome
+    v = d.vertices.copy()
+    v[:, 2] = np.minimum(v[:, 2], 0.1e-3)  # the membrane down to 0.1 mm over the electrodes
+    with pytest.raises(ValueError, match="palpation.depth_mm is too deep"):
+        pal.deform(DomeSurface(v, d.faces, d.rim))
+
+
 def test_force_profile_and_bad_settings():
     f = force_profile(0.05, 0.2, 0.5, 50.0)
     assert f[0] == 0 and f.max() == 0.05 and f[-1] == pytest.approx(0.0) and len(f) == 46

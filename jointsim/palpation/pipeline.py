@@ -76,6 +76,7 @@ __all__ = [
 
 STAGES = ("mujoco", "mechanics", "mesh", "forward", "reconstruction")
 MESH_PATHS = ("morph", "remesh")
+MIN_CHAMBER_GAP = 0.2e-3  # m: inner surface to base; closer, the chamber cannot be meshed over the electrodes
 MIN_QUALITY_RATIO = 0.05  # as deform_chamber's default (results/mesh_step_benchmark.md)
 LAMBDA_REPEATS = 10  # noisy copies of the representative press pooled for the choice of λ
 SCHEMA_VERSION = 1
@@ -355,6 +356,14 @@ class Palpation:
         ``MIN_QUALITY_RATIO`` × the reference mesh's. A remesh tetrahedralises the morphed
         chamber's boundary (the same geometry, new tetrahedra; cached by its hash, so a rerun
         gets the same mesh) and carries the remeshing noise floor."""
+        free = np.ones(len(dome.vertices), bool)
+        free[dome.rim] = False
+        gap = float(dome.vertices[free, 2].min())
+        if gap < MIN_CHAMBER_GAP:
+            raise ValueError(
+                f"the membrane's inner surface is {gap * 1e3:.2f} mm above the base at its lowest (the chamber collapses "
+                f"onto the electrodes; at least {MIN_CHAMBER_GAP * 1e3:g} mm is needed): palpation.depth_mm is too deep for this target"
+            )
         mode = self.spec.mesh_update
         why = "mesh_update = 'remesh'"
         if mode != "remesh":
