@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from _machine import cpu_name
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 PRE_CHANGE = "b5ad2cc5047f9b3c944191358c2c69297d468761"  # morph.py before the prepared morpher
@@ -54,14 +56,6 @@ def _timed(f, *a, **k):
     return out, time.perf_counter() - t0
 
 
-def _cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 def run() -> dict:
@@ -270,7 +264,7 @@ def _markdown(meta: dict, r: dict) -> str:
 def main() -> int:
     r = run()
     meta = {"command": "python benchmarks/bench_mesh_step.py",
-            "machine": f"{platform.machine()} {_cpu_name()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+            "machine": f"{platform.machine()} {cpu_name()}, {os.cpu_count()} cores, Python {platform.python_version()}",
             "date": time.strftime("%Y-%m-%d")}
     out = ROOT / "results" / "mesh_step_benchmark"
     text = _markdown(meta, r)

@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from _machine import cpu_name
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -37,14 +39,6 @@ GOALS = {"dataset": 1.0, "paper": 5.0}  # s per frame (issue 5)
 MESH_GOAL = 0.3  # s, the mesh step on the fixed-topology path
 
 
-def _cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def _cores() -> int:
@@ -105,7 +99,7 @@ def _stats(rows: list[dict]) -> dict:
 
 
 def write(results: list[dict], command: str) -> None:
-    machine = f"{platform.machine()} {_cpu_name()}, {_cores()} cores, Python {platform.python_version()}"
+    machine = f"{platform.machine()} {cpu_name()}, {_cores()} cores, Python {platform.python_version()}"
     date = time.strftime("%Y-%m-%d")
     res = ROOT / "results"
     (res / "palpation_benchmark.json").write_text(json.dumps(
