@@ -102,3 +102,19 @@ def test_cli_forward_writes_its_outputs(test_chamber, tmp_path):
     meta = json.loads((out / "forward.json").read_text())
     assert meta["scene"]["electrodes"]["count"] == 16
     assert (out / "chamber.vtu").is_file() and (out / "forward_eidors.mat").is_file()
+
+
+def test_solver_failures_reach_the_user_as_one_line(monkeypatch, capsys):
+    """A morph that inverts or a Newton solve that fails ends the command with exit code 2 and
+    the solver's message, not a traceback."""
+    from jointsim.cli import main as cli
+    from jointsim.mechanics.newton import NewtonError
+    from jointsim.mesh.morph import MeshInversionError
+
+    for err in (MeshInversionError("morphed chamber mesh: 1 inverted elements"), NewtonError("no convergence")):
+        def boom(args, err=err):
+            raise err
+
+        monkeypatch.setattr(cli.SUBCOMMANDS["mesh"], "run", boom)
+        assert cli.main(["mesh"]) == 2
+        assert str(err) in capsys.readouterr().err

@@ -28,10 +28,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from ..mechanics.newton import NewtonError
+    from ..mesh.morph import MeshInversionError
+
     args = build_parser().parse_args(argv)
     try:
         return int(args.handler(args) or 0)
-    except (SceneError, ValueError) as e:
+    except (SceneError, ValueError, NewtonError, MeshInversionError) as e:
+        # bad input, or a solver that could not reach a valid state: one line, not a traceback
         print(f"jointsim {args.command}: error: {e}", file=sys.stderr)
         return 2
 
