@@ -65,6 +65,12 @@ def _pardiso_solver(mtype: int):
     return solver
 
 
+def _release_pardiso(solver) -> None:
+    """Free the factor MKL holds for ``solver`` and keep the solver for reuse."""
+    solver.free_memory(everything=True)
+    _PARDISO_IDLE.setdefault(solver.mtype, []).append(solver)
+
+
 class Factorization:
     """A factorised matrix: ``fac(B)`` solves A X = B for B (n,) or (n, k). ``free()`` releases
     the factor now; it is also released when the object is garbage-collected (PARDISO keeps
@@ -125,11 +131,7 @@ def factorize(A: sp.spmatrix, backend: str = "auto", spd: bool = True) -> Factor
             x = solver.solve(Au, np.ascontiguousarray(b, dtype=float))
             return x.reshape(np.shape(b))
 
-        def release() -> None:
-            solver.free_memory(everything=True)
-            _PARDISO_IDLE.setdefault(mtype, []).append(solver)
-
-        return Factorization(solve, release)
+        return Factorization(solve, lambda: _release_pardiso(solver))
     raise ValueError(f"backend = {backend!r}: allowed values are {available_backends()}")
 
 
@@ -188,8 +190,7 @@ class PatternSolver:
 
     def free(self) -> None:
         if self._solver is not None:
-            self._solver.free_memory(everything=True)
-            _PARDISO_IDLE.setdefault(self._solver.mtype, []).append(self._solver)
+            _release_pardiso(self._solver)
             self._solver = None
         self._analysed = False
         if self._lu is not None:

@@ -247,13 +247,15 @@ class MembraneModel:
     def _solve_step(self, centre: np.ndarray):
         """Equilibrium with the target at ``centre``: friction re-lagged ``FRICTION_PASSES``
         times, and in a closed chamber the pressure adjusted until the volume is the sealed one."""
-        old_centre, u_start = self.contact.centre.copy(), self.u
+        # before the first press the target is parked far away: the step then starts at centre
+        old_centre = self.contact.centre.copy() if np.linalg.norm(self.contact.centre) < 1e2 else centre
+        u_start = self.u
         if self.friction is not None:
-            self.friction.lag(u_start, old_centre if np.linalg.norm(old_centre) < 1e2 else centre)
+            self.friction.lag(u_start, old_centre)
         self.contact.centre = centre
         res = self._newton(self._extrapolate(centre))
         for _ in range(FRICTION_PASSES if self.friction is not None else 0):
-            self.friction.lag(u_start, old_centre if np.linalg.norm(old_centre) < 1e2 else centre, u_normal=res.u)
+            self.friction.lag(u_start, old_centre, u_normal=res.u)
             res = self._newton(res.u)
         if self.closed:
             res = self._hold_volume(res)

@@ -91,6 +91,10 @@ class NewtonSystem:
         self.projected.free()
 
 
+def _summed(Hs: list) -> sp.csr_matrix:
+    return sp.csr_matrix(sum(Hs[1:], Hs[0]))
+
+
 def _full_step(u, Hs, free, g, system) -> tuple[np.ndarray | None, bool]:
     """The Newton step with the full Hessian (None when it is not a descent direction), and
     whether the free Hessian is known to be positive definite (from the LDLᵀ inertia)."""
@@ -100,7 +104,7 @@ def _full_step(u, Hs, free, g, system) -> tuple[np.ndarray | None, bool]:
             d = system.full.solve(-g[free])
             spd = system.full.negative_eigenvalues == 0
         else:
-            with factorize(sp.csr_matrix(sum(Hs[1:], Hs[0]))[free][:, free], _BACKEND, spd=False) as solve:
+            with factorize(_summed(Hs)[free][:, free], _BACKEND, spd=False) as solve:
                 d = solve(-g[free])
             spd = False
     except Exception:  # singular or the factorisation broke down
@@ -115,7 +119,7 @@ def _projected_step(terms, u, free, g, system) -> np.ndarray:
     if system is not None:
         system.projected.factor(system.data(Hs))
         return -system.projected.solve(g[free])
-    with factorize(sp.csr_matrix(sum(Hs[1:], Hs[0]))[free][:, free], _BACKEND) as solve:
+    with factorize(_summed(Hs)[free][:, free], _BACKEND) as solve:
         return -solve(g[free])
 
 
@@ -241,7 +245,7 @@ def _predict(terms, u_eq, fixed, target) -> np.ndarray:
     if not du.any():
         return u_eq.copy()
     _, _, Hs, _ = _total(terms, u_eq, True)
-    H = sp.csr_matrix(sum(Hs[1:], Hs[0]))
+    H = _summed(Hs)
     try:
         with factorize(H[free][:, free], _BACKEND, spd=False) as solve:
             du[free] = solve(-(H[free][:, ~free] @ du[~free]))
