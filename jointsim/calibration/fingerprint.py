@@ -1,0 +1,111 @@
+"""The sensor a calibration map was built for, as a fingerprint of named scene values.
+
+Owns which scene values define the sensor for calibration (chamber, electrode geometry, drive
+and protocol, chamber-mesh resolution, reconstruction grid and λ method, the membrane's nominal
+material and reservoir), reading them from a scene or from a record store's provenance, and
+comparing two fingerprints with a message that names every value that differs. Values a
+dataset randomises around the scene (saline conductivity, contact impedance, noise level) and
+numerical resolutions of the mechanics are left out: a map is meant to hold across them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import fields, replace
+from typing import Any, Mapping
+
+from ..scene import MeshSpec, Scene, scene_from_dict
+
+__all__ = [
+    "SENSOR_KEYS",
+    "SceneMismatchError",
+    "sensor_fingerprint",
+    "fingerprint_digest",
+    "fingerprint_differences",
+    "check_fingerprint",
+    "scene_from_provenance",
+]
+
+# section → the values of it that define the sensor (Scene dataclass attribute names)
+SENSOR_KEYS: dict[str, tuple[str, ...]] = {
+    "chamber": ("base_radius", "dome_height", "membrane_thickness"),
+    "electrodes": ("count", "ring_radius", "diameter", "ground_diameter", "first_angle_deg"),
+    "drive": ("current", "skip"),
+    "mesh": ("preset", "max_edge", "electrode_refinement", "refinement_zone"),
+    "membrane": ("law", "shear_modulus", "yeoh_c", "reservoir_pressure", "chamber"),
+    "palpation": ("cells", "lambda_method"),
+}
+_REL_TOL = 1e-9  # mm → m conversions of the same text agree far better than this
+
+
+class SceneMismatchError(ValueError):
+    """A calibration map applied to a scene it was not built for; the message names the values."""
+
+
+def _plain(v: Any) -> Any:
+    return [_plain(x) for x in v] if isinstance(v, (tuple, list)) else v
+
+
+def sensor_fingerprint(scene: Scene) -> dict[str, Any]:
+    """``{"section.key": value}`` of the sensor-defining scene values (SI units), JSON-ready."""
+    d = scene.to_dict()
+    return {f"{s}.{k}": _plain(d[s][k]) for s, keys in SENSOR_KEYS.items() for k in keys}
+
+
+def fingerprint_digest(fp: Mapping[str, Any]) -> str:
+    """SHA-256 (16 hex digits) of a fingerprint, for file names and reports."""
+    return hashlib.sha256(json.dumps(dict(fp), sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool):
+        return math.isclose(a, b, rel_tol=_REL_TOL, abs_tol=0.0)
+    return a == b
+
+
+def fingerprint_differences(built: Mapping[str, Any], given: Mapping[str, Any]) -> list[str]:
+    """One line per key whose value differs (or is absent on one side), sorted by key."""
+    out = []
+    for k in sorted(set(built) | set(given)):
+        a, b = built.get(k, "absent"), given.get(k, "absent")
+        if not _same(a, b):
+            out.append(f"{k}: {a!r} in the map, {b!r} in the scene")
+    return out
+
+
+def check_fingerprint(built: Mapping[str, Any], given: Mapping[str, Any], what: str = "this calibration map") -> None:
+    """Raise :class:`SceneMismatchError` naming every differing value when ``given`` (the scene
+    in use) is not the sensor ``built`` (the map's) describes."""
+    if diff := fingerprint_differences(built, given):
+        raise SceneMismatchError(
+            f"{what} was built for another sensor; {len(diff)} value(s) differ: " + "; ".join(diff)
+            + ". Build a map from a dataset of this scene (jointsim calibrate), or use the scene the map was built for."
+        )
+
+
+def scene_from_provenance(provenance: Mapping[str, Any]) -> Scene:
+    """The scene a record store was computed for: its scene TOML with the run's recorded
+    overrides applied (``params["mesh"]``: the chamber mesh spec, or ``params["mesh_preset"]``;
+    ``params["palpation"]["cells"]`` / ``["lambda_method"]``, as palpation and dataset runs
+    record them)."""
+    text = provenance.get("scene_toml")
+    if not isinstance(text, str) or not text.strip():
+        raise ValueError("the store's provenance has no scene TOML: cannot tell which sensor its data is for")
+    scene = scene_from_dict(tomllib.loads(text))
+    params = provenance.get("params") or {}
+    mesh = params.get("mesh")
+    if isinstance(mesh, Mapping):
+        known = {f.name for f in fields(MeshSpec)}
+        scene = replace(scene, mesh=replace(scene.mesh, **{k: v for k, v in mesh.items() if k in known}))
+    elif isinstance(params.get("mesh_preset"), str):
+        scene = scene.with_mesh_preset(params["mesh_preset"])
+    pal = params.get("palpation")
+    if isinstance(pal, Mapping):
+        over = {k: pal[k] for k in ("cells", "lambda_method") if k in pal}
+        scene = replace(scene, palpation=replace(scene.palpation, **over))
+    return scene

@@ -1,0 +1,215 @@
+"""The calibration map file: a versioned HDF5 file of plain arrays that loads in a new process
+without pickle, and applying a loaded map to measured frames.
+
+Owns the file layout (below), the refusal of a file of another format or version and of a
+scene the map was not built for (:func:`jointsim.calibration.fingerprint.check_fingerprint`),
+and :meth:`CalibrationMap.apply`: per frame, the calibrated position and depth (CoM map), size
+(the best inverse size curve), the direct regression's five outputs, and per press the
+modulus where the map can estimate it.
+
+Layout (``FORMAT`` = "jointsim-calibration", ``FORMAT_VERSION`` = 1)::
+
+    /            attrs: format, format_version, created, size_route, and JSON strings
+                 fingerprint (the sensor), source (dataset path, digest, size), settings,
+                 evaluation (held-out errors), versions (packages that built it)
+    /com         points (p, 3), values (p, 3) in mm; attrs smoothing, kernel, degree
+    /size/<along>__<metric>   levels (L,); x, y (L, K) breakpoints, NaN-padded; count (L,)
+    /regression  x_mean, components, x_scale, y_mean, y_scale, W<i>, b<i>; attrs kind, layers
+    /stiffness   levels, x_mean, x_scale, powers, coef; attrs estimable, reason, intercept
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from ..io.export import atomic_path
+from ..io.store import package_versions
+from ..scene import Scene
+from .com import ComMap
+from .curves import LevelCurves, Monotone
+from .data import voltage_features
+from .fingerprint import check_fingerprint, sensor_fingerprint
+from .regression import OUTPUTS, DirectRegressor
+from .stiffness import StiffnessModel
+
+__all__ = ["FORMAT", "FORMAT_VERSION", "CalibrationMap", "save_map", "load_map", "APPLIED"]
+
+FORMAT = "jointsim-calibration"
+FORMAT_VERSION = 1
+VERSION_PACKAGES = ("jointsim", "numpy", "scipy", "scikit-learn", "h5py")
+# what apply() returns per frame (SI): the image route, the direct regression, the modulus
+APPLIED = ("cal_x", "cal_y", "cal_depth", "cal_diameter", *(f"direct_{o}" for o in OUTPUTS), "modulus")
+
+
+@dataclass(frozen=True)
+class CalibrationMap:
+    """A fitted calibration: the sensor ``fingerprint`` it holds for, the ``com`` map, the
+    inverse ``size`` curves keyed ``"<along>/<metric>"`` and the per-frame ``size_route`` among
+    them (best held-out), the ``regressor`` (voltages → x, y, depth, diameter, force), the
+    ``stiffness`` model, and JSON ``source``, ``settings``, ``evaluation``, ``versions``."""
+
+    fingerprint: dict[str, Any]
+    com: ComMap
+    size: dict[str, LevelCurves]
+    size_route: str
+    regressor: DirectRegressor
+    stiffness: StiffnessModel
+    source: dict[str, Any] = field(default_factory=dict)
+    settings: dict[str, Any] = field(default_factory=dict)
+    evaluation: dict[str, Any] = field(default_factory=dict)
+    versions: dict[str, str] = field(default_factory=dict)
+    created: str = ""
+
+    def check_scene(self, scene: Scene, what: str = "this calibration map") -> None:
+        """Refuse (SceneMismatchError naming the values) a scene of another sensor."""
+        check_fingerprint(self.fingerprint, sensor_fingerprint(scene), what)
+
+    def size_of(self, metrics: Mapping[str, np.ndarray], depth: np.ndarray, force_mag: np.ndarray,
+                route: str | None = None) -> np.ndarray:
+        """Diameter (n,) m by ``route`` (default :attr:`size_route`) from per-frame ``metrics``
+        (name → (n,)), the frame's (calibrated) ``depth`` and ``force_mag`` (n,)."""
+        lc = self.size[route or self.size_route]
+        return lc.predict(metrics[lc.metric], depth if lc.along == "depth" else force_mag)
+
+    def apply(self, frames: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Calibrated values (:data:`APPLIED`, each (n,), SI) for frames with ``com`` (n, 3),
+        ``voltages`` and ``dv`` (n, 256), ``force`` (n, 3), ``sum_sigma``, ``diameter`` (n,);
+        with ``group`` (press ids) and ``depth`` (the stage's indentation, m) also the modulus
+        of each press (the same on all its frames; the press-in frames are used, up to its
+        deepest), NaN where it cannot be estimated."""
+        com = np.asarray(frames["com"], float)
+        n = len(com)
+        pos = self.com(com)
+        fmag = np.linalg.norm(np.asarray(frames["force"], float), axis=1)
+        dv = np.asarray(frames["dv"], float)
+        metrics = {"sum_sigma": np.asarray(frames["sum_sigma"], float), "diameter": np.asarray(frames["diameter"], float),
+                   "rms_dv": np.sqrt(np.mean(dv**2, axis=1)), "force": fmag}
+        out = {"cal_x": pos[:, 0], "cal_y": pos[:, 1], "cal_depth": pos[:, 2],
+               "cal_diameter": self.size_of(metrics, pos[:, 2], fmag)}
+        direct = self.regressor(voltage_features(frames["voltages"], dv))
+        out.update({f"direct_{o}": direct[:, i] for i, o in enumerate(OUTPUTS)})
+        out["modulus"] = np.full(n, np.nan)
+        if self.stiffness.estimable and "group" in frames and "depth" in frames:
+            g, d = np.asarray(frames["group"]), np.asarray(frames["depth"], float)
+            press_in = _press_in(g, d)
+            ids, E = self.stiffness.predict(g[press_in], d[press_in], fmag[press_in], metrics["sum_sigma"][press_in],
+                                            metrics["diameter"][press_in])
+            lookup = dict(zip(ids.tolist(), E.tolist()))
+            out["modulus"] = np.array([lookup.get(i, np.nan) for i in g.tolist()])
+        return out
+
+
+def _press_in(group: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """(n,) bool: the frames of each press up to its deepest (the loading branch), in order."""
+    keep = np.zeros(len(group), bool)
+    for i in np.unique(group):
+        idx = np.flatnonzero(group == i)
+        keep[idx[: int(np.argmax(depth[idx])) + 1]] = True
+    return keep
+
+
+# -- writing ----------------------------------------------------------------------------------
+
+
+def _json(d: Any) -> str:
+    return json.dumps(d, sort_keys=True, default=float)
+
+
+def save_map(cmap: CalibrationMap, path: str | Path) -> Path:
+    """Write ``cmap`` to ``path`` (HDF5, written under a temporary name and renamed)."""
+    import h5py
+
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as h5:
+            h5.attrs.update(
+                format=FORMAT, format_version=FORMAT_VERSION, created=cmap.created or _now(), size_route=cmap.size_route,
+                fingerprint=_json(cmap.fingerprint), source=_json(cmap.source), settings=_json(cmap.settings),
+                evaluation=_json(cmap.evaluation), versions=_json(cmap.versions or package_versions(VERSION_PACKAGES)),
+            )
+            c = h5.create_group("com")
+            c.create_dataset("points", data=cmap.com.points)
+            c.create_dataset("values", data=cmap.com.values)
+            c.attrs.update(smoothing=cmap.com.smoothing, kernel=cmap.com.kernel, degree=cmap.com.degree)
+            s = h5.create_group("size")
+            for key, lc in cmap.size.items():
+                g = s.create_group(key.replace("/", "__"))
+                k = max([len(m.x) for m in lc.curves if m is not None] or [1])
+                x = np.full((len(lc.levels), k), np.nan)
+                y = np.full_like(x, np.nan)
+                count = np.zeros(len(lc.levels), np.int64)
+                for i, m in enumerate(lc.curves):
+                    if m is not None:
+                        count[i] = len(m.x)
+                        x[i, : len(m.x)], y[i, : len(m.y)] = m.x, m.y
+                g.create_dataset("levels", data=lc.levels)
+                g.create_dataset("x", data=x)
+                g.create_dataset("y", data=y)
+                g.create_dataset("count", data=count)
+                g.attrs.update(along=lc.along, metric=lc.metric)
+            r, reg = h5.create_group("regression"), cmap.regressor
+            for name in ("x_mean", "components", "x_scale", "y_mean", "y_scale"):
+                r.create_dataset(name, data=getattr(reg, name))
+            for i, (W, b) in enumerate(zip(reg.weights, reg.biases)):
+                r.create_dataset(f"W{i}", data=W)
+                r.create_dataset(f"b{i}", data=b)
+            r.attrs.update(kind=reg.kind, layers=len(reg.weights), outputs=_json(list(OUTPUTS)))
+            t, st = h5.create_group("stiffness"), cmap.stiffness
+            for name in ("levels", "x_mean", "x_scale", "powers", "coef"):
+                t.create_dataset(name, data=getattr(st, name))
+            t.attrs.update(estimable=st.estimable, reason=st.reason, intercept=st.intercept)
+    return path
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+# -- reading ----------------------------------------------------------------------------------
+
+
+def load_map(path: str | Path) -> CalibrationMap:
+    """Read a map written by :func:`save_map`; a ValueError for a file that is not one, or of
+    another format version."""
+    import h5py
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"calibration map {path}: no such file")
+    try:
+        h5 = h5py.File(path, "r")
+    except OSError as e:
+        raise ValueError(f"calibration map {path}: not an HDF5 file ({e})") from None
+    with h5:
+        a = h5.attrs
+        if a.get("format") != FORMAT:
+            raise ValueError(f"calibration map {path}: not a jointsim calibration map (format {a.get('format')!r})")
+        if int(a["format_version"]) != FORMAT_VERSION:
+            raise ValueError(f"calibration map {path}: format version {int(a['format_version'])}; this jointsim reads "
+                             f"version {FORMAT_VERSION} (rebuild it with jointsim calibrate)")
+        c = h5["com"]
+        com = ComMap(c["points"][()], c["values"][()], float(c.attrs["smoothing"]), str(c.attrs["kernel"]),
+                     int(c.attrs["degree"]))
+        size = {}
+        for key, g in h5["size"].items():
+            x, y, count = g["x"][()], g["y"][()], g["count"][()]
+            curves = tuple(Monotone(x[i, :k].copy(), y[i, :k].copy()) if k else None for i, k in enumerate(count))
+            size[key.replace("__", "/")] = LevelCurves(str(g.attrs["along"]), str(g.attrs["metric"]), g["levels"][()], curves)
+        r = h5["regression"]
+        n = int(r.attrs["layers"])
+        reg = DirectRegressor(str(r.attrs["kind"]), r["x_mean"][()], r["components"][()], r["x_scale"][()],
+                              tuple(r[f"W{i}"][()] for i in range(n)), tuple(r[f"b{i}"][()] for i in range(n)),
+                              r["y_mean"][()], r["y_scale"][()])
+        t = h5["stiffness"]
+        st = StiffnessModel(bool(t.attrs["estimable"]), str(t.attrs["reason"]), t["levels"][()], t["x_mean"][()],
+                            t["x_scale"][()], t["powers"][()], t["coef"][()], float(t.attrs["intercept"]))
+        return CalibrationMap(
+            json.loads(a["fingerprint"]), com, size, str(a["size_route"]), reg, st, json.loads(a["source"]),
+            json.loads(a["settings"]), json.loads(a["evaluation"]), json.loads(a["versions"]), str(a["created"]),
+        )
