@@ -14,7 +14,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .fingerprint import scene_from_provenance, sensor_fingerprint
+from .fingerprint import provenance_fingerprint
 
 __all__ = ["SCHEMA_NAME", "SCHEMA_VERSION", "REQUIRED", "MIN_GROUPS", "Samples", "load_samples", "split_groups",
            "first_per_group", "voltage_features"]
@@ -132,14 +132,13 @@ def load_samples(path: str | Path) -> Samples:
     f = {k: np.asarray(rec[k]) for k in REQUIRED}
     n = len(f["group"])
     _check_shapes(f, n)
-    scene = scene_from_provenance(rec.provenance)
     source = {"path": str(path), "data_sha256": rec.data_sha256, "n_records": n, "seed": rec.provenance.get("seed")}
     return Samples(
         group=f["group"].astype(np.int64), radius=f["radius"].astype(float), xy=f["xy"].astype(float),
         depth=f["depth"].astype(float), modulus=f["target_modulus"].astype(float), force=f["force"].astype(float),
         snr_db=f["snr_db"].astype(float), voltages=f["voltages"].astype(float), dv=f["dv"].astype(float),
         com=f["com"].astype(float), sum_sigma=f["sum_sigma"].astype(float), diameter=f["diameter"].astype(float),
-        fingerprint=sensor_fingerprint(scene), source=source,
+        fingerprint=provenance_fingerprint(rec.provenance), source=source,
     )
 
 

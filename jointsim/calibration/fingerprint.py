@@ -23,6 +23,7 @@ __all__ = [
     "SENSOR_KEYS",
     "SceneMismatchError",
     "sensor_fingerprint",
+    "provenance_fingerprint",
     "fingerprint_digest",
     "fingerprint_differences",
     "check_fingerprint",
@@ -49,10 +50,24 @@ def _plain(v: Any) -> Any:
     return [_plain(x) for x in v] if isinstance(v, (tuple, list)) else v
 
 
-def sensor_fingerprint(scene: Scene) -> dict[str, Any]:
-    """``{"section.key": value}`` of the sensor-defining scene values (SI units), JSON-ready."""
-    d = scene.to_dict()
-    return {f"{s}.{k}": _plain(d[s][k]) for s, keys in SENSOR_KEYS.items() for k in keys}
+def sensor_fingerprint(scene: Scene | Mapping[str, Any]) -> dict[str, Any]:
+    """``{"section.key": value}`` of the sensor-defining scene values (SI units), JSON-ready,
+    of a :class:`Scene` or of its ``to_dict()`` form (as a dataset's provenance holds it)."""
+    d = scene.to_dict() if isinstance(scene, Scene) else scene
+    try:
+        return {f"{s}.{k}": _plain(d[s][k]) for s, keys in SENSOR_KEYS.items() for k in keys}
+    except (KeyError, TypeError) as e:
+        raise ValueError(f"the scene record lacks the sensor value {e}: cannot tell which sensor it describes") from None
+
+
+def provenance_fingerprint(provenance: Mapping[str, Any]) -> dict[str, Any]:
+    """The sensor fingerprint of a record store: from the effective scene its run recorded
+    (``params["scene"]``, as ``jointsim dataset`` writes it), else from its scene TOML and
+    recorded overrides (:func:`scene_from_provenance`)."""
+    scene = (provenance.get("params") or {}).get("scene")
+    if isinstance(scene, Mapping) and all(s in scene for s in SENSOR_KEYS):
+        return sensor_fingerprint(scene)
+    return sensor_fingerprint(scene_from_provenance(provenance))
 
 
 def fingerprint_digest(fp: Mapping[str, Any]) -> str:

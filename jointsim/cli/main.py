@@ -6,9 +6,10 @@ import argparse
 import sys
 
 from ..scene import SceneError
-from . import forward, indent, mesh, palpate, protocol_study
+from . import calibrate, forward, indent, mesh, palpate, protocol_study
 
-SUBCOMMANDS = {"forward": forward, "mesh": mesh, "protocol-study": protocol_study, "indent": indent, "palpate": palpate}
+SUBCOMMANDS = {"forward": forward, "mesh": mesh, "protocol-study": protocol_study, "indent": indent, "palpate": palpate,
+               "calibrate": calibrate}
 
 
 def build_parser() -> argparse.ArgumentParser:

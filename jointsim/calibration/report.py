@@ -1,0 +1,238 @@
+"""The calibration report: CSV tables, PNG figures and a Markdown summary of a built
+calibration, every file written under a temporary name and renamed.
+
+Owns what goes in the output folder (besides the map file, :mod:`.maps`): the held-out
+per-sample tables, the size curves at fixed depth and at fixed force, the CoM error maps over
+the sensing area (r ≤ 15 mm), the direct-regression-versus-image-route table, stiffness, and
+the goals with whether each is met. Matplotlib is imported here only.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from ..io.export import atomic_path
+from .build import SENSING_RADIUS, Calibration
+from .regression import OUTPUTS
+
+__all__ = ["write_report", "write_csv", "error_grid"]
+
+CELL = 2e-3  # m: the error map's bin size
+
+
+def write_csv(path: Path, columns: Mapping[str, Sequence[Any]]) -> Path:
+    """Columns of equal length as CSV (header = the names), floats with 6 significant digits."""
+    names = list(columns)
+    cols = [np.asarray(columns[n]) for n in names]
+    n = len(cols[0]) if cols else 0
+
+    def fmt(v: Any) -> str:
+        return f"{v:.6g}" if isinstance(v, (float, np.floating)) else str(v)
+
+    lines = [",".join(names)] + [",".join(fmt(c[i]) for c in cols) for i in range(n)]
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def error_grid(x: np.ndarray, y: np.ndarray, err: np.ndarray, radius: float = SENSING_RADIUS,
+               cell: float = CELL) -> dict[str, np.ndarray]:
+    """Median |err| and count per square cell of side ``cell`` whose centre is within
+    ``radius``: columns x, y (cell centres, m), n, median (same unit as ``err``)."""
+    edges = np.arange(-radius, radius + cell / 2, cell)
+    cx = (edges[:-1] + edges[1:]) / 2
+    ok = np.isfinite(err)
+    ix, iy = np.digitize(x[ok], edges) - 1, np.digitize(y[ok], edges) - 1
+    e = np.abs(err[ok])
+    rows = {"x": [], "y": [], "n": [], "median": []}
+    for i, xc in enumerate(cx):
+        for j, yc in enumerate(cx):
+            if np.hypot(xc, yc) > radius:
+                continue
+            sel = (ix == i) & (iy == j)
+            rows["x"].append(xc)
+            rows["y"].append(yc)
+            rows["n"].append(int(sel.sum()))
+            rows["median"].append(float(np.median(e[sel])) if sel.any() else float("nan"))
+    return {k: np.asarray(v) for k, v in rows.items()}
+
+
+def _save(fig, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, bbox_inches="tight", format="png")
+    plt.close(fig)
+    return path
+
+
+def _size_figure(out: Path, cal: Calibration, along: str) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    curves = {k: lc for k, lc in cal.map.size.items() if lc.along == along}
+    t = cal.tables["size_at_levels"]
+    fig, axes = plt.subplots(1, len(curves), figsize=(4.2 * len(curves), 3.6), squeeze=False)
+    cmap = plt.get_cmap("viridis")
+    unit = {"sum_sigma": ("Σσ", 1.0), "diameter": ("image diameter (mm)", 1e3), "rms_dv": ("RMS δV (µV)", 1e6),
+            "force": ("|F| (mN)", 1e3)}
+    for ax, (key, lc) in zip(axes[0], curves.items()):
+        label, s = unit[lc.metric]
+        for i, (lv, c) in enumerate(zip(lc.levels, lc.curves)):
+            col = cmap(i / max(1, len(lc.levels) - 1))
+            name = f"{lv * 1e3:.2g} mm" if along == "depth" else f"{lv * 1e3:.3g} mN"
+            if c is not None:
+                ax.plot(c.y * 1e3, c.x * s, "-", color=col, lw=1.2, label=name)
+            sel = (t["along"] == along) & (t["metric"] == lc.metric) & np.isclose(t["level"], lv)
+            ax.plot(t["size"][sel] * 1e3, t["value"][sel] * s, "o", ms=3, color=col, mfc="none")
+        ax.set_xlabel("true target diameter (mm)")
+        ax.set_ylabel(label)
+        ax.set_title(f"{lc.metric} at fixed {along}" + (" (route used)" if key == cal.map.size_route else ""), fontsize=9)
+        ax.legend(fontsize=6, title=f"{along}", title_fontsize=6)
+    fig.suptitle("size curves: lines fitted on training presses (isotonic), circles held-out presses", fontsize=9)
+    return _save(fig, out / f"size_curves_{along}.png")
+
+
+def _com_figure(out: Path, grids: dict[str, dict[str, np.ndarray]]) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 4))
+    for ax, (name, g) in zip(axes, grids.items()):
+        xs = np.unique(g["x"])
+        img = np.full((len(xs), len(xs)), np.nan)
+        ix, iy = np.searchsorted(xs, g["x"]), np.searchsorted(xs, g["y"])
+        img[iy, ix] = g["median"] * 1e3
+        h = CELL * 1e3 / 2
+        im = ax.imshow(img, origin="lower", extent=(xs[0] * 1e3 - h, xs[-1] * 1e3 + h, xs[0] * 1e3 - h, xs[-1] * 1e3 + h),
+                       cmap="magma")
+        ax.add_patch(plt.Circle((0, 0), SENSING_RADIUS * 1e3, fill=False, ls="--", color="0.5"))
+        ax.set_title(f"held-out median |{name} error| (mm) per {CELL * 1e3:g} mm cell", fontsize=9)
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        fig.colorbar(im, ax=ax, shrink=0.8)
+    return _save(fig, out / "com_error_map.png")
+
+
+def _stiffness_figure(out: Path, t: Mapping[str, np.ndarray]) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(4, 4))
+    ax.loglog(t["true_modulus"] / 1e3, t["predicted_modulus"] / 1e3, "o", mfc="none")
+    lim = [min(t["true_modulus"].min(), t["predicted_modulus"].min()) / 1e3, max(t["true_modulus"].max(), t["predicted_modulus"].max()) / 1e3]
+    ax.plot(lim, lim, "k--", lw=0.8)
+    ax.set_xlabel("true modulus (kPa)")
+    ax.set_ylabel("estimated modulus (kPa)")
+    ax.set_title("stiffness, held-out presses", fontsize=9)
+    return _save(fig, out / "stiffness.png")
+
+
+def _fmt(v: Any, digits: int = 3) -> str:
+    return "—" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.{digits}g}"
+
+
+def _markdown(cal: Calibration, command: str, files: list[str]) -> str:
+    ev, m = cal.evaluation, cal.map
+    sp, com = ev["split"], ev["com"]
+    src = m.source
+    L = [
+        "# Calibration report", "",
+        f"Command: `{command}`", "",
+        f"Dataset: `{src.get('path')}`, {src.get('n_records')} samples (data_sha256 `{str(src.get('data_sha256'))[:16]}…`); "
+        f"{sp['train_presses']} presses ({sp['train_samples']} samples) fitted, {sp['test_presses']} presses "
+        f"({sp['test_samples']} samples) held out by press (split seed {sp['seed']}, overlap {sp['overlapping_presses']}). "
+        "Every error below is on the held-out presses only.", "",
+        f"Goal figures use {ev['goal_band']}.", "",
+        "## Goals (issue 6, at 74 dB)", "",
+        "| goal | statistic | limit | held-out value | met |", "|---|---|---|---|---|",
+    ]
+    for g in ev["goals"]:
+        unit = g["unit"] or "(fraction)"
+        L.append(f"| {g['goal']} | {g['statistic']} | {g['limit']:g} {unit} | {_fmt(g['value'])} {g['unit']} | "
+                 f"{'yes' if g['met'] else 'no'}{(' — ' + g['note']) if g['note'] else ''} |")
+    L += ["", "## CoM map (thin-plate spline, reconstructed CoM → x, y, depth)", "",
+          f"Smoothing {com['smoothing']:g} (grouped 3-fold CV on the training presses), {com['fitted_points']} points; "
+          f"{com['test_without_com']} held-out samples had no reconstructed CoM.", "",
+          "| error (mm) | n | median | P95 |", "|---|---|---|---|"]
+    for name, key in (("xy, all", "xy_all"), ("xy, r ≤ 15 mm", "xy_r15"), ("xy, r ≤ 15 mm, goal SNR band", "xy_r15_goal_band"),
+                      ("depth, all", "depth_all"), ("depth, goal SNR band", "depth_goal_band"),
+                      ("uncalibrated CoM xy, r ≤ 15 mm", "raw_xy_r15")):
+        e = com[key]
+        L.append(f"| {name} | {e['n']} | {_fmt(e['median'])} | {_fmt(e['p95'])} |")
+    L += ["", "Error map: `com_error_map.png`, `com_error_map.csv` (median per 2 mm cell over r ≤ 15 mm).", "",
+          "## Size curves (target diameter)", "",
+          f"Levels: depth {', '.join(f'{d * 1e3:.3g}' for d in ev['size_levels']['depth_m'])} mm; force "
+          f"{', '.join(f'{f * 1e3:.3g}' for f in ev['size_levels']['force_n'])} mN. Per frame, each route blends the "
+          "inverse curves of the two levels around the frame's calibrated depth (CoM map) or |force|.", "",
+          "| route | frames covered | median (mm) | P95 (mm) | median, 8–30 mm, goal band |", "|---|---|---|---|---|"]
+    for k, r in ev["size_per_frame"].items():
+        L.append(f"| {k}{' (used)' if k == ev['size_route'] else ''} | {r['covered']:.0%} | {_fmt(r['all']['median'])} | "
+                 f"{_fmt(r['all']['p95'])} | {_fmt(r['range_goal_band']['median'])} |")
+    L += ["", "At each level alone (held-out presses read at that depth or force): `size_errors.csv`; curves: "
+          "`size_curves_depth.png`, `size_curves_force.png`, `size_at_levels.csv`.", "",
+          f"## Direct regression (256 δV/V → x, y, depth, diameter, |F|; {ev['regression']['kind']}) vs the image route", "",
+          "Errors in mm (force in mN); x, y over r ≤ 15 mm, diameter over 8–30 mm. The image route is the CoM map "
+          "and the size curve; it has no force estimate.", "",
+          "| output | image route median / P95 | " + " | ".join(f"{k} median / P95" for k in ev["regression"]["comparison"]["x"]
+                                                        if k in ("mlp", "ridge")) + " |",
+          "|---|---|" + "---|" * len([k for k in ev["regression"]["comparison"]["x"] if k in ("mlp", "ridge")])]
+    for o, c in ev["regression"]["comparison"].items():
+        kinds = [k for k in c if k in ("mlp", "ridge")]
+        L.append(f"| {o} | {_fmt(c['image']['median'])} / {_fmt(c['image']['p95'])} | "
+                 + " | ".join(f"{_fmt(c[k]['median'])} / {_fmt(c[k]['p95'])}" for k in kinds) + " |")
+    st = ev["stiffness"]
+    L += ["", "## Stiffness", ""]
+    if st["estimable"]:
+        r = st["relative"]
+        L.append(f"{st['reason']}. Held-out relative modulus error: median {_fmt(r['median'])}, P95 {_fmt(r['p95'])} "
+                 f"({r['n']} presses). `stiffness.png`, `stiffness.csv`.")
+    else:
+        L.append(f"**Not estimable**: {st['reason']}. The map predicts no modulus (NaN).")
+    L += ["", "## Files", "", *[f"- `{f}`" for f in files], ""]
+    return "\n".join(L)
+
+
+def write_report(out: str | Path, cal: Calibration, command: str) -> list[Path]:
+    """Write the tables, figures, ``evaluation.json`` and ``report.md`` of ``cal`` into ``out``."""
+    out = Path(out)
+    t = cal.tables
+    written = [write_csv(out / "size_at_levels.csv", {k: v for k, v in t["size_at_levels"].items()})]
+    rows = cal.evaluation["size_at_levels"]
+    written.append(write_csv(out / "size_errors.csv", {k: [r[k] for r in rows] for k in
+                                                       ("route", "along", "metric", "level", "n", "median_mm", "p95_mm")}))
+    written.append(write_csv(out / "com_heldout.csv", t["com"]))
+    c = t["com"]
+    grids = {"xy": error_grid(c["x"], c["y"], c["error_xy"]), "depth": error_grid(c["x"], c["y"], c["error_depth"])}
+    written.append(write_csv(out / "com_error_map.csv", {"x": grids["xy"]["x"], "y": grids["xy"]["y"], "n": grids["xy"]["n"],
+                                                         "median_xy_error": grids["xy"]["median"],
+                                                         "median_depth_error": grids["depth"]["median"]}))
+    written.append(write_csv(out / "regression_heldout.csv", t["regression"]))
+    comp = cal.evaluation["regression"]["comparison"]
+    kinds = [k for k in comp["x"] if k in ("image", "mlp", "ridge")]
+    written.append(write_csv(out / "regression_comparison.csv", {
+        "output": list(OUTPUTS), **{f"{k}_{s}": [comp[o][k][s] for o in OUTPUTS] for k in kinds for s in ("n", "median", "p95")}}))
+    g = cal.evaluation["goals"]
+    written.append(write_csv(out / "goals.csv", {k: [r[k] for r in g] for k in ("goal", "statistic", "limit", "value", "unit", "met")}))
+    written += [_size_figure(out, cal, "depth"), _size_figure(out, cal, "force"), _com_figure(out, grids)]
+    if "stiffness" in t:
+        written.append(write_csv(out / "stiffness.csv", t["stiffness"]))
+        written.append(_stiffness_figure(out, t["stiffness"]))
+    with atomic_path(out / "evaluation.json") as tmp:
+        tmp.write_text(json.dumps(cal.evaluation, indent=1, default=float))
+    written.append(out / "evaluation.json")
+    names = sorted({p.name for p in written} | {"calibration_map.h5", "report.md"})
+    with atomic_path(out / "report.md") as tmp:
+        tmp.write_text(_markdown(cal, command, names))
+    written.append(out / "report.md")
+    return written

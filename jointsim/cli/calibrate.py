@@ -1,0 +1,70 @@
+"""Calibration maps from a labelled dataset (issue 6): size curves (Σσ, image diameter, RMS δV,
+|F| against target diameter at fixed depth and at fixed force, with their inverse), a CoM map
+(reconstructed CoM → x, y, depth; thin-plate spline), a direct regression from the 256
+voltages, and stiffness where the data allows it, each evaluated on held-out presses (split by
+press, seeded). Writes OUT/calibration_map.h5 (versioned, loads without pickle; use it with
+`jointsim palpate --calibration`), CSV tables, PNG curves and error maps, and OUT/report.md
+saying which of the issue's goals are met."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+
+HELP = "build calibration maps (size, CoM, direct regression, stiffness) from a dataset, evaluated on held-out presses"
+
+
+def _levels(text: str | None, name: str, scale: float) -> tuple[float, ...] | None:
+    if text is None:
+        return None
+    try:
+        v = tuple(float(x) * scale for x in text.split(",") if x.strip())
+    except ValueError:
+        raise ValueError(f"{name} = {text!r}: comma-separated positive numbers") from None
+    if not v or any(not x > 0 for x in v) or list(v) != sorted(v):
+        raise ValueError(f"{name} = {text!r}: positive, increasing, at least one")
+    return v
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dataset", type=Path, help="finished dataset store NAME.h5 (jointsim dataset)")
+    p.add_argument("--out", type=Path, default=Path("out/calibration"), help="output folder (default out/calibration)")
+    p.add_argument("--test-fraction", type=float, default=0.2, help="fraction of presses held out (default 0.2)")
+    p.add_argument("--seed", type=int, default=0, help="split and fit seed (default 0)")
+    p.add_argument("--depths", help="size-curve depths, mm, comma-separated (default: from the data)")
+    p.add_argument("--forces", help="size-curve forces, N, comma-separated (default: from the data)")
+    p.add_argument("--regressor", choices=("mlp", "ridge"), default="mlp", help="direct regression model (default mlp)")
+    p.add_argument("--goal-snr", type=float, default=74.2, help="SNR the goals are judged at, dB (default 74.2)")
+    p.add_argument("--snr-band", type=float, default=4.0, help="held-out samples within this many dB of --goal-snr (default 4)")
+    p.add_argument("--max-com-points", type=int, default=3000, help="CoM map points fitted at most (default 3000)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..calibration import Settings, calibrate, load_samples, save_map
+    from ..calibration.report import write_report
+
+    if not 0 < args.test_fraction < 1:
+        raise ValueError(f"--test-fraction = {args.test_fraction}: must be in (0, 1)")
+    if args.seed < 0:
+        raise ValueError(f"--seed = {args.seed}: must be >= 0")
+    if args.max_com_points < 50:
+        raise ValueError(f"--max-com-points = {args.max_com_points}: must be >= 50")
+    settings = Settings(
+        test_fraction=args.test_fraction, seed=args.seed, depth_levels=_levels(args.depths, "--depths", 1e-3),
+        force_levels=_levels(args.forces, "--forces", 1.0), regressor=args.regressor, goal_snr_db=args.goal_snr,
+        snr_band_db=args.snr_band, max_com_points=args.max_com_points,
+    )
+    command = "jointsim calibrate " + " ".join(shlex.quote(a) for a in (sys.argv[2:] if sys.argv[1:2] == ["calibrate"] else []))
+    samples = load_samples(args.dataset)
+    print(f"jointsim calibrate: {args.dataset}, {len(samples)} samples of {len(set(samples.group.tolist()))} presses -> {args.out}")
+    cal = calibrate(samples, settings, progress=lambda s: print(f"  {s}", flush=True))
+    path = save_map(cal.map, args.out / "calibration_map.h5")
+    files = write_report(args.out, cal, command)
+    for g in cal.evaluation["goals"]:
+        v = g["value"]
+        print(f"  goal {g['goal']} {g['statistic']} <= {g['limit']:g} {g['unit']}: "
+              f"{'n/a' if v != v else f'{v:.3g}'} -> {'met' if g['met'] else 'NOT met'}{(' (' + g['note'] + ')') if g['note'] else ''}")
+    print(f"  wrote {path} and {len(files)} report files to {args.out}")
+    return 0
