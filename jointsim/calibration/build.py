@@ -105,10 +105,10 @@ def _size_at_levels(curves: dict[str, LevelCurves], test: Samples) -> tuple[list
     ids, sizes = np.unique(test.group, return_index=True)
     size_of = dict(zip(ids.tolist(), test.size[sizes].tolist()))
     for key, lc in curves.items():
-        for lv, curve in zip(lc.levels, lc.curves):
+        for k, (lv, curve) in enumerate(zip(lc.levels, lc.curves)):
             g, v = value_at(test.group, coord[lc.along], test.metric(lc.metric), float(lv))
             s = np.array([size_of[i] for i in g.tolist()])
-            p = curve(v) if curve is not None else np.full(len(v), np.nan)
+            p = lc.inverse_at_level(k, v) if curve is not None else np.full(len(v), np.nan)
             rows.append({"route": key, "along": lc.along, "metric": lc.metric, "level": float(lv),
                          **{f"{k}_mm": x for k, x in err_stats(p - s).items() if k != "n"}, "n": int(np.isfinite(p - s).sum())})
             for k, x in (("group", g), ("size", s), ("value", v), ("predicted", p)):

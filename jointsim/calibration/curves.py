@@ -49,15 +49,15 @@ class Monotone:
     y: np.ndarray
 
     @classmethod
-    def fit(cls, x: np.ndarray, y: np.ndarray) -> "Monotone":
-        """The least-squares monotone (increasing or decreasing, whichever fits) y(x) of the
-        finite pairs of ``x``, ``y`` (n,)."""
+    def fit(cls, x: np.ndarray, y: np.ndarray, increasing: bool | str = "auto") -> "Monotone":
+        """The least-squares monotone y(x) of the finite pairs of ``x``, ``y`` (n,), increasing,
+        decreasing, or whichever fits better ("auto")."""
         from sklearn.isotonic import IsotonicRegression
 
         ok = np.isfinite(x) & np.isfinite(y)
         if ok.sum() < 2:
             raise ValueError(f"a monotone curve needs at least 2 finite points, got {int(ok.sum())}")
-        iso = IsotonicRegression(increasing="auto", out_of_bounds="clip").fit(x[ok], y[ok])
+        iso = IsotonicRegression(increasing=increasing, out_of_bounds="clip").fit(x[ok], y[ok])
         return cls(np.asarray(iso.X_thresholds_, float), np.asarray(iso.y_thresholds_, float))
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
@@ -82,17 +82,33 @@ def _group_max(group: np.ndarray, coord: np.ndarray) -> np.ndarray:
     return coord[order][last]
 
 
+def _invert_rows(size: np.ndarray, rows: np.ndarray, metric: np.ndarray) -> np.ndarray:
+    """For each row i of non-decreasing ``rows`` (n, K) over ``size`` (K,), the size where it
+    reaches ``metric[i]`` (linear between grid points, clipped to the grid's ends)."""
+    K = len(size)
+    idx = np.clip((rows < metric[:, None]).sum(axis=1), 1, K - 1)
+    i = np.arange(len(rows))
+    lo, hi = rows[i, idx - 1], rows[i, idx]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.clip(np.where(hi > lo, (metric - lo) / (hi - lo), 0.5), 0.0, 1.0)
+    return size[idx - 1] + t * (size[idx] - size[idx - 1])
+
+
 @dataclass(frozen=True)
 class LevelCurves:
-    """Inverse size curves of one ``metric`` at each of ``levels`` (L,) of ``along`` (depth m
-    or |force| N): ``curves[l]`` maps the metric to the target diameter (m), None at a level
-    too few groups reached. Between two levels the two inverses are blended linearly in the
-    level (in log force for force); outside [levels[0], levels[-1]] the prediction is NaN."""
+    """Size curves of one ``metric`` at each of ``levels`` (L,) of ``along`` (depth m or
+    |force| N): ``curves[l]`` is the monotone metric(diameter m) at that level (None where too
+    few groups reached it), all ``increasing`` or all decreasing. A sample measured between two
+    levels is read on the two curves blended linearly in the level (in log force for force),
+    and the blended curve is inverted: measurement → diameter. Outside [levels[0],
+    levels[-1]] the prediction is NaN."""
 
     along: str
     metric: str
     levels: np.ndarray
     curves: tuple[Monotone | None, ...]
+    increasing: bool = True
+    grid_points: int = 256
 
     def _coord(self, v: np.ndarray) -> np.ndarray:
         v = np.asarray(v, float)
@@ -101,42 +117,66 @@ class LevelCurves:
                 return np.log(v)
         return v
 
-    def at_levels(self, metric: np.ndarray) -> np.ndarray:
-        """Every level's inverse at ``metric`` (n,): (L, n), NaN where a level has no curve."""
-        m = np.asarray(metric, float)
-        return np.stack([c(m) if c is not None else np.full(m.shape, np.nan) for c in self.curves])
+    def _grid(self) -> tuple[np.ndarray, np.ndarray]:
+        """Diameter grid (K,) over every curve's range and each level's curve on it (L, K) (NaN
+        for a level without a curve), signed so that it never decreases."""
+        xs = [c.x for c in self.curves if c is not None]
+        if not xs:
+            return np.zeros(2), np.full((len(self.levels), 2), np.nan)
+        size = np.linspace(min(x[0] for x in xs), max(x[-1] for x in xs), self.grid_points)
+        sign = 1.0 if self.increasing else -1.0
+        F = np.stack([sign * c(size) if c is not None else np.full(len(size), np.nan) for c in self.curves])
+        return size, F
+
+    def inverse_at_level(self, k: int, metric: np.ndarray) -> np.ndarray:
+        """Diameter (n,) of measurements ``metric`` (n,) taken exactly at ``levels[k]``."""
+        return self.predict(metric, np.full(len(np.atleast_1d(metric)), self.levels[k]))
 
     def predict(self, metric: np.ndarray, at: np.ndarray) -> np.ndarray:
         """Diameter (n,) m of samples with ``metric`` (n,) measured at depth or force ``at`` (n,)."""
-        p = self.at_levels(metric)
+        m = np.atleast_1d(np.asarray(metric, float)) * (1.0 if self.increasing else -1.0)
+        size, F = self._grid()
         lv, c = self._coord(self.levels), self._coord(at)
-        k = np.clip(np.searchsorted(lv, c, side="right") - 1, 0, len(lv) - 2) if len(lv) > 1 else np.zeros(len(c), int)
-        cols = np.arange(p.shape[1])
         if len(lv) == 1:
-            out = p[0]
+            k, t = np.zeros(len(c), int), np.zeros(len(c))
             inside = np.isclose(c, lv[0])
+            F = np.vstack([F, F])
         else:
+            k = np.clip(np.searchsorted(lv, c, side="right") - 1, 0, len(lv) - 2)
             t = (c - lv[k]) / (lv[k + 1] - lv[k])
-            out = (1 - t) * p[k, cols] + t * p[k + 1, cols]
             inside = (c >= lv[0]) & (c <= lv[-1])
-        return np.where(inside & np.isfinite(c), out, np.nan)
+        ok = inside & np.isfinite(c) & np.isfinite(m)
+        out = np.full(len(m), np.nan)
+        if ok.any():
+            kk, tt = k[ok], t[ok][:, None]
+            rows = np.where(tt == 0, F[kk], (1 - tt) * F[kk] + tt * F[kk + 1])
+            good = np.isfinite(rows).all(axis=1)
+            sub = np.full(ok.sum(), np.nan)
+            sub[good] = _invert_rows(size, rows[good], m[ok][good])
+            out[ok] = sub
+        return out
 
 
 def fit_level_curves(
     along: str, metric: str, levels: np.ndarray, group: np.ndarray, coord: np.ndarray, value: np.ndarray,
     size: np.ndarray,
 ) -> LevelCurves:
-    """Fit the inverse (metric → diameter) at each level from the training samples: ``group``,
+    """Fit the monotone metric(diameter) at each level from the training samples: ``group``,
     ``coord`` (the depth or |force| of each sample), ``value`` (the metric), ``size`` (the true
-    diameter), all (n,)."""
+    diameter), all (n,). The direction (increasing or decreasing) is the sign of the metric's
+    correlation with size over all levels together, the same at every level."""
     if along not in ALONG:
         raise ValueError(f"along = {along!r}: one of {ALONG}")
-    ids, sizes = np.unique(group, return_index=True)
-    size_of = dict(zip(ids.tolist(), size[sizes].tolist()))
-    curves: list[Monotone | None] = []
+    ids, first = np.unique(group, return_index=True)
+    size_of = dict(zip(ids.tolist(), size[first].tolist()))
+    read = []
     for lv in np.asarray(levels, float):
         gids, v = value_at(group, coord, value, lv)
         s = np.array([size_of[i] for i in gids.tolist()])
         ok = np.isfinite(v)
-        curves.append(Monotone.fit(v[ok], s[ok]) if ok.sum() >= MIN_CURVE_GROUPS else None)
-    return LevelCurves(along, metric, np.asarray(levels, float), tuple(curves))
+        read.append((s[ok], v[ok]))
+    pooled = [(s - s.mean(), v - v.mean()) for s, v in read if len(s) >= 2]
+    cov = sum(float((a * b).sum()) for a, b in pooled)
+    increasing = cov >= 0
+    curves = tuple(Monotone.fit(s, v, increasing) if len(s) >= MIN_CURVE_GROUPS else None for s, v in read)
+    return LevelCurves(along, metric, np.asarray(levels, float), curves, bool(increasing))

@@ -13,7 +13,8 @@ Layout (``FORMAT`` = "jointsim-calibration", ``FORMAT_VERSION`` = 1)::
                  fingerprint (the sensor), source (dataset path, digest, size), settings,
                  evaluation (held-out errors), versions (packages that built it)
     /com         points (p, 3), values (p, 3) in mm; attrs smoothing, kernel, degree
-    /size/<along>__<metric>   levels (L,); x, y (L, K) breakpoints, NaN-padded; count (L,)
+    /size/<along>__<metric>   levels (L,); x (diameter m), y (metric) (L, K) breakpoints of each
+                 level's monotone curve, NaN-padded; count (L,); attrs along, metric, increasing
     /regression  x_mean, components, x_scale, y_mean, y_scale, W<i>, b<i>; attrs kind, layers
     /stiffness   levels, x_mean, x_scale, powers, coef; attrs estimable, reason, intercept
 """
@@ -152,7 +153,7 @@ def save_map(cmap: CalibrationMap, path: str | Path) -> Path:
                 g.create_dataset("x", data=x)
                 g.create_dataset("y", data=y)
                 g.create_dataset("count", data=count)
-                g.attrs.update(along=lc.along, metric=lc.metric)
+                g.attrs.update(along=lc.along, metric=lc.metric, increasing=lc.increasing, grid_points=lc.grid_points)
             r, reg = h5.create_group("regression"), cmap.regressor
             for name in ("x_mean", "components", "x_scale", "y_mean", "y_scale"):
                 r.create_dataset(name, data=getattr(reg, name))
@@ -200,7 +201,8 @@ def load_map(path: str | Path) -> CalibrationMap:
         for key, g in h5["size"].items():
             x, y, count = g["x"][()], g["y"][()], g["count"][()]
             curves = tuple(Monotone(x[i, :k].copy(), y[i, :k].copy()) if k else None for i, k in enumerate(count))
-            size[key.replace("__", "/")] = LevelCurves(str(g.attrs["along"]), str(g.attrs["metric"]), g["levels"][()], curves)
+            size[key.replace("__", "/")] = LevelCurves(str(g.attrs["along"]), str(g.attrs["metric"]), g["levels"][()], curves,
+                                                       bool(g.attrs["increasing"]), int(g.attrs["grid_points"]))
         r = h5["regression"]
         n = int(r.attrs["layers"])
         reg = DirectRegressor(str(r.attrs["kind"]), r["x_mean"][()], r["components"][()], r["x_scale"][()],

@@ -88,7 +88,7 @@ def _size_figure(out: Path, cal: Calibration, along: str) -> Path:
             col = cmap(i / max(1, len(lc.levels) - 1))
             name = f"{lv * 1e3:.2g} mm" if along == "depth" else f"{lv * 1e3:.3g} mN"
             if c is not None:
-                ax.plot(c.y * 1e3, c.x * s, "-", color=col, lw=1.2, label=name)
+                ax.plot(c.x * 1e3, c.y * s, "-", color=col, lw=1.2, label=name)
             sel = (t["along"] == along) & (t["metric"] == lc.metric) & np.isclose(t["level"], lv)
             ax.plot(t["size"][sel] * 1e3, t["value"][sel] * s, "o", ms=3, color=col, mfc="none")
         ax.set_xlabel("true target diameter (mm)")

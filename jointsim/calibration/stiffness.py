@@ -60,7 +60,7 @@ class StiffnessModel:
 
     def predict_features(self, X: np.ndarray) -> np.ndarray:
         """E (G,) Pa for per-press features (G, 3L); NaN when not estimable."""
-        X = np.asarray(X, float).reshape(len(X), -1)
+        X = np.asarray(X, float)
         if not self.estimable or len(X) == 0:
             return np.full(len(X), np.nan)
         Z = (X - self.x_mean) / self.x_scale

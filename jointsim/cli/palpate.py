@@ -40,6 +40,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--membrane-rim", type=int, help="membrane resolution: vertices on its rim (default: the scene's)")
     p.add_argument("--membrane-layers", type=int, help="membrane element layers through the thickness (default: the scene's)")
     p.add_argument("--vtu-every", type=int, default=1, help="write the VTU series every N frames of each target (0: none; default 1)")
+    p.add_argument("--calibration", type=Path, metavar="MAP",
+                   help="calibration map (jointsim calibrate): adds calibrated position, depth, size and stiffness per frame "
+                        "(OUT/calibrated.csv, summary.json); refused when built for another sensor")
     p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                    help="show a progress bar (default: when the output is a terminal)")
 
@@ -110,6 +113,12 @@ def run(args: argparse.Namespace) -> int:
     # frames an uninterrupted one gives. Read by MKL when it first runs, i.e. after this line.
     os.environ.setdefault("MKL_CBWR", "AUTO")
     scene = configure(args)
+    cmap = None
+    if args.calibration is not None:  # refused before any work when built for another sensor
+        from ..calibration import load_map
+
+        cmap = load_map(args.calibration)
+        cmap.check_scene(scene, f"calibration map {args.calibration}")
     spec = scene.palpation
     out: Path = args.out
     h5 = out / "palpation.h5"
@@ -147,5 +156,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {r['diameter_mm']:g} mm: depth {r['max_depth_mm']:.2f} mm, F {r['max_force_mN']:.1f} mN, "
               f"displaced {r['max_displaced_mm3']:.0f} mm^3, peak RMS dV {r['peak_rms_dv_uV']:.0f} uV, "
               f"image diameter {r['peak_image_diameter_mm']:.1f} mm, sum sigma {r['peak_sum_sigma']:.3g}")
+    if cmap is not None:
+        from ..calibration.apply import write_calibrated
+
+        written += write_calibrated(out, rec, cmap, args.calibration)
+        for r in json.loads((out / "calibrated.json").read_text())["targets"]:
+            print(f"  calibrated, target {r['target']} at its deepest frame: x {r['cal_x_mm']:.2f} y {r['cal_y_mm']:.2f} mm, "
+                  f"depth {r['cal_depth_mm']:.2f} mm (true {r['true_depth_mm']:.2f}), diameter {r['cal_diameter_mm']:.1f} mm "
+                  f"(true {r['true_diameter_mm']:.1f}), modulus {r['modulus_kPa']:.3g} kPa")
     print(f"  wrote {h5}, {len(written)} report files to {out}")
     return 0

@@ -1,0 +1,75 @@
+"""Applying a calibration map to a palpation run (``jointsim palpate --calibration MAP``).
+
+Owns the per-frame table of calibrated values written beside a palpation's records
+(``calibrated.csv``: position, depth and size by the image route, the direct regression's
+outputs, the modulus per press) and the per-target summary added to ``summary.json`` under
+``"calibration"`` and written to ``calibrated.json``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..io.export import atomic_path
+from ..io.store import Records
+from .fingerprint import fingerprint_digest
+from .maps import APPLIED, CalibrationMap
+from .report import write_csv
+
+__all__ = ["calibrate_frames", "summarise_calibrated", "write_calibrated"]
+
+PALPATION_FIELDS = ("target", "frame", "target_radius", "position", "depth", "com", "voltages", "dv", "force", "sum_sigma",
+                    "diameter")
+
+
+def calibrate_frames(cmap: CalibrationMap, rec: Records) -> dict[str, np.ndarray]:
+    """Per frame (n,) arrays: the palpation's target, frame, true position and depth, and the
+    map's :data:`APPLIED` values (SI; modulus per target, from its press-in frames)."""
+    f = {k: np.asarray(rec[k]) for k in PALPATION_FIELDS}
+    out = cmap.apply({**f, "group": f["target"]})
+    return {"target": f["target"], "frame": f["frame"], "true_x": f["position"][:, 0], "true_y": f["position"][:, 1],
+            "true_depth": f["depth"], "true_diameter": 2 * f["target_radius"],
+            "force": np.linalg.norm(f["force"], axis=1), **{k: out[k] for k in APPLIED}}
+
+
+def summarise_calibrated(table: dict[str, np.ndarray]) -> list[dict[str, Any]]:
+    """One row per target at its deepest frame: true and calibrated values (mm, mN, kPa)."""
+    rows = []
+    for t in np.unique(table["target"]):
+        sel = np.flatnonzero(table["target"] == t)
+        k = sel[np.argmax(table["true_depth"][sel])]
+        row = {"target": int(t), "frame": int(table["frame"][k])}
+        for name in ("true_x", "true_y", "true_depth", "true_diameter", "cal_x", "cal_y", "cal_depth", "cal_diameter",
+                     "direct_x", "direct_y", "direct_depth", "direct_diameter"):
+            row[f"{name}_mm"] = float(table[name][k] * 1e3)
+        row["force_mN"] = float(table["force"][k] * 1e3)
+        row["direct_force_mN"] = float(table["direct_force"][k] * 1e3)
+        row["modulus_kPa"] = float(table["modulus"][k] / 1e3)
+        rows.append(row)
+    return rows
+
+
+def write_calibrated(out: str | Path, rec: Records, cmap: CalibrationMap, map_path: str | Path) -> list[Path]:
+    """``out/calibrated.csv`` (per frame), ``out/calibrated.json`` (per target) and the
+    ``"calibration"`` entry of ``out/summary.json`` (when it exists)."""
+    out = Path(out)
+    table = calibrate_frames(cmap, rec)
+    written = [write_csv(out / "calibrated.csv", table)]
+    meta = {"map": str(map_path), "map_created": cmap.created, "sensor_fingerprint": fingerprint_digest(cmap.fingerprint),
+            "size_route": cmap.size_route, "regressor": cmap.regressor.kind,
+            "stiffness": {"estimable": cmap.stiffness.estimable, "reason": cmap.stiffness.reason},
+            "held_out_goals": cmap.evaluation.get("goals", []), "targets": summarise_calibrated(table)}
+    with atomic_path(out / "calibrated.json") as tmp:
+        tmp.write_text(json.dumps(meta, indent=2, default=float))
+    written.append(out / "calibrated.json")
+    summary = out / "summary.json"
+    if summary.is_file():
+        d = json.loads(summary.read_text())
+        d["calibration"] = meta
+        with atomic_path(summary) as tmp:
+            tmp.write_text(json.dumps(d, indent=2, default=float))
+    return written

@@ -1,0 +1,317 @@
+"""Calibration maps (jointsim.calibration, `jointsim calibrate`, `jointsim palpate --calibration`)
+on synthetic dataset stores whose measurements are known functions of the labels
+(jointsim.calibration.synthetic): the fits must recover those functions on held-out presses,
+the split must keep presses whole, and a map must reload bit for bit in a new process and
+refuse a sensor it was not built for. ~30 s on 2 cores."""
+
+import json
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jointsim.calibration import (SceneMismatchError, Settings, calibrate, load_map, load_samples, save_map,
+                                  scene_from_provenance, sensor_fingerprint, split_groups)
+from jointsim.calibration.curves import LevelCurves, Monotone, fit_level_curves, value_at
+from jointsim.calibration.regression import fit_regressor
+from jointsim.calibration.synthetic import DATASET_SCHEMA, synthetic_com, write_synthetic_dataset
+from jointsim.cli.main import main
+from jointsim.io.store import Field, Records, Schema, open_store
+from jointsim.scene import load_scene, scene_from_dict
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENE = ROOT / "scenes" / "paper_sensor.toml"
+
+
+@pytest.fixture(scope="module")
+def stores(tmp_path_factory):
+    d = tmp_path_factory.mktemp("calibration")
+    text = SCENE.read_text()
+    return {
+        "soft": write_synthetic_dataset(d / "soft.h5", text, n_groups=90, seed=1, soft_fraction=0.5),
+        "rigid": write_synthetic_dataset(d / "rigid.h5", text, n_groups=40, seed=2),
+        "dir": d,
+    }
+
+
+@pytest.fixture(scope="module")
+def built(stores):
+    return calibrate(load_samples(stores["soft"]), Settings(seed=0), progress=lambda s: None)
+
+
+# -- pieces with exact answers -----------------------------------------------------------------
+
+
+def test_value_at_interpolates_along_each_press():
+    g = np.array([0, 0, 0, 1, 1, 2])
+    depth = np.array([1.0, 2.0, 3.0, 2.0, 1.0, 0.5])  # group 1 out of order; group 2 never reaches 1.5
+    v = 10 * depth + g
+    ids, out = value_at(g, depth, v, 1.5)
+    np.testing.assert_array_equal(ids, [0, 1])
+    np.testing.assert_allclose(out, [15.0, 16.0])
+
+
+def test_monotone_inverse_recovers_a_known_curve():
+    size = np.linspace(8e-3, 30e-3, 40)
+    metric = -30 * (size / 10e-3) ** 1.5  # decreasing in size: the inverse must find that itself
+    inv = Monotone.fit(metric, size)
+    q = np.linspace(metric.min(), metric.max(), 17)
+    exact = 10e-3 * (-q / 30) ** (1 / 1.5)
+    assert np.abs(inv(q) - exact).max() < 0.1e-3
+    assert np.isnan(inv(np.array([np.nan]))).all()
+
+
+def test_level_curves_blend_between_levels_and_refuse_outside():
+    n = 30
+    g = np.repeat(np.arange(n), 4)
+    depth = np.tile([1.0, 2.0, 3.0, 4.0], n) * 1e-3
+    size = np.repeat(np.linspace(8e-3, 30e-3, n), 4)
+    metric = size * depth * 1e3  # linear in depth: blending the two levels' curves is exact
+    lc = fit_level_curves("depth", "m", np.array([1e-3, 3e-3]), g, depth, metric, size)
+    at = np.array([1e-3, 2e-3, 3e-3, 3.5e-3])
+    s = np.array([12e-3, 20e-3, 25e-3, 20e-3])
+    p = lc.predict(s * at * 1e3, at)
+    np.testing.assert_allclose(p[:3], s[:3], rtol=0.01)
+    assert np.isnan(p[3])  # 3.5 mm lies past the last level
+
+
+# -- the split ---------------------------------------------------------------------------------
+
+
+def test_split_keeps_presses_whole_and_is_deterministic():
+    rng = np.random.default_rng(0)
+    g = np.repeat(np.arange(50), 7)
+    tr, te = split_groups(g, 0.2, seed=3)
+    assert not np.intersect1d(g[tr], g[te]).size and (tr ^ te).all()
+    assert len(np.unique(g[te])) == 10
+    tr2, te2 = split_groups(g, 0.2, seed=3)
+    np.testing.assert_array_equal(te, te2)
+    # the order of the samples does not change which presses are held out
+    perm = rng.permutation(len(g))
+    _, te3 = split_groups(g[perm], 0.2, seed=3)
+    np.testing.assert_array_equal(np.unique(g[perm][te3]), np.unique(g[te]))
+    _, te4 = split_groups(g, 0.2, seed=4)
+    assert not np.array_equal(te, te4)
+
+
+def test_split_needs_enough_presses():
+    with pytest.raises(ValueError, match="4 press group.*at least 5"):
+        split_groups(np.repeat(np.arange(4), 5))
+
+
+# -- the fitted calibration recovers the known transforms on held-out presses -----------------
+
+
+def test_calibration_recovers_the_known_transforms(built):
+    ev = built.evaluation
+    assert ev["split"]["overlapping_presses"] == 0
+    # the CoM map undoes the warp: uncalibrated CoM is ~1 mm off, calibrated ≪ the 0.05 mm noise × warp
+    assert ev["com"]["raw_xy_r15"]["median"] > 0.8
+    assert ev["com"]["xy_r15"]["median"] < 0.2 and ev["com"]["xy_r15"]["p95"] < 0.5
+    assert ev["com"]["depth_all"]["median"] < 0.2
+    # the map is the inverse of synthetic_com on clean points inside the data
+    pos = np.array([[2e-3, -3e-3, 2e-3], [-8e-3, 5e-3, 3e-3], [0.0, 10e-3, 1.5e-3]])
+    np.testing.assert_allclose(built.map.com(synthetic_com(pos)), pos, atol=0.3e-3)
+    # size: the chosen per-frame route within 1.5 mm median over 8–30 mm diameters
+    route = ev["size_route"]
+    assert ev["size_per_frame"][route]["all"]["median"] < 1.5
+    # stiffness from force and image at fixed depths: the synthetic Hertz law in series
+    assert ev["stiffness"]["estimable"] and ev["stiffness"]["relative"]["median"] < 0.2
+    # the goals table says, for every goal, a value and whether it is met
+    assert {g["goal"] for g in ev["goals"]} >= {"depth", "modulus (relative)"}
+    assert all(isinstance(g["met"], bool) for g in ev["goals"])
+
+
+def test_direct_regression_learns_and_evaluates_as_sklearn_does(stores):
+    from sklearn.neural_network import MLPRegressor  # noqa: F401 - the model the arrays come from
+
+    s = load_samples(stores["rigid"])
+    from jointsim.calibration.data import voltage_features
+    from jointsim.calibration.regression import regression_targets
+
+    X = voltage_features(s.voltages, s.dv)
+    T = regression_targets(s.position, s.size, s.force_mag)
+    tr, te = split_groups(s.group, 0.25, seed=0)
+    for kind in ("ridge", "mlp"):
+        reg = fit_regressor(X[tr], T[tr], s.group[tr], kind=kind, seed=0)
+        err = np.abs(reg(X[te]) - T[te])
+        base = np.abs(T[te] - T[tr].mean(axis=0))
+        # better than predicting the training mean for depth (the strongest voltage signal)
+        assert np.median(err[:, 2]) < 0.7 * np.median(base[:, 2]), kind
+    # the NumPy forward pass is scikit-learn's own prediction (refit-free evaluation)
+    from sklearn.decomposition import PCA
+    from sklearn.neural_network import MLPRegressor
+
+    reg = fit_regressor(X[tr], T[tr], s.group[tr], kind="mlp", seed=0)
+    Z = reg.whiten(X[te])
+    m = MLPRegressor(hidden_layer_sizes=tuple(w.shape[1] for w in reg.weights[:-1]))
+    m.fit(Z[:5], np.zeros((5, T.shape[1])))  # shapes only; then the fitted weights
+    m.coefs_, m.intercepts_ = list(reg.weights), list(reg.biases)
+    np.testing.assert_allclose(m.predict(Z) * reg.y_scale + reg.y_mean, reg(X[te]), rtol=1e-12, atol=1e-15)
+    del PCA
+
+
+def test_stiffness_of_rigid_targets_is_said_to_be_not_estimable(stores):
+    cal = calibrate(load_samples(stores["rigid"]), Settings(regressor="ridge"), progress=lambda s: None)
+    st = cal.evaluation["stiffness"]
+    assert not st["estimable"] and "rigid" in st["reason"] and "not estimable" in st["reason"]
+    goal = next(g for g in cal.evaluation["goals"] if g["goal"].startswith("modulus"))
+    assert goal["met"] is False and "not estimable" in goal["note"]
+    assert np.isnan(cal.map.stiffness.predict_features(np.zeros((2, 9)))).all()
+
+
+# -- the map file ------------------------------------------------------------------------------
+
+
+def _frames(s):
+    return {"com": s.com, "voltages": s.voltages, "dv": s.dv, "force": s.force, "sum_sigma": s.sum_sigma,
+            "diameter": s.diameter, "group": s.group, "depth": s.depth}
+
+
+def test_map_loads_in_a_new_process_with_identical_predictions(built, stores):
+    path = save_map(built.map, stores["dir"] / "map.h5")
+    s = load_samples(stores["soft"])
+    here = built.map.apply(_frames(s))
+    assert np.isfinite(here["modulus"]).any() and np.isfinite(here["cal_diameter"]).any()
+    out = stores["dir"] / "applied.npz"
+    code = (
+        "import numpy as np, sys\n"
+        "from jointsim.calibration import load_map, load_samples\n"
+        f"m = load_map({str(path)!r}); s = load_samples({str(stores['soft'])!r})\n"
+        "f = dict(com=s.com, voltages=s.voltages, dv=s.dv, force=s.force, sum_sigma=s.sum_sigma, diameter=s.diameter,"
+        " group=s.group, depth=s.depth)\n"
+        f"np.savez({str(out)!r}, **m.apply(f))\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+    with np.load(out) as z:
+        for k, v in here.items():
+            np.testing.assert_array_equal(z[k], v, err_msg=k)
+
+
+def test_map_refuses_another_sensor_and_accepts_its_own(built):
+    scene = load_scene(SCENE)
+    built.map.check_scene(scene)
+    data = tomllib.loads(SCENE.read_text())
+    data["electrodes"]["ring_radius_mm"] = 14.0
+    other = scene_from_dict(data)
+    with pytest.raises(SceneMismatchError, match=r"electrodes\.ring_radius: 0\.015 in the map, 0\.014 in the scene"):
+        built.map.check_scene(other)
+    with pytest.raises(SceneMismatchError, match=r"mesh\.preset"):
+        built.map.check_scene(scene.with_mesh_preset("test"))
+    # values a dataset randomises (saline, noise) do not make another sensor
+    from dataclasses import replace
+
+    built.map.check_scene(replace(scene, noise=replace(scene.noise, snr_db=60.0)))
+
+
+def test_fingerprint_from_a_datasets_recorded_scene_matches_the_scene():
+    scene = load_scene(SCENE)
+    d = json.loads(json.dumps(scene.to_dict()))  # as a store's JSON provenance holds it
+    from jointsim.calibration.fingerprint import provenance_fingerprint
+
+    assert provenance_fingerprint({"params": {"scene": d}, "scene_toml": ""}) == sensor_fingerprint(scene)
+    prov = {"scene_toml": SCENE.read_text(), "params": {"mesh_preset": "test"}}
+    assert scene_from_provenance(prov).mesh.preset == "test"
+
+
+def test_load_map_refuses_other_files(tmp_path, stores):
+    with pytest.raises(ValueError, match="no such file"):
+        load_map(tmp_path / "nope.h5")
+    with pytest.raises(ValueError, match="not a jointsim calibration map"):
+        load_map(stores["soft"])
+    (tmp_path / "text.h5").write_text("not hdf5")
+    with pytest.raises(ValueError, match="not an HDF5 file"):
+        load_map(tmp_path / "text.h5")
+
+
+# -- bad datasets ------------------------------------------------------------------------------
+
+
+def _store(path, schema, records):
+    st = open_store(path, schema, scene_toml=SCENE.read_text(), seed=0, n_records=len(records), fsync=False)
+    for i, r in enumerate(records):
+        st.put(i, r)
+    return st.finalize()
+
+
+def test_bad_datasets_get_clear_errors(tmp_path, stores):
+    with pytest.raises(ValueError, match="no such file"):
+        load_samples(tmp_path / "missing.h5")
+    # a store of another schema (e.g. a palpation run)
+    other = _store(tmp_path / "pal.h5", Schema((Field("x"),), name="palpation"), [{"x": 1.0}])
+    with pytest.raises(ValueError, match="'palpation' store.*'dataset' stores"):
+        load_samples(other)
+    # a dataset store without the image metrics
+    keep = tuple(f for f in DATASET_SCHEMA.fields if f.name not in ("com", "sum_sigma"))
+    lean = Schema(keep, name="dataset", version=1)
+    full = load_samples(stores["rigid"])
+    rec = {f.name: np.zeros(f.shape, f.dtype) for f in keep}
+    path = _store(tmp_path / "lean.h5", lean, [rec])
+    with pytest.raises(ValueError, match=r"missing field\(s\) \['com', 'sum_sigma'\]"):
+        load_samples(path)
+    # too few presses for a held-out split
+    small = write_synthetic_dataset(tmp_path / "small.h5", SCENE.read_text(), n_groups=4, seed=0)
+    with pytest.raises(ValueError, match="4 press group"):
+        calibrate(load_samples(small), progress=lambda s: None)
+    del full
+
+
+# -- command line ------------------------------------------------------------------------------
+
+
+def test_calibrate_command_writes_the_map_and_report(stores, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["calibrate", str(stores["rigid"]), "--out", str(out), "--regressor", "ridge", "--depths", "1,2,3"]) == 0
+    for name in ("calibration_map.h5", "report.md", "com_error_map.png", "com_error_map.csv", "size_curves_depth.png",
+                 "size_curves_force.png", "regression_comparison.csv", "goals.csv", "evaluation.json"):
+        assert (out / name).is_file(), name
+    md = (out / "report.md").read_text()
+    assert "Not estimable" in md and "held out by press" in md
+    m = load_map(out / "calibration_map.h5")
+    np.testing.assert_allclose(m.size["depth/sum_sigma"].levels, [1e-3, 2e-3, 3e-3])
+    # bad input: one line and exit 2, nothing written
+    assert main(["calibrate", str(tmp_path / "none.h5"), "--out", str(tmp_path / "x")]) == 2
+    assert main(["calibrate", str(stores["rigid"]), "--out", str(tmp_path / "y"), "--depths", "2,1"]) == 2
+    err = capsys.readouterr().err
+    assert "no such file" in err and "--depths" in err and not (tmp_path / "x").exists()
+
+
+def test_palpate_refuses_a_map_of_another_sensor_before_any_work(built, stores, tmp_path, capsys):
+    path = save_map(built.map, stores["dir"] / "map_cli.h5")
+    data = SCENE.read_text().replace("ring_radius_mm = 15.0", "ring_radius_mm = 14.0")
+    scene = tmp_path / "other.toml"
+    scene.write_text(data)
+    assert main(["palpate", str(scene), "--calibration", str(path), "--out", str(tmp_path / "p")]) == 2
+    assert "electrodes.ring_radius" in capsys.readouterr().err and not (tmp_path / "p").exists()
+
+
+def test_calibrated_frames_of_a_palpation_run(built):
+    """The per-frame table `palpate --calibration` writes, on palpation-shaped records."""
+    from jointsim.calibration.apply import calibrate_frames, summarise_calibrated
+
+    rng = np.random.default_rng(0)
+    n = 12
+    target = np.repeat([0, 1], 6)
+    depth = np.tile([0, 1, 2, 3, 2, 1], 2) * 1e-3
+    xy = np.array([[3e-3, 2e-3], [-5e-3, 4e-3]])[target]
+    pos = np.column_stack([xy, depth])
+    samples = load_samples_like(built, rng, n)
+    fields = {"target": target, "frame": np.tile(np.arange(6), 2), "target_radius": np.full(n, 7.5e-3),
+              "position": pos, "depth": depth, "com": synthetic_com(pos), **samples}
+    rec = Records(fields, DATASET_SCHEMA, {}, {}, "")
+    table = calibrate_frames(built.map, rec)
+    ok = depth > 0
+    np.testing.assert_allclose(table["cal_x"][ok], xy[ok, 0], atol=0.3e-3)
+    np.testing.assert_allclose(table["cal_depth"][ok], depth[ok], atol=0.3e-3)
+    rows = summarise_calibrated(table)
+    assert [r["frame"] for r in rows] == [3, 3] and abs(rows[0]["cal_x_mm"] - 3.0) < 0.3
+
+
+def load_samples_like(built, rng, n):
+    """Voltages and metrics of the right shapes (values only feed the regression and size routes)."""
+    v = 0.2 + 1e-3 * rng.standard_normal((n, 256))
+    return {"voltages": v, "dv": 1e-5 * rng.standard_normal((n, 256)), "force": np.tile([0.0, 0.0, 0.1], (n, 1)),
+            "sum_sigma": np.full(n, -50.0), "diameter": np.full(n, 8e-3)}
