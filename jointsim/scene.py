@@ -26,6 +26,7 @@ __all__ = [
     "Membrane",
     "Target",
     "PalpationSpec",
+    "DatasetSpec",
     "Scene",
     "load_scene",
     "scene_from_dict",
@@ -152,6 +153,7 @@ class Scene:
     membrane: Membrane = field(default_factory=Membrane)
     target: Target = field(default_factory=Target)
     palpation: "PalpationSpec" = field(default_factory=lambda: PalpationSpec())
+    dataset: "DatasetSpec" = field(default_factory=lambda: DatasetSpec())
 
     def with_mesh_preset(self, preset: str) -> "Scene":
         if preset not in MESH_PRESETS:
@@ -259,7 +261,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     data = dict(data)
     name = str(data.pop("name", name))
     data.pop("description", None)
-    known = {"chamber", "electrodes", "saline", "drive", "noise", "mesh", "membrane", "target", "palpation"}
+    known = {"chamber", "electrodes", "saline", "drive", "noise", "mesh", "membrane", "target", "palpation", "dataset"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise SceneError(f"unknown section(s): {', '.join(unknown)}; known are {', '.join(sorted(known))}")
@@ -368,6 +370,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         membrane=Membrane(law, mu * 1e3, tuple(c * 1e3 for c in yc), bulk_ratio, layers, p_res, closed, rim_vertices),
         target=target,
         palpation=_palpation(data.get("palpation", {}), base_r, height, thick, zf is not None),
+        dataset=_dataset(data.get("dataset", {}), base_r, height, ring, diam, count, zone),
     )
 
 
@@ -489,4 +492,94 @@ def _palpation(data: dict[str, Any], base_r: float, height: float, thick: float,
     return PalpationSpec(
         mode, tuple(r * MM for r in radii), depth * MM, speed * MM, hold, gap * MM, (xy[0] * MM, xy[1] * MM),
         force, ramp, k, c, n_ref, cells, lam, upd, fdm,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# [dataset]: synthetic labelled samples (jointsim.dataset, `jointsim dataset`)
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    """What ``jointsim dataset`` samples (SI). Each press trajectory ("group") draws a target
+    sphere ``radius`` (m, uniform in the range), a contact centre ``xy`` uniform over the disc
+    of radius ``r_max`` (m) on the base plane, and the domain randomisation: ``membrane_scale``
+    (multiplier of the membrane moduli, log-uniform), saline ``conductivity`` (S/m, uniform),
+    ``contact_impedance`` (Ω·m², log-uniform, every electrode), an in-plane offset of each
+    ring electrode uniform over a disc of radius ``electrode_jitter`` (m), ``snr_db``
+    (uniform), and the target: rigid with probability ``rigid_fraction``, else soft with
+    Young's modulus ``target_modulus`` (Pa, log-uniform). The target is pressed in steps of at
+    most ``step`` (m) and ``samples_per_press`` samples are taken at depths past first contact
+    stratified over ``depth`` (m): one in each of as many equal slices of the range. The
+    steady-state reference is the mean of ``reference_frames`` noisy frames; ``images`` stores
+    each reconstructed image."""
+
+    radius: tuple[float, float] = (4 * MM, 15 * MM)
+    r_max: float = 15 * MM
+    depth: tuple[float, float] = (0.5 * MM, 3 * MM)
+    samples_per_press: int = 6
+    step: float = 0.5 * MM
+    membrane_scale: tuple[float, float] = (0.5, 2.0)
+    conductivity: tuple[float, float] = (0.35, 0.39)
+    contact_impedance: tuple[float, float] = (5e-4, 2e-3)
+    electrode_jitter: float = 0.1 * MM
+    snr_db: tuple[float, float] = (40.0, 80.0)
+    rigid_fraction: float = 1.0
+    target_modulus: tuple[float, float] = (10e3, 3e6)
+    reference_frames: int = 50
+    images: bool = False
+
+
+def _range(t: _Table, k: str, default: tuple[float, float], lo: float, hi: float, *, lo_open: bool = False) -> tuple[float, float]:
+    """A [min, max] pair (or one number: min = max) within [lo, hi], min ≤ max."""
+    v = t.raw(k, list(default))
+    key = t.key(k)
+    rng = f"{'(' if lo_open else '['}{lo:g}, {hi:g}]"
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        v = [v, v]
+    if not isinstance(v, list) or len(v) != 2:
+        raise SceneError(f"{key} = {v!r}: must be [min, max] with both in {rng}")
+    a, b = (_check_number(f"{key}[{i}]", x, lo, hi, lo_open, False) for i, x in enumerate(v))
+    if a > b:
+        raise SceneError(f"{key} = [{a:g}, {b:g}]: min must not exceed max (both in {rng})")
+    return a, b
+
+
+def _dataset(data: dict[str, Any], base_r: float, height: float, ring: float, diam: float, count: int, zone: float) -> DatasetSpec:
+    """Parse [dataset] (units in the key names); lengths of the sensor in mm."""
+    t = _Table(data, "dataset")
+    d = DatasetSpec()
+    has_r, has_d = "radius_mm" in data, "diameter_mm" in data
+    if has_r and has_d:
+        raise SceneError("[dataset]: give radius_mm or diameter_mm, not both")
+    if has_d:
+        radius = tuple(x / 2 for x in _range(t, "diameter_mm", (8.0, 30.0), 0.0, 10 * base_r, lo_open=True))
+    else:
+        radius = _range(t, "radius_mm", (4.0, 15.0), 0.0, 5 * base_r, lo_open=True)
+    r_max = t.number("r_max_mm", min(15.0, ring), 0.0, base_r, hi_open=True)
+    # the membrane's inner surface reaches the base (and the electrodes) at about the dome height
+    depth = _range(t, "depth_mm", (0.5, 3.0), 0.0, 0.9 * height, lo_open=True)
+    k = t.integer("samples_per_press", d.samples_per_press, 1, 1000)
+    step = t.number("step_mm", 0.5, 0.0, 5.0, lo_open=True)
+    scale = _range(t, "membrane_scale", d.membrane_scale, 0.05, 20.0)
+    sigma = _range(t, "conductivity_s_per_m", d.conductivity, 0.0, 100.0, lo_open=True)
+    z = _range(t, "contact_impedance_ohm_m2", d.contact_impedance, 0.0, 1.0, lo_open=True)
+    # a jittered disc stays inside the refined zone of the mesh and clear of its neighbours
+    gap = 2 * ring * math.sin(math.pi / count) - diam
+    jit_hi = min(zone, gap / 2, base_r - ring - diam / 2)
+    jitter = t.number("electrode_jitter_mm", min(0.1, jit_hi), 0.0, jit_hi)
+    snr = _range(t, "snr_db", d.snr_db, 0.0, 200.0)
+    rigid = t.number("rigid_fraction", 1.0, 0.0, 1.0)
+    modulus = _range(t, "target_modulus_kpa", (10.0, 3000.0), 0.0, 1e8, lo_open=True)
+    if rigid < 1:
+        # a deformable target needs deformable-deformable contact in jointsim.mechanics (not built yet)
+        raise SceneError(f"dataset.rigid_fraction = {rigid:g}: soft targets are not available in this version; must be 1")
+    n_ref = t.integer("reference_frames", 50, 1, 100_000)
+    images = t.raw("images", False)
+    if not isinstance(images, bool):
+        raise SceneError(f"dataset.images = {images!r}: must be true or false")
+    t.finish()
+    return DatasetSpec(
+        (radius[0] * MM, radius[1] * MM), r_max * MM, (depth[0] * MM, depth[1] * MM), k, step * MM, scale, sigma, z,
+        jitter * MM, snr, rigid, (modulus[0] * 1e3, modulus[1] * 1e3), n_ref, images,
     )

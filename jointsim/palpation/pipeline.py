@@ -72,6 +72,7 @@ __all__ = [
     "run_palpation",
     "force_profile",
     "program_params",
+    "metric_fields",
 ]
 
 STAGES = ("mujoco", "mechanics", "mesh", "forward", "reconstruction")
@@ -344,6 +345,21 @@ class Palpation:
         raise ValueError(f"palpation: no representative press of a {radius * 1e3:g} mm radius target morphs the chamber; "
                          "lower palpation.depth_mm")
 
+    def image(self, dv: np.ndarray, true_centre: np.ndarray | None = None,
+              target_volume: float | None = None) -> tuple[np.ndarray, np.ndarray, ImageMetrics | None]:
+        """The instrument's image of ``dv`` (256,) V: Δσ (n_cells,) S/m by the reconstruction
+        matrix, its noise-normalised version, and their :class:`ImageMetrics` (None when the
+        image is all zero; ``true_centre`` (3,) m with NaN and ``target_volume`` 0 count as
+        not known)."""
+        image = self.reconstructor.image(dv)
+        normalised = image / self.cell_noise
+        metrics = None
+        if np.any(image):
+            known = true_centre is not None and not np.isnan(true_centre).any()
+            metrics = image_metrics(self.grid, normalised, true_centre if known else None, target_volume or None,
+                                    amplitude=image)
+        return image, normalised, metrics
+
     def inner_surface(self, state: MembraneState) -> DomeSurface:
         """The membrane's deformed inner (chamber) surface at the resolution of its P2 nodes."""
         return self._surface.dome(state.u)
@@ -575,6 +591,15 @@ def run_palpation(
             tick(1)
 
 
+def metric_fields(metrics: ImageMetrics | None) -> dict[str, Any]:
+    """The image metrics a record stores: ``com`` (3,) m, ``sum_sigma``, ``diameter`` m,
+    ``extent_xy`` m, ``cluster_cells`` (NaN and 0 for an all-zero image)."""
+    if metrics is None:
+        return {"com": np.full(3, np.nan), "sum_sigma": np.nan, "diameter": np.nan, "extent_xy": np.nan, "cluster_cells": 0}
+    return {"com": metrics.com, "sum_sigma": metrics.sum_sigma, "diameter": metrics.diameter_equivalent,
+            "extent_xy": metrics.extent_xy, "cluster_cells": metrics.n_cells}
+
+
 def _in_context(e: Exception, where: str) -> Exception:
     """``e`` of the same type with ``where`` in front of its message (or ``e`` with a note)."""
     try:
@@ -599,15 +624,10 @@ def _frame(pal: Palpation, seg: Segment, k: int, model: MembraneModel, rig: Rig,
         v = clean * gain + pal._rng("frame", index).normal(0.0, pal.noise_std, pal.n_meas)
     dv, dv_clean = v - pal.v_ref_measured, clean - pal.v_ref
     with _timed(t, "reconstruction"):
-        image = pal.reconstructor.image(dv)
-        normalised = image / pal.cell_noise
         centre = _displaced_centroid(pal.reference, dc.chamber)
-        metrics = None
-        if np.any(image):
-            metrics = image_metrics(pal.grid, normalised, None if np.isnan(centre).any() else centre,
-                                    st.displaced_volume or None, amplitude=image)
-    nan3 = np.full(3, np.nan)
-    com = metrics.com if metrics is not None else nan3
+        image, normalised, metrics = pal.image(dv, centre, st.displaced_volume)
+    m = metric_fields(metrics)
+    com = m["com"]
     record = {
         "target": seg.target,
         "target_radius": seg.radius,
@@ -637,13 +657,9 @@ def _frame(pal: Palpation, seg: Segment, k: int, model: MembraneModel, rig: Rig,
         "rms_dv_clean": rms(dv_clean),
         "image": image.astype(np.float32),
         "true_centre": centre,
-        "com": com,
         "com_error": float(np.linalg.norm(com - centre)),
         "com_error_xy": float(np.linalg.norm((com - centre)[:2])),
-        "sum_sigma": metrics.sum_sigma if metrics is not None else np.nan,
-        "diameter": metrics.diameter_equivalent if metrics is not None else np.nan,
-        "extent_xy": metrics.extent_xy if metrics is not None else np.nan,
-        "cluster_cells": metrics.n_cells if metrics is not None else 0,
+        **m,
         "timings": np.array([t[s] for s in STAGES]),
     }
     return Frame(index, seg, k, rf, st, dc, v, clean, dv, dv_clean, image, normalised, metrics, centre, t, record)

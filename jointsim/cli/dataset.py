@@ -1,0 +1,75 @@
+"""Synthetic dataset generation: press trajectories drawn from the scene's [dataset] section
+(target radius, contact position, depth, stiffness, and domain randomisation of the membrane,
+saline, contact impedance, electrode positions and noise), one labelled sample per depth along
+each press: labels, force, displaced volume, clean and noisy voltages, dV, image metrics and
+optionally the image. Writes OUT.h5 (schema "dataset", provenance, data_sha256). The same seed
+gives the same data whatever the workers; a run killed at any moment resumes when run again
+with the same settings. Local worker processes by default; --scheduler runs the groups on an
+existing Dask distributed cluster whose workers see OUT's folder."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+from tqdm import tqdm
+
+from ..dataset import default_workers, generate_dataset
+from .common import add_scene_arguments, scene_from_args
+
+HELP = "synthetic labelled dataset (voltages, labels, force, image metrics) in one resumable HDF5 file"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_scene_arguments(p)
+    p.add_argument("--n", type=int, required=True, help="number of labelled samples")
+    p.add_argument("--out", type=Path, default=Path("out/dataset.h5"), help="output file (default out/dataset.h5)")
+    p.add_argument("--seed", type=int, help="dataset seed (default: the scene's [noise] seed)")
+    p.add_argument("--workers", type=int, help=f"local worker processes (default: one per core, here {default_workers()})")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="Dask distributed scheduler address (e.g. tcp://host:8786): run the groups on that cluster")
+    p.add_argument("--images", action=argparse.BooleanOptionalAction, default=None,
+                   help="store each reconstructed image (default: the scene's [dataset] images)")
+    p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                   help="show a progress bar (default: when the output is a terminal)")
+
+
+def run(args: argparse.Namespace) -> int:
+    scene = scene_from_args(args)
+    if args.images is not None:
+        scene = replace(scene, dataset=replace(scene.dataset, images=args.images))
+    if args.n < 1:
+        raise ValueError(f"--n = {args.n}: must be >= 1 (labelled samples)")
+    if args.seed is not None and args.seed < 0:
+        raise ValueError(f"--seed = {args.seed}: must be >= 0")
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers = {args.workers}: must be >= 1")
+    d = scene.dataset
+    k = d.samples_per_press
+    where = f"Dask scheduler {args.scheduler}" if args.scheduler else f"{args.workers or default_workers()} local worker(s)"
+    print(f"jointsim dataset: scene {scene.name}, mesh {scene.mesh.preset}, {args.n} samples "
+          f"({-(-args.n // k)} presses x {k} depths), radius {d.radius[0] * 1e3:g}-{d.radius[1] * 1e3:g} mm, "
+          f"depth {d.depth[0] * 1e3:g}-{d.depth[1] * 1e3:g} mm, r <= {d.r_max * 1e3:g} mm, {where} -> {args.out}")
+    bar = tqdm(total=args.n, unit="sample", disable=None if args.progress is None else not args.progress, smoothing=0.1)
+
+    def start(done: int, todo: int) -> None:
+        if done:
+            print(f"  resuming: {done} of {args.n} samples already stored", flush=True)
+        bar.update(done)
+
+    command = ["jointsim", "dataset", *(sys.argv[2:] if sys.argv[1:2] == ["dataset"] else [])]
+    with bar:
+        res = generate_dataset(scene, args.n, args.out, seed=args.seed, workers=args.workers, scheduler=args.scheduler,
+                               scene_toml=Path(args.scene).read_text(), command=command, progress=bar.update,
+                               on_start=start)
+    if res.groups_run == 0:
+        print(f"  {res.path} is complete ({res.n_samples} samples): nothing to do")
+    else:
+        rate = (res.n_samples - res.samples_resumed) / res.wall_s * 3600
+        print(f"  {res.groups_run} presses in {res.wall_s:.1f} s ({rate:.0f} samples/h), {res.rejected_draws} draw(s) "
+              "rejected and redrawn")
+    print(f"  wrote {res.path} (data_sha256 {res.data_sha256[:16]}...); command: {shlex.join(command)}")
+    return 0

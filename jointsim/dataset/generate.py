@@ -1,0 +1,289 @@
+"""Labelled samples of one press trajectory ("group"): the draw, the press, the records.
+
+A group is one draw of target (radius, contact centre, stiffness) and domain randomisation
+(membrane moduli, saline conductivity, contact impedance, electrode positions, SNR). Its
+target comes down at ``xy`` onto the membrane inflated under that draw, and is pressed in
+quasi-static steps of at most ``[dataset] step_mm`` (each warm-started from the last) through
+``samples_per_press`` depths stratified over ``[dataset] depth_mm``; at each of them the
+sample is taken: membrane state, morphed chamber, clean and noisy voltages, δV against the
+noisy steady-state reference, the instrument's image and its metrics. The marginal cost of a
+sample is therefore one or two mechanics steps, not a whole press.
+
+The instrument
+    Voltages come from the randomised sensor, images from the **nominal** one: δV is imaged
+    with the reconstruction matrix built on the nominal scene (Jacobian of the nominal inflated
+    chamber, λ by cross-validation, :class:`~jointsim.palpation.Palpation`), as a real
+    instrument calibrated once would do, not with one rebuilt for each draw.
+
+Electrode jitter: the electrodes are re-clipped, not the mesh moved
+    Electrode patches are exact clippings of the base triangles against the electrode discs
+    (:func:`~jointsim.mesh.electrodes.disc_patches`), wherever the discs are. A group's
+    jittered electrodes are therefore clipped once on the reference chamber's base, and the
+    morph never moves a base node, so the same patches are exact for every frame of the group
+    and for its reference: the tagging holds exactly with no remesh and no warp of the mesh,
+    and δV within a group carries no mesh noise. A warp of the base nodes (an RBF field
+    carrying each electrode patch) would do the same with more machinery and a distorted
+    base; what it keeps that re-clipping does not is the mesh refinement centred on the
+    moved electrode. The jitter is bounded by the scene (``[dataset] electrode_jitter_mm``
+    ≤ ``[mesh] refinement_zone_mm``), so a jittered disc stays inside its refined zone. On a
+    remesh fallback the patches are clipped on the new mesh.
+
+Determinism
+    Everything a group draws comes from ``SeedSequence(seed, spawn_key=(group, attempt, stream))``:
+    the same seed gives the same group whatever worker computes it and in whatever order. A
+    draw the mechanics or the chamber mesh cannot take (a sphere that would reach the base,
+    a chamber that collapses onto the electrodes, a Newton failure) is rejected as a whole and
+    the group draws again (attempt + 1), deterministically; so the dataset samples the draws
+    the simulator can take.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+from typing import Any, Iterator
+
+import numpy as np
+
+from ..eit.forward import ForwardModel
+from ..eit.noise import noise_std
+from ..io.store import Field, Schema
+from ..mechanics.dome import MembraneModel
+from ..mechanics.newton import NewtonError
+from ..mesh.chamber import ChamberMesh
+from ..mesh.electrodes import ElectrodePatch, disc_patches
+from ..mesh.morph import MeshInversionError
+from ..palpation.pipeline import Palpation, metric_fields
+from ..scene import DatasetSpec, Scene
+
+__all__ = ["SCHEMA_NAME", "SCHEMA_VERSION", "STAGES", "GroupDraw", "DatasetSetup", "draw_group", "dataset_schema",
+           "dataset_params", "group_indices", "n_groups"]
+
+SCHEMA_NAME = "dataset"
+SCHEMA_VERSION = 1
+STAGES = ("group_setup", "mechanics", "mesh", "forward", "reconstruction")
+MAX_ATTEMPTS = 16  # draws of one group before its failure is reported
+
+
+@dataclass(frozen=True)
+class GroupDraw:
+    """One press trajectory's draw (SI): target ``radius`` m, centre ``xy`` (2,) m,
+    ``modulus`` Pa (inf: rigid), ``membrane_scale``, ``conductivity`` S/m,
+    ``contact_impedance`` Ω·m², ``jitter`` (n_el, 2) m, ``snr_db``, and the sample
+    ``depths`` (K,) m past first contact, increasing."""
+
+    group: int
+    attempt: int
+    radius: float
+    xy: np.ndarray
+    modulus: float
+    membrane_scale: float
+    conductivity: float
+    contact_impedance: float
+    jitter: np.ndarray
+    snr_db: float
+    depths: np.ndarray
+
+
+def _rng(seed: int, group: int, attempt: int, stream: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(group, attempt, stream)))
+
+
+def _log_uniform(rng: np.random.Generator, lo_hi: tuple[float, float]) -> float:
+    lo, hi = lo_hi
+    return float(math.exp(rng.uniform(math.log(lo), math.log(hi)))) if hi > lo else float(lo)
+
+
+def draw_group(spec: DatasetSpec, seed: int, group: int, attempt: int = 0, n_electrodes: int = 16) -> GroupDraw:
+    """The draw of ``group`` (its ``attempt``-th): uniform radius, centre uniform over the
+    disc r ≤ r_max, log-uniform moduli scale, contact impedance and target modulus, uniform
+    conductivity and SNR, each electrode moved uniformly within a disc of radius
+    ``electrode_jitter``, K depths one per equal slice of the depth range."""
+    rng = _rng(seed, group, attempt, 0)
+    radius = float(rng.uniform(*spec.radius))
+    r, phi = spec.r_max * math.sqrt(rng.uniform()), 2 * math.pi * rng.uniform()
+    rigid = rng.uniform() < spec.rigid_fraction
+    modulus = _log_uniform(rng, spec.target_modulus)
+    scale = _log_uniform(rng, spec.membrane_scale)
+    sigma = float(rng.uniform(*spec.conductivity))
+    z = _log_uniform(rng, spec.contact_impedance)
+    jr = spec.electrode_jitter * np.sqrt(rng.uniform(size=n_electrodes))
+    ja = 2 * np.pi * rng.uniform(size=n_electrodes)
+    snr = float(rng.uniform(*spec.snr_db))
+    k = spec.samples_per_press
+    lo, hi = spec.depth
+    depths = lo + (hi - lo) * (np.arange(k) + rng.uniform(size=k)) / k
+    return GroupDraw(
+        group, attempt, radius, np.array([r * math.cos(phi), r * math.sin(phi)]), math.inf if rigid else modulus,
+        scale, sigma, z, np.column_stack([jr * np.cos(ja), jr * np.sin(ja)]), snr, depths,
+    )
+
+
+def n_groups(n_samples: int, samples_per_press: int) -> int:
+    return -(-n_samples // samples_per_press)
+
+
+def group_indices(group: int, n_samples: int, samples_per_press: int) -> range:
+    """Record indices of ``group``: K consecutive ones (the last group may be cut short by N)."""
+    a = group * samples_per_press
+    return range(a, min(n_samples, a + samples_per_press))
+
+
+def dataset_schema(n_electrodes: int, n_meas: int, n_cells: int | None) -> Schema:
+    """One record per labelled sample; ``image`` only when ``n_cells`` is given."""
+    F = Field
+    m = n_meas
+    fields = [
+        F("group", (), "int64", "", "press trajectory (group) id: samples of one group share the draw; split by group"),
+        F("radius", (), "float64", "m", "target sphere radius"),
+        F("xy", (2,), "float64", "m", "target centre in the base plane"),
+        F("depth", (), "float64", "m", "indentation past first contact (target centre below its first-contact height)"),
+        F("target_modulus", (), "float64", "Pa", "target Young's modulus (inf: rigid)"),
+        F("force", (3,), "float64", "N", "FEM contact force of the membrane on the target"),
+        F("contact_area", (), "float64", "m^2", "FEM contact area"),
+        F("displaced_volume", (), "float64", "m^3", "saline displaced to the reservoir (from the inflated state)"),
+        F("peak_strain", (), "float64", "", "largest principal Green-Lagrange strain in the membrane"),
+        F("membrane_scale", (), "float64", "", "multiplier of the membrane moduli (randomisation, per group)"),
+        F("conductivity", (), "float64", "S/m", "saline conductivity (randomisation, per group)"),
+        F("contact_impedance", (), "float64", "ohm m^2", "contact impedance of every electrode (randomisation, per group)"),
+        F("electrode_jitter", (n_electrodes, 2), "float64", "m", "in-plane offset of each ring electrode (per group)"),
+        F("snr_db", (), "float64", "dB", "noise level re the mean standing |V| (per group)"),
+        F("voltages_clean", (m,), "float64", "V", "noise-free voltages"),
+        F("reference_clean", (m,), "float64", "V", "noise-free voltages of the untouched inflated sensor, same randomisation"),
+        F("voltages", (m,), "float64", "V", "measured voltages: clean plus noise at snr_db"),
+        F("dv", (m,), "float64", "V", "voltages minus the measured steady-state reference (mean of reference_frames noisy frames)"),
+        F("dv_clean", (m,), "float64", "V", "voltages_clean minus reference_clean"),
+        F("com", (3,), "float64", "m", "CoM of the perturbation cluster of the nominal instrument's image"),
+        F("sum_sigma", (), "float64", "S/m voxel", "total conductivity change in the cluster"),
+        F("diameter", (), "float64", "m", "equivalent diameter of the cluster"),
+        F("extent_xy", (), "float64", "m", "in-plane extent of the cluster"),
+        F("cluster_cells", (), "int32", "", "voxels in the cluster"),
+    ]
+    if n_cells is not None:
+        fields.append(F("image", (n_cells,), "float32", "S/m", "conductivity change on the nominal voxel grid"))
+    fields.append(F("timings", (len(STAGES),), "float64", "s", "wall time per stage: " + ", ".join(STAGES)
+                    + " (the group's set-up shared among its samples)", volatile=True))
+    return Schema(tuple(fields), name=SCHEMA_NAME, version=SCHEMA_VERSION)
+
+
+def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str) -> dict[str, Any]:
+    """What shapes the data beyond the scene file's text: the effective scene (after
+    command-line overrides: sampling spec, mesh, membrane, noise, reconstruction settings),
+    N, and the chamber mesh used (fTetWild is not deterministic: a resumed run must continue
+    on the same mesh). JSON-ready; the store's identity."""
+    d = scene.to_dict()
+    d.pop("name", None)
+    return {"scene": d, "n_samples": int(n_samples), "chamber_sha256": chamber_sha256}
+
+
+@contextmanager
+def _timed(t: dict[str, float], name: str) -> Iterator[None]:
+    t0 = time.perf_counter()
+    yield
+    t[name] = t.get(name, 0.0) + time.perf_counter() - t0
+
+
+class DatasetSetup:
+    """What every group shares, built once per worker: the nominal instrument
+    (:class:`~jointsim.palpation.Palpation` of ``scene`` on ``chamber``: morpher, protocol,
+    voxel grid, reconstruction matrix) and the record schema."""
+
+    def __init__(self, scene: Scene, chamber: ChamberMesh, seed: int):
+        self.scene = scene
+        self.spec = scene.dataset
+        self.seed = int(seed)
+        self.pal = Palpation(scene, chamber=chamber)
+        self.n_electrodes = scene.electrodes.count
+        self.schema = dataset_schema(self.n_electrodes, self.pal.n_meas, self.pal.grid.n_cells if self.spec.images else None)
+
+    def free(self) -> None:
+        self.pal.free()
+
+    # -- one group -----------------------------------------------------------------------
+
+    def group(self, group: int, n_samples: int | None = None) -> tuple[list[dict[str, Any]], int]:
+        """The records of ``group`` (its first ``n_samples``, default K) in depth order, and
+        the number of draws rejected before the one they come from."""
+        k = self.spec.samples_per_press if n_samples is None else n_samples
+        errors = []
+        for attempt in range(MAX_ATTEMPTS):
+            draw = draw_group(self.spec, self.seed, group, attempt, self.n_electrodes)
+            try:
+                return self.press(draw, k), attempt
+            except (ValueError, NewtonError, MeshInversionError) as e:
+                errors.append(f"attempt {attempt}: {e}")
+        raise ValueError(f"group {group}: no draw in {MAX_ATTEMPTS} could be pressed ({'; '.join(errors[-3:])}); "
+                           "narrow [dataset] depth_mm, radius_mm or r_max_mm")
+
+    def press(self, draw: GroupDraw, n_samples: int) -> list[dict[str, Any]]:
+        """Press ``draw``'s target through its first ``n_samples`` depths; one record each."""
+        pal, scene = self.pal, self.scene
+        t: dict[str, float] = {}
+        with _timed(t, "group_setup"):
+            model = self._membrane(draw)
+            ref_chamber = pal.deform(pal.inner_surface(model.state())).chamber
+            patches = self._patches(ref_chamber.mesh, draw.jitter)
+            z = np.full(len(patches), draw.contact_impedance)
+            v_ref = self._voltages(ref_chamber, patches, z, draw.conductivity)
+            std = noise_std(v_ref, draw.snr_db)
+            rng = _rng(self.seed, draw.group, draw.attempt, 1)
+            n_ref = self.spec.reference_frames
+            v_ref_measured = v_ref + rng.normal(0.0, std / math.sqrt(n_ref), v_ref.shape)
+            contact_z = model.first_contact_height(draw.xy)
+        share = t["group_setup"] / n_samples
+        records, depth_done = [], 0.0
+        for d in draw.depths[:n_samples]:
+            t = {s: 0.0 for s in STAGES}
+            t["group_setup"] = share
+            with _timed(t, "mechanics"):
+                # steps of at most spec.step, equal, ending on the sample's depth
+                n_steps = max(1, math.ceil((d - depth_done) / self.spec.step - 1e-9))
+                for s in range(1, n_steps + 1):
+                    dz = depth_done + (d - depth_done) * s / n_steps
+                    st = model.press(np.array([draw.xy[0], draw.xy[1], contact_z - dz]))
+                depth_done = d
+            with _timed(t, "mesh"):
+                dc = pal.deform(pal.inner_surface(st))
+                p = patches if dc.path == "morph" else self._patches(dc.chamber.mesh, draw.jitter)
+            with _timed(t, "forward"):
+                clean = self._voltages(dc.chamber, p, z, draw.conductivity)
+                v = clean + rng.normal(0.0, std, clean.shape)
+            dv = v - v_ref_measured
+            with _timed(t, "reconstruction"):
+                image, _, metrics = pal.image(dv)
+            rec = {
+                "group": draw.group, "radius": draw.radius, "xy": draw.xy, "depth": d, "target_modulus": draw.modulus,
+                "force": st.force, "contact_area": st.contact_area, "displaced_volume": st.displaced_volume,
+                "peak_strain": st.peak_strain, "membrane_scale": draw.membrane_scale, "conductivity": draw.conductivity,
+                "contact_impedance": draw.contact_impedance, "electrode_jitter": draw.jitter, "snr_db": draw.snr_db,
+                "voltages_clean": clean, "reference_clean": v_ref, "voltages": v, "dv": dv, "dv_clean": clean - v_ref,
+                **metric_fields(metrics),
+            }
+            if self.spec.images:
+                rec["image"] = image.astype(np.float32)
+            rec["timings"] = np.array([t[s] for s in STAGES])
+            records.append(rec)
+        return records
+
+    def _membrane(self, draw: GroupDraw) -> MembraneModel:
+        """The membrane of ``draw``: moduli scaled, inflated by the reservoir, untouched."""
+        if math.isfinite(draw.modulus):
+            raise ValueError("soft targets are not available in this version (dataset.rigid_fraction must be 1)")
+        m = self.scene.membrane
+        s = draw.membrane_scale
+        scaled = replace(self.scene, membrane=replace(m, shear_modulus=m.shear_modulus * s,
+                                                      yeoh_c=tuple(c * s for c in m.yeoh_c)))
+        return MembraneModel.from_scene(scaled, target_radius=draw.radius)
+
+    def _patches(self, mesh, jitter: np.ndarray) -> list[ElectrodePatch]:
+        """Electrode patches of ``mesh`` with the ring electrodes moved by ``jitter`` (n_el, 2)."""
+        layout = self.pal.chamber.layout
+        centres = layout.centres.copy()
+        centres[: len(jitter), :2] += jitter
+        return disc_patches(mesh, centres, layout.radii)
+
+    def _voltages(self, chamber: ChamberMesh, patches: list[ElectrodePatch], z: np.ndarray, sigma: float) -> np.ndarray:
+        model = ForwardModel(chamber.mesh, patches, chamber.ground, z)
+        return model.solve(sigma).voltages(self.pal.protocol)

@@ -1,0 +1,305 @@
+"""Running a dataset: the store, the shared chamber mesh, and the workers (local processes or
+a Dask distributed cluster) that take whole groups.
+
+Layout and crash safety
+    The run writes to ``OUT.partial/`` (see :mod:`jointsim.io.store`) and finalises to
+    ``OUT.h5``. Before anything else the chamber mesh is written there once
+    (``OUT.partial/chamber.npz``, first writer wins) and every worker, this run's or a resumed
+    one's, on this machine or another, uses that file: fTetWild is not deterministic, so a
+    mesh made afresh would give other data. Its SHA-256 is part of the store's identity.
+
+    A group's K records are stored together, as one file, when the group is done: a record
+    file exists complete or not at all, so a kill at any moment loses at most the groups in
+    flight (seconds to a minute of work per worker) and never leaves a partial group. The
+    alternative, each sample stored with a checkpoint of the membrane to continue a group
+    mid-press, would save at most K − 1 steps per worker on a crash, at the price of a
+    checkpoint per sample (the full displacement history) and of rejected draws that would
+    have to unwind stored samples; whole groups keep both simple.
+
+Workers
+    Local workers are spawned processes (not forked: Warp, MKL and MuJoCo hold threads and
+    handles a fork would copy), each building the set-up (:class:`DatasetSetup`) once and
+    then taking groups. Every worker runs its numerical libraries on one thread (MKL, OpenMP,
+    OpenBLAS): MKL's reproducible mode gives the same bits only for the same thread count,
+    so the data do not depend on the number of workers; and on a machine of C cores, C
+    single-threaded workers use it better than fewer threaded ones. The default is one worker
+    per core available to this process.
+
+    With a Dask scheduler address the same groups are submitted to an existing cluster; each
+    Dask worker process builds the set-up once (cached per process) and writes its groups
+    straight into the shared store, which must be on a file system every worker sees. Start
+    workers with one thread each (``dask worker ADDRESS --nthreads 1``); Dask's nanny already
+    runs them with one MKL/OpenMP thread. Tasks in one process run one at a time.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import hashlib
+import multiprocessing
+import os
+import tempfile
+import threading
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator, Sequence
+
+import numpy as np
+
+from ..geometry import electrode_layout
+from ..io.store import RecordStore, attach, open_records, open_store
+from ..mesh.chamber import ChamberMesh, chamber_mesh
+from ..mesh.electrodes import disc_patches
+from ..mesh.tetmesh import TetMesh
+from ..scene import Scene
+from .generate import DatasetSetup, dataset_params, dataset_schema, group_indices
+
+__all__ = ["DatasetRun", "generate_dataset", "default_workers", "THREAD_VARIABLES"]
+
+THREAD_VARIABLES = ("MKL_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+CHAMBER_FILE = "chamber.npz"
+
+
+@dataclass(frozen=True)
+class DatasetRun:
+    """What :func:`generate_dataset` did: the finished ``path``, its ``n_samples`` and
+    ``data_sha256``, the groups computed now (``groups_run``; 0 when the file was complete),
+    the samples found already stored, the draws rejected and redrawn, and the wall time s."""
+
+    path: Path
+    n_samples: int
+    data_sha256: str
+    groups_run: int
+    samples_resumed: int
+    rejected_draws: int
+    wall_s: float
+
+
+def default_workers() -> int:
+    """One worker per core available to this process."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # platforms without affinity
+        return os.cpu_count() or 1
+
+
+def _paths(out: str | Path) -> tuple[Path, Path]:
+    """(final file, partial directory) as :func:`~jointsim.io.store.open_store` names them."""
+    out = Path(out)
+    final = out if out.suffix in (".h5", ".hdf5") else out.with_name(out.name + ".h5")
+    return final, final.with_suffix(".partial")
+
+
+# --------------------------------------------------------------------------------------------
+# The chamber mesh every worker shares
+
+
+def _save_chamber_once(partial: Path, chamber: ChamberMesh) -> None:
+    """Write ``partial/chamber.npz`` unless it exists (complete or absent; first writer wins)."""
+    target = partial / CHAMBER_FILE
+    if target.exists():
+        return
+    partial.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=partial, prefix=".chamber.", suffix=".npz")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, nodes=chamber.mesh.nodes, tets=chamber.mesh.tets)
+            f.flush()
+            os.fsync(f.fileno())
+        try:
+            os.link(tmp, target)  # fails if it exists, unlike a rename
+        except FileExistsError:
+            pass
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+
+
+def _load_chamber(partial: Path, scene: Scene) -> tuple[ChamberMesh, str]:
+    """The run's chamber mesh (electrodes tagged for ``scene``) and the SHA-256 of its arrays."""
+    with np.load(partial / CHAMBER_FILE) as z:
+        nodes, tets = z["nodes"], z["tets"]
+    h = hashlib.sha256()
+    for a in (nodes, tets):
+        h.update(str(a.dtype).encode() + str(a.shape).encode())
+        h.update(np.ascontiguousarray(a).data)
+    sha = h.hexdigest()
+    mesh = TetMesh(nodes, tets)
+    layout = electrode_layout(scene)
+    return ChamberMesh(mesh, disc_patches(mesh, layout.centres, layout.radii), layout, f"dataset-{sha[:20]}"), sha
+
+
+# --------------------------------------------------------------------------------------------
+# Worker side (a spawned process or a Dask worker)
+
+_WORKER: dict[str, Any] = {}
+_WORKER_LOCK = threading.Lock()
+
+
+def _worker(path: str, scene: Scene, seed: int) -> tuple[DatasetSetup, RecordStore]:
+    """This process's set-up and store writer for the run at ``path``, built on first use."""
+    key = (path, seed)
+    if _WORKER.get("key") != key:
+        if "setup" in _WORKER:
+            _WORKER.pop("setup").free()
+        final, partial = _paths(path)
+        chamber, _ = _load_chamber(partial, scene)
+        setup = DatasetSetup(scene, chamber, seed)
+        _WORKER.update(key=key, setup=setup)
+    # a fresh writer per group: a retried or resubmitted group may write its indices again
+    return _WORKER["setup"], attach(_paths(path)[0], batch=scene.dataset.samples_per_press)
+
+
+def _run_group(path: str, scene: Scene, seed: int, group: int, n_samples: int) -> tuple[int, int, int, float]:
+    """Compute and store ``group`` (one record file); returns (group, samples, rejected draws, s)."""
+    with _WORKER_LOCK:  # one group at a time per process: the set-up is not thread-safe
+        t0 = time.perf_counter()
+        setup, store = _worker(path, scene, seed)
+        records, rejected = setup.group(group)
+        idx = group_indices(group, n_samples, setup.spec.samples_per_press)
+        for i, rec in zip(idx, records):
+            store.put(i, rec)
+        store.flush()
+        return group, len(idx), rejected, time.perf_counter() - t0
+
+
+@contextmanager
+def _single_threaded_children() -> Iterator[None]:
+    """Processes started inside the block run their numerical libraries on one thread."""
+    old = {k: os.environ.get(k) for k in THREAD_VARIABLES}
+    os.environ.update({k: "1" for k in THREAD_VARIABLES})
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _run_local(tasks: Sequence[tuple], workers: int, tick: Callable[[tuple], None]) -> None:
+    ctx = multiprocessing.get_context("spawn")
+    with _single_threaded_children():
+        pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
+        futures: list[cf.Future] = []
+        try:
+            futures = [pool.submit(_run_group, *t) for t in tasks]
+            for f in cf.as_completed(futures):
+                tick(f.result())
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _run_dask(tasks: Sequence[tuple], scheduler: Any, tick: Callable[[tuple], None]) -> None:
+    from distributed import Client, as_completed
+
+    client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+    try:
+        futures = [client.submit(_run_group, *t, pure=False, key=f"jointsim-dataset-group-{t[3]}-{os.urandom(4).hex()}")
+                   for t in tasks]
+        try:
+            for f in as_completed(futures):
+                tick(f.result())
+        except BaseException:
+            client.cancel(futures)
+            raise
+    finally:
+        if client is not scheduler:
+            client.close()
+
+
+# --------------------------------------------------------------------------------------------
+# The driver
+
+
+def generate_dataset(
+    scene: Scene,
+    n_samples: int,
+    out: str | Path,
+    *,
+    seed: int | None = None,
+    workers: int | None = None,
+    scheduler: Any = None,
+    scene_toml: str | None = None,
+    command: Sequence[str] | None = None,
+    progress: Callable[[int], None] | None = None,
+    on_start: Callable[[int, int], None] | None = None,
+) -> DatasetRun:
+    """Generate (or resume, or find finished) the dataset of ``n_samples`` labelled samples
+    of ``scene`` (its [dataset] section) at ``out`` (``.h5`` appended without an HDF5 suffix).
+
+    Parameters
+    ----------
+    seed : the dataset's seed (default: the scene's [noise] seed); the same seed gives the same
+        data (``data_sha256``) whatever the workers, their number and interruptions
+    workers : local worker processes (default :func:`default_workers`); ignored with ``scheduler``
+    scheduler : a Dask distributed scheduler address (or a ``distributed.Client``): the groups
+        run on that cluster, whose workers must see ``out``'s folder
+    scene_toml : the scene file's text, kept in the file's provenance (default: a TOML-free
+        placeholder, the effective scene is in the params anyway)
+    command : the command line recorded with the session (default ``sys.argv``)
+    progress : told the number of samples of each group as it is stored
+    on_start : told (samples already stored, samples to compute) before the work starts
+    """
+    t0 = time.perf_counter()
+    if not isinstance(n_samples, (int, np.integer)) or isinstance(n_samples, bool) or n_samples < 1:
+        raise ValueError(f"n_samples = {n_samples!r}: must be an integer >= 1")
+    seed = scene.noise.seed if seed is None else seed
+    if not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed = {seed!r}: must be an integer >= 0")
+    workers = default_workers() if workers is None else workers
+    if not isinstance(workers, (int, np.integer)) or workers < 1:
+        raise ValueError(f"workers = {workers!r}: must be an integer >= 1")
+    final, partial = _paths(out)
+    if final.exists():
+        rec = open_records(final, fields=["group"], verify=False)
+        if rec.provenance["schema"]["name"] != "dataset" or rec.provenance["n_records"] != n_samples \
+                or rec.provenance["seed"] != seed or rec.provenance["params"]["scene"].get("dataset") is None:
+            raise ValueError(f"{final} holds a finished run with other settings; remove it or write to another path")
+        return DatasetRun(final, n_samples, rec.data_sha256, 0, n_samples, 0, time.perf_counter() - t0)
+
+    k = scene.dataset.samples_per_press
+    if not (partial / CHAMBER_FILE).exists():
+        _save_chamber_once(partial, chamber_mesh(scene))
+    chamber, sha = _load_chamber(partial, scene)
+    n_cells = None
+    if scene.dataset.images:  # the image's length is the nominal voxel grid's
+        setup = DatasetSetup(scene, chamber, seed)
+        n_cells = setup.pal.grid.n_cells
+        setup.free()
+    from ..eit.protocol import skip_protocol
+
+    n_meas = skip_protocol(scene.electrodes.count, scene.drive.skip, scene.drive.current).n_meas
+    schema = dataset_schema(scene.electrodes.count, n_meas, n_cells)
+    store = open_store(final, schema, scene_toml=scene_toml if scene_toml is not None else f'name = "{scene.name}"\n',
+                       seed=int(seed), n_records=int(n_samples), params=dataset_params(scene, n_samples, sha),
+                       command=command)
+    missing = store.missing()
+    todo = np.unique(missing // k)
+    if on_start is not None:
+        on_start(n_samples - len(missing), len(missing))
+    rejected = 0
+
+    def tick(result: tuple[int, int, int, float]) -> None:
+        nonlocal rejected
+        rejected += result[2]
+        if progress is not None:
+            progress(result[1])
+
+    tasks = [(str(final), scene, int(seed), int(g), int(n_samples)) for g in todo]
+    if tasks:
+        if scheduler is not None:
+            _run_dask(tasks, scheduler, tick)
+        else:
+            _run_local(tasks, min(workers, len(tasks)), tick)
+    store.finalize(compression="gzip")
+    rec = open_records(final, fields=["group"], verify=False)
+    return DatasetRun(final, n_samples, rec.data_sha256, len(tasks), n_samples - len(missing), rejected,
+                      time.perf_counter() - t0)
+
