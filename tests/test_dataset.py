@@ -1,0 +1,234 @@
+"""Synthetic datasets (jointsim.dataset, `jointsim dataset`) at coarse settings: the test chamber
+mesh, a membrane of 24 rim vertices and one layer, 1000 voxels, 7 samples in presses of 3
+depths (the last press cut to one sample). Each run spawns its workers, so the file takes
+about a minute on 2 cores."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jointsim.dataset import dataset_schema, draw_group, generate_dataset
+from jointsim.io.store import open_records
+from jointsim.scene import SceneError, load_scene, scene_from_dict
+
+ROOT = Path(__file__).resolve().parents[1]
+N, K, SEED = 7, 3, 3
+
+SCENE = """
+name = "dataset_test"
+[mesh]
+preset = "test"
+[membrane]
+reservoir_pressure_pa = 50.0
+rim_vertices = 24
+layers = 1
+[palpation]
+cells = 1000
+target_diameters_mm = [10.0]
+depth_mm = 1.0
+[dataset]
+radius_mm = [4.0, 10.0]
+r_max_mm = 10.0
+depth_mm = [0.3, 1.5]
+samples_per_press = 3
+electrode_jitter_mm = 0.3
+snr_db = [50.0, 70.0]
+"""
+
+
+@pytest.fixture(scope="module")
+def scene_file(tmp_path_factory):
+    p = tmp_path_factory.mktemp("dataset_scene") / "scene.toml"
+    p.write_text(SCENE)
+    return p
+
+
+@pytest.fixture(scope="module")
+def scene(scene_file):
+    return load_scene(scene_file)
+
+
+def _generate(scene, scene_file, out, **kw):
+    return generate_dataset(scene, N, out, seed=SEED, scene_toml=scene_file.read_text(), **kw)
+
+
+@pytest.fixture(scope="module")
+def reference(scene, scene_file, tmp_path_factory):
+    """The uninterrupted one-worker run every other run is compared with."""
+    run = _generate(scene, scene_file, tmp_path_factory.mktemp("ds_ref") / "ref", workers=1)
+    return run, open_records(run.path)
+
+
+def test_records_follow_the_contract(reference):
+    run, rec = reference
+    assert len(rec) == N and run.groups_run == 3 and run.samples_resumed == 0
+    assert rec.schema.name == "dataset" and rec.schema.version == 1
+    shapes = {"xy": (N, 2), "force": (N, 3), "electrode_jitter": (N, 16, 2), "voltages": (N, 256), "dv": (N, 256),
+              "reference_clean": (N, 256), "com": (N, 3), "timings": (N, 5)}
+    for name, shape in shapes.items():
+        assert rec[name].shape == shape, name
+    assert rec["group"].dtype == np.int64 and rec["cluster_cells"].dtype == np.int32
+    assert "image" not in rec.fields
+    assert rec.provenance["params"]["scene"]["dataset"]["samples_per_press"] == K
+
+
+def test_labels_lie_in_the_requested_ranges(scene, reference):
+    _, rec = reference
+    d = scene.dataset
+    assert ((rec["radius"] >= d.radius[0]) & (rec["radius"] <= d.radius[1])).all()
+    assert (np.hypot(*rec["xy"].T) <= d.r_max).all()
+    assert ((rec["depth"] >= d.depth[0]) & (rec["depth"] <= d.depth[1])).all()
+    for name, (lo, hi) in (("membrane_scale", d.membrane_scale), ("conductivity", d.conductivity),
+                           ("contact_impedance", d.contact_impedance), ("snr_db", d.snr_db)):
+        assert ((rec[name] >= lo) & (rec[name] <= hi)).all(), name
+    jitter = np.linalg.norm(rec["electrode_jitter"], axis=2)
+    assert (jitter <= d.electrode_jitter).all() and jitter.max() > 0.3 * d.electrode_jitter
+    assert np.isinf(rec["target_modulus"]).all()  # rigid_fraction = 1
+    assert (rec["force"][:, 2] > 0).all() and (rec["displaced_volume"] > 0).all()
+
+
+def test_groups_are_consistent(reference):
+    """Records i of group i // K; a group's draw (target, centre, randomisation, reference) is
+    one; its depths are stratified: one in each third of the range, increasing."""
+    _, rec = reference
+    np.testing.assert_array_equal(rec["group"], np.arange(N) // K)
+    per_group = ("radius", "xy", "target_modulus", "membrane_scale", "conductivity", "contact_impedance",
+                 "electrode_jitter", "snr_db", "reference_clean")
+    for g in np.unique(rec["group"]):
+        sel = rec["group"] == g
+        for name in per_group:
+            assert (rec[name][sel] == rec[name][sel][0]).all(), (g, name)
+    assert not np.array_equal(rec["radius"][0], rec["radius"][K])
+    np.testing.assert_array_equal(rec["dv_clean"], rec["voltages_clean"] - rec["reference_clean"])
+    lo, hi = 0.3e-3, 1.5e-3
+    slot = np.floor((rec["depth"] - lo) / (hi - lo) * K)
+    np.testing.assert_array_equal(slot, np.arange(N) % K)
+
+
+def test_dv_and_force_grow_with_depth_within_a_group(reference):
+    _, rec = reference
+    rms = np.sqrt(np.mean(rec["dv_clean"] ** 2, axis=1))
+    for g in range(N // K):
+        sel = rec["group"] == g
+        assert (np.diff(rec["depth"][sel]) > 0).all()
+        assert (np.diff(rms[sel]) > 0).all(), rms[sel]
+        assert (np.diff(rec["force"][sel, 2]) > 0).all()
+        assert (np.diff(rec["displaced_volume"][sel]) > 0).all()
+    # the noisy δV is the clean one plus the frame's and the averaged reference's noise
+    noise = rec["dv"] - rec["dv_clean"]
+    std = np.mean(np.abs(rec["reference_clean"]), axis=1) / 10 ** (rec["snr_db"] / 20)
+    ratio = noise.std(axis=1) / (std * np.sqrt(1 + 1 / 50))
+    assert (0.7 < ratio).all() and (ratio < 1.3).all(), ratio
+
+
+def test_the_image_locates_the_press(reference):
+    """The nominal instrument's image puts the CoM of a press on the side of its contact."""
+    _, rec = reference
+    deepest = np.arange(N) % K == K - 1
+    xy, com = rec["xy"][deepest], rec["com"][deepest, :2]
+    assert (np.einsum("ij,ij->i", xy, com) > 0).all(), (xy, com)
+
+
+def test_worker_count_does_not_change_the_data(scene, scene_file, reference, tmp_path):
+    run = _generate(scene, scene_file, tmp_path / "two", workers=2)
+    assert run.data_sha256 == reference[0].data_sha256
+
+
+def test_dask_cluster_writes_the_same_data(scene, scene_file, reference, tmp_path):
+    """Two Dask worker processes write into one store: nothing lost, same data as one worker."""
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        run = _generate(scene, scene_file, tmp_path / "dask", scheduler=cluster.scheduler_address)
+    rec = open_records(run.path)
+    np.testing.assert_array_equal(rec["group"], np.arange(N) // K)
+    assert run.data_sha256 == reference[0].data_sha256
+
+
+def test_resume_after_kill_gives_the_uninterrupted_data(scene, scene_file, reference, tmp_path):
+    """`jointsim dataset` killed with SIGKILL (its workers too) once its first press is stored,
+    then run again: no sample lost or corrupt, the data of the uninterrupted run."""
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "jointsim", "dataset", str(scene_file), "--n", str(N), "--seed", str(SEED),
+           "--out", str(out), "--workers", "1", "--no-progress"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    records = out.with_suffix(".partial") / "records"
+    t0 = time.monotonic()
+    try:
+        while not list(records.rglob("r*.npz")):
+            assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+            assert time.monotonic() - t0 < 120, "no record stored within 2 min"
+            time.sleep(0.02)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)  # the process group this test started: the driver and its worker
+        proc.wait()
+    assert not out.with_suffix(".h5").exists()
+    stored = len(list(records.rglob("r*.npz")))
+    assert 1 <= stored < 3
+    run = _generate(scene, scene_file, out, workers=2)
+    assert run.samples_resumed == stored * K and run.groups_run == 3 - stored
+    assert run.data_sha256 == reference[0].data_sha256
+    assert not out.with_suffix(".partial").exists()
+
+
+def test_a_finished_file_is_not_recomputed(scene, scene_file, reference):
+    run = _generate(scene, scene_file, reference[0].path, workers=1)
+    assert run.groups_run == 0 and run.data_sha256 == reference[0].data_sha256
+    with pytest.raises(ValueError, match="other settings"):
+        generate_dataset(scene, N + 1, reference[0].path, seed=SEED)
+
+
+def test_draws_are_seeded_per_group():
+    from jointsim.scene import DatasetSpec
+
+    spec = DatasetSpec()
+    a, b = draw_group(spec, 0, 5), draw_group(spec, 0, 5)
+    assert a.radius == b.radius and np.array_equal(a.jitter, b.jitter) and np.array_equal(a.depths, b.depths)
+    assert draw_group(spec, 1, 5).radius != a.radius and draw_group(spec, 0, 6).radius != a.radius
+    assert draw_group(spec, 0, 5, attempt=1).radius != a.radius
+
+
+def test_schema_has_the_image_only_when_asked():
+    assert "image" not in dataset_schema(16, 256, None).names
+    s = dataset_schema(16, 256, 1234)
+    assert s["image"].shape == (1234,) and s["image"].dtype == "float32" and s["timings"].volatile
+
+
+@pytest.mark.parametrize(
+    "section, match",
+    [
+        ({"radius_mm": [15.0, 4.0]}, r"dataset\.radius_mm = \[15, 4\]: min must not exceed max"),
+        ({"diameter_mm": [-8.0, 30.0]}, r"dataset\.diameter_mm\[0\] = -8: must be in \(0, 200\]"),
+        ({"r_max_mm": 25.0}, r"dataset\.r_max_mm = 25: must be in \[0, 20\)"),
+        ({"depth_mm": [0.5, 12.0]}, r"dataset\.depth_mm\[1\] = 12: must be in \(0, 9\]"),
+        ({"snr_db": [40.0, 300.0]}, r"dataset\.snr_db\[1\] = 300: must be in \[0, 200\]"),
+        ({"membrane_scale": [2.0, 0.5]}, r"dataset\.membrane_scale = \[2, 0.5\]: min must not exceed max"),
+        ({"conductivity_s_per_m": [0.0, 0.4]}, r"dataset\.conductivity_s_per_m\[0\] = 0: must be in \(0, 100\]"),
+        ({"contact_impedance_ohm_m2": "high"}, r"dataset\.contact_impedance_ohm_m2 = 'high': must be \[min, max\]"),
+        ({"electrode_jitter_mm": 2.0}, r"dataset\.electrode_jitter_mm = 2: must be in \[0, 0.8\]"),
+        ({"samples_per_press": 0}, r"dataset\.samples_per_press = 0: must be an integer in \[1, 1000\]"),
+        ({"step_mm": 0.0}, r"dataset\.step_mm = 0: must be in \(0, 5\]"),
+        ({"rigid_fraction": 1.5}, r"dataset\.rigid_fraction = 1.5: must be in \[0, 1\]"),
+        ({"images": "yes"}, r"dataset\.images = 'yes': must be true or false"),
+        ({"radius_mm": [4, 8], "diameter_mm": [8, 16]}, r"give radius_mm or diameter_mm"),
+        ({"sample": 3}, r"unknown key\(s\) in \[dataset\]: sample"),
+    ],
+)
+def test_bad_sampling_ranges_are_rejected(section, match):
+    with pytest.raises(SceneError, match=match):
+        scene_from_dict({"dataset": section})
+
+
+def test_the_command_line_rejects_bad_input_with_exit_2(tmp_path, capsys):
+    from jointsim.cli.main import main
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[dataset]\nradius_mm = [15.0, 4.0]\n')
+    assert main(["dataset", str(bad), "--n", "3", "--out", str(tmp_path / "x")]) == 2
+    assert "dataset.radius_mm" in capsys.readouterr().err
+    assert main(["dataset", str(bad.with_name("none.toml")), "--n", "0"]) == 2
