@@ -1,0 +1,404 @@
+"""Soft (hyperelastic) spherical targets: a neo-Hookean sphere of radius R and Young's modulus
+E pressed onto the dome membrane, both bodies solved together in one Newton system.
+
+Only the sphere's lower hemisphere is meshed: P2 tetrahedra from a graded grid of the half
+cube [−1, 1]² × [−1, 0] mapped radially onto the half ball (p ↦ R p ‖p‖∞/‖p‖₂), cells of
+``mesh_size`` at the lowest point (where it touches) growing by ``growth`` per cell. The cut
+face (the equatorial disc) is bonded to the stage: it moves rigidly with the prescribed
+centre. The target's unknowns are its displacements in a frame that moves with the centre,
+so the bonded face's are zero and a new pose only moves the frame.
+
+Material (small-strain Lamé parameters of the compressible neo-Hookean law in materials.py):
+μ = E / (2(1 + ν)), κ = E / (3(1 − 2ν)). Contact between the membrane's outer surface (slave
+nodes) and the sphere's surface (master triangles): :mod:`.surface_contact`, with the rigid
+case's penalty stiffness. The coupled Hessian lies on the union of both meshes' P2 patterns
+and the contact candidates' couplings; the solver's symbolic analysis is redone only when the
+candidates leave that pattern (:class:`CoupledTerms`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..geometry import DomeSurface
+from ..mesh.tetmesh import TetMesh
+from .contact import nodal_areas
+from .dome import ECOFLEX_00_50, MembraneModel, MembraneState, _peak_green_strain
+from .fem import ElasticTerm, P2Mesh
+from .materials import Material
+from .newton import NewtonError, NewtonSystem, minimize_energy
+from .pressure import linear_subtriangles
+from .surface_contact import SurfaceContact
+
+__all__ = ["soft_material", "hemisphere_mesh", "SoftSphere", "CoupledTerms", "SoftTargetModel", "SYLGARD_184"]
+
+
+def soft_material(youngs_modulus: float, poisson_ratio: float = 0.49) -> Material:
+    """Neo-Hookean material with small-strain Young's modulus ``youngs_modulus`` (Pa) and
+    Poisson ratio ``poisson_ratio`` (in [0, 0.5))."""
+    if not (np.isfinite(youngs_modulus) and youngs_modulus > 0):
+        raise ValueError(f"target youngs_modulus = {youngs_modulus}: must be > 0 Pa")
+    if not (np.isfinite(poisson_ratio) and 0 <= poisson_ratio < 0.5):
+        raise ValueError(f"target poisson_ratio = {poisson_ratio}: must be in [0, 0.5) (0.5 is incompressible: use 0.49-0.499)")
+    mu = youngs_modulus / (2 * (1 + poisson_ratio))
+    return Material.neo_hookean(mu, bulk_ratio=2 * (1 + poisson_ratio) / (3 * (1 - 2 * poisson_ratio)))
+
+
+SYLGARD_184 = soft_material(1.5e6)  # DESIGN.md: E ~ 0.6-3 MPa
+
+
+def hemisphere_mesh(radius: float, mesh_size: float, growth: float = 1.35, core: float = 0.1) -> tuple[TetMesh, int]:
+    """Linear tetrahedra of the half shell core·R ≤ ‖x‖ ≤ R, z ≤ 0, centred at the origin:
+    the lower hemisphere triangulated as an isotropic cap graded from ``mesh_size`` (m) at the
+    lowest point (0, 0, −R) to ≈ 8× that (at most R/2) at the equator, copied onto concentric spheres whose
+    spacing starts at ``mesh_size`` below the surface and grows by ``growth`` per layer (at
+    most a third of the radius), and
+    the prisms between consecutive copies split into tetrahedra (as the membrane's).
+    Returns the mesh and n, the vertices per sphere (layer l's copy of vertex i is l·n + i;
+    layer 0 is the outer surface)."""
+    from ..geometry import isotropic_cap
+    from .dome import _split_prisms
+
+    if radius <= 0:
+        raise ValueError(f"radius = {radius}: must be > 0 m")
+    if not 0 < mesh_size <= radius / 4:
+        raise ValueError(f"mesh_size = {mesh_size}: must be in (0, radius / 4 = {radius / 4:.3g}] m")
+    if not 1 <= growth <= 3:
+        raise ValueError(f"growth = {growth}: must be in [1, 3]")
+    if not 0 < core < 1:
+        raise ValueError(f"core = {core}: must be in (0, 1)")
+    rim_edge = min(8 * mesh_size, radius / 2)
+    n_rim = max(16, 16 * int(round(2 * np.pi * radius / (16 * rim_edge))))
+    cap = isotropic_cap(radius, radius, n_rim, apex_edge=mesh_size)
+    v = np.asarray(cap.vertices, float) * np.array([1.0, 1.0, -1.0])  # apex down, centre at 0
+    v *= radius / np.linalg.norm(v, axis=1, keepdims=True)  # exactly on the sphere
+    f = np.asarray(cap.faces)
+    r, t = [radius], mesh_size
+    while r[-1] - min(t, r[-1] / 3) > core * radius + 0.5 * min(t, r[-1] / 3):
+        r.append(r[-1] - min(t, r[-1] / 3))  # each sphere ≥ 2/3 of the last: no tapered slivers
+        t *= growth
+    r.append(core * radius)
+    n = len(v)
+    nodes = np.vstack([v * (rl / radius) for rl in r])
+    # _split_prisms wants the lower-index triangle first: layer l (outer) before l + 1
+    tets = np.vstack([_split_prisms(l * n + f, (l + 1) * n + f) for l in range(len(r) - 1)])
+    return TetMesh(nodes, tets).oriented(), n
+
+
+class SoftSphere:
+    """The meshed lower half of a soft sphere, centred at the origin of its own frame
+    (:func:`hemisphere_mesh`): ``mesh`` (P2), ``elastic`` (its energy term), ``fixed`` (n, 3)
+    (bonded to the stage: the equatorial cut face and the rigid core of radius core·R, which
+    the deformation at small depth hardly reaches) and its spherical surface: ``tris`` (k, 3)
+    linear triangles (outward), ``nodes`` with area ``weights``."""
+
+    def __init__(self, radius: float, material: Material, mesh_size: float, growth: float = 1.35, core: float = 0.1, device: str = "cpu"):
+        self.radius = float(radius)
+        self.material = material
+        lin, n = hemisphere_mesh(radius, mesh_size, growth, core)
+        self.mesh = P2Mesh.from_linear(lin)
+        self.elastic = ElasticTerm(self.mesh, material, device=device)
+        X = self.mesh.nodes
+        rr = np.linalg.norm(X, axis=1)
+        self.fixed = np.zeros_like(X, bool)
+        self.fixed[(np.abs(X[:, 2]) < 1e-9 * radius) | (rr < core * radius * (1 + 1e-9))] = True
+        bf = self.mesh.boundary_faces
+        on_surface = np.all(bf[:, :3] < n, axis=1)  # every corner on layer 0, the sphere
+        self.tris = linear_subtriangles(bf[on_surface])
+        self.nodes, self.weights = nodal_areas(X, self.tris)
+
+
+class CoupledTerms:
+    """One energy term over the unknowns of several bodies: ``blocks`` [(first node, term,
+    (indptr, indices) of the term's own Hessian pattern)], each term evaluated on its rows of
+    u, plus ``contacts`` (:class:`SurfaceContact`) over all of them. The Hessian comes back on
+    one fixed pattern, the union of the blocks' and the contact candidates' couplings
+    (``indptr``, ``indices``), which changes only in :meth:`refresh`."""
+
+    def __init__(self, n_nodes: int, blocks: list[tuple[int, object, tuple[np.ndarray, np.ndarray]]], contacts: list[SurfaceContact]):
+        self.n = 3 * n_nodes
+        self.blocks = [(int(o), t, int(len(p[0]) - 1) // 3) for o, t, p in blocks]
+        rows, cols = [], []
+        for o, _, (indptr, indices) in blocks:
+            rows.append(np.repeat(np.arange(len(indptr) - 1, dtype=np.int64), np.diff(indptr)) + 3 * o)
+            cols.append(np.asarray(indices, np.int64) + 3 * o)
+        self._base = self._pattern(np.concatenate(rows), np.concatenate(cols))
+        self.contacts = contacts
+        self._set_pattern(self._base)
+        self.rebuilds = 0
+
+    def _pattern(self, rows, cols) -> sp.csr_matrix:
+        P = sp.csr_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(self.n, self.n))
+        P.sum_duplicates()
+        P.sort_indices()
+        return P
+
+    def _set_pattern(self, P: sp.csr_matrix) -> None:
+        P.sort_indices()
+        self.indptr = P.indptr.astype(np.int64)
+        self.indices = P.indices.astype(np.int32)
+        rows = np.repeat(np.arange(self.n, dtype=np.int64), np.diff(self.indptr))
+        self.keys = rows * self.n + self.indices
+        self._slots: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def _coupling_dofs(self):
+        r, c = [], []
+        for ct in self.contacts:
+            a, b = ct.couplings()
+            r.append(a)
+            c.append(b)
+        a, b = np.concatenate(r), np.concatenate(c)
+        rows = (3 * a[:, None, None] + np.arange(3)[:, None] + 0 * np.arange(3)).ravel()
+        cols = (3 * b[:, None, None] + 0 * np.arange(3)[:, None] + np.arange(3)).ravel()
+        return rows, cols
+
+    def refresh(self, u: np.ndarray) -> bool:
+        """Update the contacts' candidates at ``u`` (n, 3); True when the pattern had to change
+        (then rebuild the solver's analysis on ``indptr``, ``indices``)."""
+        for ct in self.contacts:
+            ct.update_candidates(u)
+        rows, cols = self._coupling_dofs()
+        if self._find(rows * self.n + cols) is not None:
+            return False
+        C = self._pattern(rows, cols)
+        self._set_pattern(((self._base + C) != 0).astype(np.int8).tocsr())
+        self.rebuilds += 1
+        return True
+
+    def _find(self, k: np.ndarray) -> np.ndarray | None:
+        """Positions of keys ``k`` in the pattern, or None when any is missing."""
+        if len(k) == 0:
+            return np.zeros(0, np.int64)
+        pos = np.minimum(np.searchsorted(self.keys, k), len(self.keys) - 1)
+        return pos if np.array_equal(self.keys[pos], k) else None
+
+    def _place(self, H: sp.spmatrix, offset: int, cache_key: int | None) -> tuple[np.ndarray, np.ndarray]:
+        """(slots, values) of the block matrix ``H`` placed at node ``offset`` in the pattern."""
+        H = sp.csr_matrix(H)
+        hit = self._slots.get(cache_key) if cache_key is not None else None
+        if hit is not None and np.array_equal(hit[0], H.indptr) and np.array_equal(hit[1], H.indices):
+            return hit[2], H.data
+        rows = np.repeat(np.arange(H.shape[0], dtype=np.int64), np.diff(H.indptr)) + 3 * offset
+        slot = self._find(rows * self.n + H.indices.astype(np.int64) + 3 * offset)
+        if slot is None:
+            raise ValueError("a Hessian term has entries outside the coupled pattern (refresh the contacts)")
+        if cache_key is not None:
+            self._slots[cache_key] = (H.indptr.copy(), H.indices.copy(), slot)
+        return slot, H.data
+
+    def _matrix(self, parts) -> sp.csr_matrix:
+        data = np.zeros(len(self.indices))
+        for slot, vals in parts:  # canonical CSR blocks: each slot once per part
+            data[slot] += vals
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+
+    def evaluate(self, u: np.ndarray, hessian: bool):
+        """(energy, gradient (3n,), Hessian on the pattern or None, admissible)."""
+        E, g, parts = 0.0, np.zeros(self.n), []
+        for i, (o, term, m) in enumerate(self.blocks):
+            e, gb, Hb, ok = term.evaluate(u[o : o + m], hessian)
+            if not ok:
+                return np.inf, np.zeros(self.n), None, False
+            E += e
+            g[3 * o : 3 * (o + m)] += gb
+            if hessian and Hb is not None and Hb.nnz:
+                parts.append(self._place(Hb, o, i))
+        for ct in self.contacts:
+            e, gc, Hc, _ = ct.evaluate(u, hessian)
+            E += e
+            g += gc
+            if hessian and Hc is not None and Hc.nnz:
+                parts.append(self._place(Hc, 0, None))
+        return E, g, (self._matrix(parts) if hessian else None), True
+
+    def projected_hessian(self, u: np.ndarray) -> sp.csr_matrix:
+        """Each term's SPD-projected Hessian (after :meth:`evaluate` at the same ``u``)."""
+        parts = []
+        for i, (o, term, m) in enumerate(self.blocks):
+            ub = u[o : o + m]
+            Hb = term.projected_hessian(ub) if hasattr(term, "projected_hessian") else term.evaluate(ub, True)[2]
+            if Hb is not None and Hb.nnz:
+                parts.append(self._place(Hb, o, i))
+        for ct in self.contacts:
+            Hc = ct.projected_hessian(u)
+            if Hc is not None and Hc.nnz:
+                parts.append(self._place(Hc, 0, None))
+        return self._matrix(parts)
+
+
+class _MembranePressure:
+    """The saline pressure term seen through the coupled unknowns (the membrane's rows)."""
+
+    def __init__(self, term, n_membrane: int):
+        self.term, self.n = term, n_membrane
+
+    @property
+    def pressure(self) -> float:
+        return self.term.pressure
+
+    @pressure.setter
+    def pressure(self, p: float) -> None:
+        self.term.pressure = float(p)
+
+    def volume(self, u: np.ndarray) -> float:
+        return self.term.volume(u[: self.n])
+
+
+class _TargetContact:
+    """The membrane–target contact with the interface of the rigid :class:`SphereContact`
+    (``nodes``, ``radius``, ``centre``, ``force``, ``contact_area``, ``penetration``), so the
+    membrane model's pose logic serves both."""
+
+    def __init__(self, X_membrane, nodes, weights, stiffness, target: SoftSphere, margin: float):
+        self.n_membrane = len(X_membrane)
+        self.target = target
+        self.radius = target.radius
+        self.nodes = np.asarray(nodes)
+        self.weights = np.asarray(weights)
+        self.stiffness = float(stiffness)
+        self._Xm = np.asarray(X_membrane, float)
+        self._t_nodes = self.n_membrane + np.arange(target.mesh.n_nodes)
+        self.surface = SurfaceContact(
+            self._world(np.array([0.0, 0.0, 1e3])), self.nodes, self.weights, self.n_membrane + target.tris, stiffness, margin
+        )
+        self._centre = np.array([0.0, 0.0, 1e3])
+
+    def _world(self, centre):
+        return np.vstack([self._Xm, self.target.mesh.nodes + centre])
+
+    @property
+    def X(self) -> np.ndarray:
+        return self.surface.X
+
+    @property
+    def centre(self) -> np.ndarray:
+        return self._centre
+
+    @centre.setter
+    def centre(self, c) -> None:
+        self._centre = np.array(c, float)
+        self.surface.X = self._world(self._centre)
+
+    def force(self, u: np.ndarray) -> np.ndarray:
+        """Total force (3,) N that the membrane exerts on the target."""
+        return self.surface.force_on(u, self._t_nodes)
+
+    def contact_area(self, u: np.ndarray) -> float:
+        return self.surface.contact_area(u)
+
+    def penetration(self, u: np.ndarray) -> float:
+        return self.surface.penetration(u)
+
+
+class SoftTargetModel(MembraneModel):
+    """:class:`MembraneModel` pressed by a soft sphere (``target_material``, radius
+    ``target_radius``) instead of a rigid one; same poses, same state. The unknowns ``u`` are
+    the membrane's P2 nodes followed by the target's (in the target's moving frame);
+    :attr:`target` is the :class:`SoftSphere`. ``target_mesh_size`` (m): the target's cell
+    size at its lowest point (default: half the membrane's edge, at most R/8);
+    ``contact_margin`` (m): slave nodes within it of the target are contact candidates."""
+
+    def __init__(
+        self,
+        dome: DomeSurface,
+        thickness: float = 2e-3,
+        material: Material = ECOFLEX_00_50,
+        layers: int = 2,
+        pressure: float = 0.0,
+        target_radius: float = 7.5e-3,
+        target_material: Material | None = None,
+        target_mesh_size: float | None = None,
+        target_growth: float = 1.35,
+        target_core: float = 0.1,
+        penalty: float | None = None,
+        force_tol: float | None = None,
+        friction: float = 0.0,
+        closed: bool = False,
+        contact_margin: float = 1e-3,
+    ):
+        if friction != 0.0:
+            raise ValueError(f"friction = {friction}: friction against a soft target is not modelled (use 0)")
+        super().__init__(dome, thickness, material, layers, pressure, target_radius, penalty, force_tol, 0.0, closed)
+        edge = float(np.median(np.linalg.norm(dome.vertices[dome.faces[:, 1]] - dome.vertices[dome.faces[:, 0]], axis=1)))
+        h = target_mesh_size if target_mesh_size is not None else min(0.5 * edge, target_radius / 8)
+        self.target = SoftSphere(target_radius, target_material if target_material is not None else SYLGARD_184, h, target_growth, target_core)
+        nm = self.mesh.n_nodes
+        self.n_membrane = nm
+        rigid = self.contact
+        self.contact = _TargetContact(self.mesh.nodes, rigid.nodes, rigid.weights, rigid.stiffness, self.target, contact_margin)
+        self.contact.centre = rigid.centre
+        self._membrane_pressure = self.pressure
+        self.pressure = _MembranePressure(self._membrane_pressure, nm)
+        self.coupled = CoupledTerms(
+            nm + self.target.mesh.n_nodes,
+            [(0, self.elastic, self.mesh.sparsity[:2]), (0, self._membrane_pressure, self.mesh.sparsity[:2]),
+             (nm, self.target.elastic, self.target.mesh.sparsity[:2])],
+            [self.contact.surface],
+        )
+        self.fixed = np.vstack([self.fixed, self.target.fixed])
+        self.u = np.vstack([self.u, np.zeros((self.target.mesh.n_nodes, 3))])
+        self.system.free_factors()
+        self.system = None
+        self.pattern_rebuilds = 0
+
+    @property
+    def terms(self) -> list:
+        return [self.coupled]
+
+    def _system(self, guess: np.ndarray) -> None:
+        """Contact candidates at ``guess``; a new solver analysis when they leave the pattern."""
+        if self.coupled.refresh(guess) or self.system is None:
+            if self.system is not None:
+                self.system.free_factors()
+            self.system = NewtonSystem(self.coupled.indptr, self.coupled.indices, ~self.fixed.ravel())
+            self.pattern_rebuilds += 1
+
+    def _newton(self, guess: np.ndarray):
+        kw = dict(rtol=0.0, atol=self.force_tol)
+        for _ in range(4):
+            self._system(guess)
+            try:
+                res = minimize_energy(self.terms, guess, self.fixed, system=self.system, **kw)
+            except NewtonError:
+                # the extrapolation may have overshot: start from the last equilibrium
+                self._system(self.u)
+                res = minimize_energy(self.terms, self.u, self.fixed, system=self.system, **kw)
+            if self.contact.surface.covers(res.u):
+                return res
+            guess = res.u  # a slave's closest triangle left its candidates: solve again
+        raise NewtonError("soft target: the contact pairs did not settle in 4 solves")
+
+    def _extrapolate(self, centre: np.ndarray) -> np.ndarray:
+        """The secant predictor of both bodies (see :meth:`MembraneModel._extrapolate`)."""
+        if len(self._history) < 2:
+            return self.u
+        (c0, u0), (c1, u1) = self._history
+        step = np.linalg.norm(c1 - c0)
+        if step == 0:
+            return self.u
+        guess = u1 + float(np.dot(centre - c1, c1 - c0) / step**2) * (u1 - u0)
+        return guess if self.coupled.evaluate(guess, False)[3] else self.u
+
+    def state(self, iterations: int = 0, residual: float = 0.0) -> MembraneState:
+        """The membrane's state as for a rigid target (``u``: the membrane's rows); ``force``
+        is the membrane's push on the target and ``min_jacobian`` covers both bodies."""
+        u = self.u
+        nm = self.n_membrane
+        um = u[:nm]
+        n = self.n_surface
+        dome = DomeSurface(self.dome.vertices + um[:n], self.dome.faces, self.dome.rim)
+        jm = self.elastic.kernel(um, hessian=False).min_det.min()
+        jt = self.target.elastic.kernel(u[nm:], hessian=False).min_det.min()
+        return MembraneState(
+            dome=dome,
+            u=um.copy(),
+            force=self.contact.force(u),
+            contact_area=self.contact.contact_area(u),
+            displaced_volume=self.V0 - self.pressure.volume(u),
+            peak_strain=_peak_green_strain(self.mesh, um),
+            iterations=iterations,
+            residual=residual,
+            penetration=self.contact.penetration(u),
+            pressure=self.pressure.pressure,
+            min_jacobian=float(min(jm, jt)),
+        )
