@@ -15,7 +15,7 @@ import pytest
 
 from jointsim.calibration import (SceneMismatchError, Settings, calibrate, load_map, load_samples, save_map,
                                   scene_from_provenance, sensor_fingerprint, split_groups)
-from jointsim.calibration.curves import LevelCurves, Monotone, fit_level_curves, value_at
+from jointsim.calibration.curves import Monotone, fit_level_curves, value_at
 from jointsim.calibration.regression import fit_regressor
 from jointsim.calibration.synthetic import DATASET_SCHEMA, synthetic_com, write_synthetic_dataset
 from jointsim.cli.main import main
@@ -126,8 +126,6 @@ def test_calibration_recovers_the_known_transforms(built):
 
 
 def test_direct_regression_learns_and_evaluates_as_sklearn_does(stores):
-    from sklearn.neural_network import MLPRegressor  # noqa: F401 - the model the arrays come from
-
     s = load_samples(stores["rigid"])
     from jointsim.calibration.data import voltage_features
     from jointsim.calibration.regression import regression_targets
@@ -142,7 +140,6 @@ def test_direct_regression_learns_and_evaluates_as_sklearn_does(stores):
         # better than predicting the training mean for depth (the strongest voltage signal)
         assert np.median(err[:, 2]) < 0.7 * np.median(base[:, 2]), kind
     # the NumPy forward pass is scikit-learn's own prediction (refit-free evaluation)
-    from sklearn.decomposition import PCA
     from sklearn.neural_network import MLPRegressor
 
     reg = fit_regressor(X[tr], T[tr], s.group[tr], kind="mlp", seed=0)
@@ -151,7 +148,6 @@ def test_direct_regression_learns_and_evaluates_as_sklearn_does(stores):
     m.fit(Z[:5], np.zeros((5, T.shape[1])))  # shapes only; then the fitted weights
     m.coefs_, m.intercepts_ = list(reg.weights), list(reg.biases)
     np.testing.assert_allclose(m.predict(Z) * reg.y_scale + reg.y_mean, reg(X[te]), rtol=1e-12, atol=1e-15)
-    del PCA
 
 
 def test_stiffness_of_rigid_targets_is_said_to_be_not_estimable(stores):
@@ -247,7 +243,6 @@ def test_bad_datasets_get_clear_errors(tmp_path, stores):
     # a dataset store without the image metrics
     keep = tuple(f for f in DATASET_SCHEMA.fields if f.name not in ("com", "sum_sigma"))
     lean = Schema(keep, name="dataset", version=1)
-    full = load_samples(stores["rigid"])
     rec = {f.name: np.zeros(f.shape, f.dtype) for f in keep}
     path = _store(tmp_path / "lean.h5", lean, [rec])
     with pytest.raises(ValueError, match=r"missing field\(s\) \['com', 'sum_sigma'\]"):
@@ -256,7 +251,6 @@ def test_bad_datasets_get_clear_errors(tmp_path, stores):
     small = write_synthetic_dataset(tmp_path / "small.h5", SCENE.read_text(), n_groups=4, seed=0)
     with pytest.raises(ValueError, match="4 press group"):
         calibrate(load_samples(small), progress=lambda s: None)
-    del full
 
 
 # -- command line ------------------------------------------------------------------------------

@@ -132,7 +132,8 @@ def load_samples(path: str | Path) -> Samples:
     f = {k: np.asarray(rec[k]) for k in REQUIRED}
     n = len(f["group"])
     _check_shapes(f, n)
-    source = {"path": str(path), "data_sha256": rec.data_sha256, "n_records": n, "seed": rec.provenance.get("seed")}
+    source = {"path": str(path), "data_sha256": rec.data_sha256, "n_records": n, "seed": rec.provenance.get("seed"),
+              "synthetic": bool((rec.provenance.get("params") or {}).get("synthetic", False))}
     return Samples(
         group=f["group"].astype(np.int64), radius=f["radius"].astype(float), xy=f["xy"].astype(float),
         depth=f["depth"].astype(float), modulus=f["target_modulus"].astype(float), force=f["force"].astype(float),

@@ -148,6 +148,8 @@ def _markdown(cal: Calibration, command: str, files: list[str]) -> str:
     src = m.source
     L = [
         "# Calibration report", "",
+        *(["**SYNTHETIC dataset** (jointsim.calibration.synthetic: measurements are known functions of the labels, "
+            "no physics simulated): these numbers say nothing about the sensor.", ""] if src.get("synthetic") else []),
         f"Command: `{command}`", "",
         f"Dataset: `{src.get('path')}`, {src.get('n_records')} samples (data_sha256 `{str(src.get('data_sha256'))[:16]}…`); "
         f"{sp['train_presses']} presses ({sp['train_samples']} samples) fitted, {sp['test_presses']} presses "
@@ -174,7 +176,7 @@ def _markdown(cal: Calibration, command: str, files: list[str]) -> str:
           "## Size curves (target diameter)", "",
           f"Levels: depth {', '.join(f'{d * 1e3:.3g}' for d in ev['size_levels']['depth_m'])} mm; force "
           f"{', '.join(f'{f * 1e3:.3g}' for f in ev['size_levels']['force_n'])} mN. Per frame, each route blends the "
-          "inverse curves of the two levels around the frame's calibrated depth (CoM map) or |force|.", "",
+          "curves of the two levels around the frame's calibrated depth (CoM map) or |force| and inverts the blend.", "",
           "| route | frames covered | median (mm) | P95 (mm) | median, 8–30 mm, goal band |", "|---|---|---|---|---|"]
     for k, r in ev["size_per_frame"].items():
         L.append(f"| {k}{' (used)' if k == ev['size_route'] else ''} | {r['covered']:.0%} | {_fmt(r['all']['median'])} | "

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import shlex
-import sys
 from pathlib import Path
 
 HELP = "build calibration maps (size, CoM, direct regression, stiffness) from a dataset, evaluated on held-out presses"
@@ -41,6 +40,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-com-points", type=int, default=3000, help="CoM map points fitted at most (default 3000)")
 
 
+def _command(args: argparse.Namespace) -> str:
+    """The command line that reproduces this run (every setting spelled out)."""
+    parts = ["jointsim calibrate", str(args.dataset), "--out", str(args.out), "--test-fraction", f"{args.test_fraction:g}",
+             "--seed", str(args.seed), "--regressor", args.regressor, "--goal-snr", f"{args.goal_snr:g}",
+             "--snr-band", f"{args.snr_band:g}", "--max-com-points", str(args.max_com_points)]
+    parts += [f"--depths {args.depths}"] if args.depths else []
+    parts += [f"--forces {args.forces}"] if args.forces else []
+    return " ".join(shlex.quote(p) if " " not in p else p for p in parts)
+
+
 def run(args: argparse.Namespace) -> int:
     from ..calibration import Settings, calibrate, load_samples, save_map
     from ..calibration.report import write_report
@@ -56,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
         force_levels=_levels(args.forces, "--forces", 1.0), regressor=args.regressor, goal_snr_db=args.goal_snr,
         snr_band_db=args.snr_band, max_com_points=args.max_com_points,
     )
-    command = "jointsim calibrate " + " ".join(shlex.quote(a) for a in (sys.argv[2:] if sys.argv[1:2] == ["calibrate"] else []))
+    command = _command(args)
     samples = load_samples(args.dataset)
     print(f"jointsim calibrate: {args.dataset}, {len(samples)} samples of {len(set(samples.group.tolist()))} presses -> {args.out}")
     cal = calibrate(samples, settings, progress=lambda s: print(f"  {s}", flush=True))
