@@ -101,12 +101,15 @@ class Membrane:
 
 @dataclass(frozen=True)
 class Target:
-    """The pressing object: a rigid sphere of ``radius`` (m) with Coulomb ``friction``
-    coefficient against the membrane (0: frictionless)."""
+    """The pressing object: a sphere of ``radius`` (m), ``kind`` "rigid" or "soft" (a
+    neo-Hookean sphere of ``youngs_modulus`` Pa and ``poisson_ratio``, ignored when rigid),
+    with Coulomb ``friction`` coefficient against the membrane (0: frictionless; rigid only)."""
 
     radius: float = 7.5 * MM
     kind: str = "rigid"
     friction: float = 0.0
+    youngs_modulus: float = 1.5e6  # DESIGN.md: Sylgard 184, E ~ 0.6-3 MPa
+    poisson_ratio: float = 0.49
 
 
 @dataclass(frozen=True)
@@ -384,12 +387,16 @@ def _target(data: dict[str, Any], base_r: float) -> Target:
     else:
         radius = t.number("radius_mm", 7.5, 0.0, 5 * base_r, lo_open=True)
     kind = t.raw("kind", "rigid")
-    if kind != "rigid":
-        # a deformable (hyperelastic) target needs deformable-deformable contact, not built yet
-        raise SceneError(f"target.kind = {kind!r}: only 'rigid' targets are available in this version")
+    if kind not in ("rigid", "soft"):
+        raise SceneError(f"target.kind = {kind!r}: allowed values are 'rigid', 'soft'")
     friction = t.number("friction", 0.0, 0.0, 2.0)
+    # soft targets: Sylgard 184 ~0.6-3 MPa, tumour-like inclusions ~10-100 kPa (DESIGN.md)
+    modulus = t.number("youngs_modulus_kpa", 1500.0, 0.0, 1e6, lo_open=True)
+    poisson = t.number("poisson_ratio", 0.49, 0.0, 0.5, hi_open=True)
+    if kind == "soft" and friction != 0.0:
+        raise SceneError(f"target.friction = {friction:g}: must be 0 for a soft target (friction against a soft target is not modelled)")
     t.finish()
-    return Target(radius * MM, kind, friction)
+    return Target(radius * MM, kind, friction, modulus * 1e3, poisson)
 
 
 def load_scene(path: str | Path) -> Scene:

@@ -1,6 +1,7 @@
-"""Force–indentation sweep of the dome membrane (hyperelastic FEM in Warp): a rigid spherical
-target comes down vertically at (x, y) in steps past first contact; writes the curve (CSV, PNG)
-and each step's deformed membrane (VTU) and inner chamber surface (npz) to --out."""
+"""Force–indentation sweep of the dome membrane (hyperelastic FEM in Warp): a spherical target
+(rigid, or soft as the scene's [target] says) comes down vertically at (x, y) in steps past
+first contact; writes the curve (CSV, PNG) and each step's deformed membrane (VTU) and inner
+chamber surface (npz) to --out."""
 
 from __future__ import annotations
 
@@ -95,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     w.writerows(rows)
     with atomic_path(out / "force_indentation.csv") as tmp:
         tmp.write_text(buf.getvalue())
-    _plot(out / "force_indentation.png", rows, radius)
+    _plot(out / "force_indentation.png", rows, radius, scene.target)
     with atomic_path(out / "indentation.json") as tmp:
         tmp.write_text(json.dumps({"jointsim": __version__, "scene": scene.to_dict(), "target_radius_mm": radius,
                                    "xy_mm": [args.x_mm, args.y_mm], "rim_vertices": scene.membrane.rim_vertices, "rows": rows}, indent=2, default=float))
@@ -106,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _plot(path: Path, rows: list[dict], radius: float) -> None:
+def _plot(path: Path, rows: list[dict], radius: float, target) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -120,7 +121,8 @@ def _plot(path: Path, rows: list[dict], radius: float) -> None:
     ax2 = ax.twinx()
     ax2.plot(d, [r["displaced_volume_mm3"] for r in rows], "s--", color="tab:blue")
     ax2.set_ylabel("displaced saline (mm³)", color="tab:blue")
-    ax.set_title(f"rigid sphere r = {radius:g} mm on the dome")
+    kind = f"soft sphere (E {target.youngs_modulus / 1e3:g} kPa)" if target.kind == "soft" else "rigid sphere"
+    ax.set_title(f"{kind} r = {radius:g} mm on the dome")
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=120)

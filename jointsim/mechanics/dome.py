@@ -158,10 +158,20 @@ class MembraneModel:
         return [self.elastic, self.pressure, self.contact] + ([self.friction] if self.friction else [])
 
     @classmethod
-    def from_scene(cls, scene, target_radius: float | None = None, dome: DomeSurface | None = None) -> "MembraneModel":
+    def from_scene(
+        cls,
+        scene,
+        target_radius: float | None = None,
+        dome: DomeSurface | None = None,
+        target_modulus: float | None = None,
+        target_poisson: float | None = None,
+    ) -> "MembraneModel":
         """The membrane of ``scene`` (its [membrane] and [target] sections and chamber); the
         target's radius may be overridden by ``target_radius`` m; ``dome`` defaults to the
-        scene's undeformed dome, meshed isotropically with [membrane] rim_vertices."""
+        scene's undeformed dome, meshed isotropically with [membrane] rim_vertices. A soft
+        target ([target] kind = "soft", or any ``target_modulus`` Pa given) gives a
+        :class:`~jointsim.mechanics.soft_target.SoftTargetModel` with that Young's modulus and
+        ``target_poisson`` (default the scene's)."""
         from ..geometry import isotropic_cap
 
         m = scene.membrane
@@ -170,15 +180,26 @@ class MembraneModel:
         else:
             material = Material.neo_hookean(m.shear_modulus, bulk_ratio=m.bulk_ratio)
         c = scene.chamber
+        t = scene.target
+        kw = {}
+        if target_modulus is not None or target_poisson is not None or t.kind == "soft":
+            from .soft_target import SoftTargetModel, soft_material
+
+            cls = SoftTargetModel
+            kw["target_material"] = soft_material(
+                t.youngs_modulus if target_modulus is None else target_modulus,
+                t.poisson_ratio if target_poisson is None else target_poisson,
+            )
         return cls(
             isotropic_cap(c.base_radius, c.dome_height, m.rim_vertices) if dome is None else dome,
             c.membrane_thickness,
             material,
             m.layers,
             m.reservoir_pressure,
-            scene.target.radius if target_radius is None else target_radius,
-            friction=scene.target.friction,
+            t.radius if target_radius is None else target_radius,
+            friction=t.friction,
             closed=m.chamber == "closed",
+            **kw,
         )
 
     def get_state(self) -> dict[str, np.ndarray]:
