@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import hashlib
+import json
 import multiprocessing
 import os
 import tempfile
@@ -139,7 +140,7 @@ _WORKER_LOCK = threading.Lock()
 
 def _worker(path: str, scene: Scene, seed: int) -> tuple[DatasetSetup, RecordStore]:
     """This process's set-up and store writer for the run at ``path``, built on first use."""
-    key = (path, seed)
+    key = (path, seed, scene.digest())
     if _WORKER.get("key") != key:
         if "setup" in _WORKER:
             _WORKER.pop("setup").free()
@@ -259,8 +260,12 @@ def generate_dataset(
     final, partial = _paths(out)
     if final.exists():
         rec = open_records(final, fields=["group"], verify=False)
-        if rec.provenance["schema"]["name"] != "dataset" or rec.provenance["n_records"] != n_samples \
-                or rec.provenance["seed"] != seed or rec.provenance["params"]["scene"].get("dataset") is None:
+        prov = rec.provenance
+        same = prov["schema"]["name"] == "dataset" and prov["n_records"] == n_samples and prov["seed"] == seed
+        if same:
+            want = dataset_params(scene, n_samples, prov["params"].get("chamber_sha256", ""))
+            same = json.loads(json.dumps(want)) == prov["params"]
+        if not same:
             raise ValueError(f"{final} holds a finished run with other settings; remove it or write to another path")
         return DatasetRun(final, n_samples, rec.data_sha256, 0, n_samples, 0, time.perf_counter() - t0)
 
