@@ -27,6 +27,8 @@ __all__ = ["Settings", "Calibration", "calibrate", "err_stats", "METRICS", "GOAL
 
 METRICS = {"depth": ("sum_sigma", "diameter", "rms_dv", "force"), "force": ("sum_sigma", "diameter", "rms_dv")}
 SENSING_RADIUS = 15e-3  # m: the CoM goal holds for contacts within the electrode ring
+MIN_JUDGED = {"modulus": 5}  # held-out presses for the modulus, samples for the rest (default 20) below which
+# a goal is not called met
 SIZE_RANGE = (8e-3, 30e-3)  # m: target diameters the size goal covers
 # the issue's goals at 74 dB: (name, quantity, statistic, limit in mm or as a fraction)
 GOALS = (
@@ -223,11 +225,16 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
              "size": frame_rows[route]["range_goal_band"], "modulus": ev["stiffness"].get("relative")}
     goals = []
     for name, q, stat, limit in GOALS:
-        v = value[q][stat] if value[q] is not None and value[q]["n"] else float("nan")
-        goals.append({"goal": name, "statistic": stat, "limit": limit, "value": v,
+        n = value[q]["n"] if value[q] is not None else 0
+        v = value[q][stat] if n else float("nan")
+        note = "" if np.isfinite(v) else ("not estimable: " + stiff.reason if q == "modulus" and not stiff.estimable
+                                          else "no held-out samples")
+        need = MIN_JUDGED.get(q, 20)
+        if np.isfinite(v) and n < need:
+            note = f"only {n} held-out {'presses' if q == 'modulus' else 'samples'} (< {need}): too few to judge"
+        goals.append({"goal": name, "statistic": stat, "limit": limit, "value": v, "n": int(n),
                       "unit": "" if q == "modulus" else "mm",
-                      "met": bool(np.isfinite(v) and v <= limit),
-                      "note": "" if np.isfinite(v) else ("not estimable: " + stiff.reason if q == "modulus" else "no held-out samples")})
+                      "met": bool(np.isfinite(v) and v <= limit and n >= need), "note": note})
     ev["goals"] = goals
 
     cmap = CalibrationMap(
