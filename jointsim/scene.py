@@ -578,9 +578,6 @@ def _dataset(data: dict[str, Any], base_r: float, height: float, ring: float, di
     snr = _range(t, "snr_db", d.snr_db, 0.0, 200.0)
     rigid = t.number("rigid_fraction", 1.0, 0.0, 1.0)
     modulus = _range(t, "target_modulus_kpa", (10.0, 3000.0), 0.0, 1e8, lo_open=True)
-    if rigid < 1:
-        # a deformable target needs deformable-deformable contact in jointsim.mechanics (not built yet)
-        raise SceneError(f"dataset.rigid_fraction = {rigid:g}: soft targets are not available in this version; must be 1")
     n_ref = t.integer("reference_frames", 50, 1, 100_000)
     images = t.raw("images", False)
     if not isinstance(images, bool):

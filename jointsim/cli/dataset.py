@@ -71,5 +71,7 @@ def run(args: argparse.Namespace) -> int:
         rate = (res.n_samples - res.samples_resumed) / res.wall_s * 3600
         print(f"  {res.groups_run} presses in {res.wall_s:.1f} s ({rate:.0f} samples/h), {res.rejected_draws} draw(s) "
               "rejected and redrawn")
+        for why in res.rejections[:3]:
+            print(f"    rejected: {why}")
     print(f"  wrote {res.path} (data_sha256 {res.data_sha256[:16]}...); command: {shlex.join(command)}")
     return 0

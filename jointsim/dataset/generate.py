@@ -203,17 +203,18 @@ class DatasetSetup:
 
     # -- one group -----------------------------------------------------------------------
 
-    def group(self, group: int, n_samples: int | None = None) -> tuple[list[dict[str, Any]], int]:
+    def group(self, group: int, n_samples: int | None = None) -> tuple[list[dict[str, Any]], list[str]]:
         """The records of ``group`` (its first ``n_samples``, default K) in depth order, and
-        the number of draws rejected before the one they come from."""
+        why each draw rejected before the one they come from failed."""
         k = self.spec.samples_per_press if n_samples is None else n_samples
         errors = []
         for attempt in range(MAX_ATTEMPTS):
             draw = draw_group(self.spec, self.seed, group, attempt, self.n_electrodes)
             try:
-                return self.press(draw, k), attempt
+                return self.press(draw, k), errors
             except (ValueError, NewtonError, MeshInversionError) as e:
-                errors.append(f"attempt {attempt}: {e}")
+                errors.append(f"group {group} attempt {attempt} (radius {draw.radius * 1e3:.2f} mm, xy {np.round(draw.xy * 1e3, 2).tolist()} mm, "
+                              f"target modulus {draw.modulus:.3g} Pa, membrane x{draw.membrane_scale:.2f}): {type(e).__name__}: {e}")
         raise ValueError(f"group {group}: no draw in {MAX_ATTEMPTS} could be pressed ({'; '.join(errors[-3:])}); "
                            "narrow [dataset] depth_mm, radius_mm or r_max_mm")
 
@@ -268,14 +269,16 @@ class DatasetSetup:
         return records
 
     def _membrane(self, draw: GroupDraw) -> MembraneModel:
-        """The membrane of ``draw``: moduli scaled, inflated by the reservoir, untouched."""
-        if math.isfinite(draw.modulus):
-            raise ValueError("soft targets are not available in this version (dataset.rigid_fraction must be 1)")
+        """The membrane of ``draw`` (moduli scaled, inflated by the reservoir, untouched) with
+        its target: rigid, or a neo-Hookean sphere of ``draw.modulus`` and the scene's Poisson
+        ratio solved together with the membrane."""
         m = self.scene.membrane
         s = draw.membrane_scale
         scaled = replace(self.scene, membrane=replace(m, shear_modulus=m.shear_modulus * s,
-                                                      yeoh_c=tuple(c * s for c in m.yeoh_c)))
-        return MembraneModel.from_scene(scaled, target_radius=draw.radius)
+                                                      yeoh_c=tuple(c * s for c in m.yeoh_c)),
+                         target=replace(self.scene.target, kind="rigid"))
+        soft = math.isfinite(draw.modulus)
+        return MembraneModel.from_scene(scaled, target_radius=draw.radius, target_modulus=draw.modulus if soft else None)
 
     def _patches(self, mesh, jitter: np.ndarray) -> list[ElectrodePatch]:
         """Electrode patches of ``mesh`` with the ring electrodes moved by ``jitter`` (n_el, 2)."""

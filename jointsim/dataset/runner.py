@@ -67,7 +67,7 @@ CHAMBER_FILE = "chamber.npz"
 class DatasetRun:
     """What :func:`generate_dataset` did: the finished ``path``, its ``n_samples`` and
     ``data_sha256``, the groups computed now (``groups_run``; 0 when the file was complete),
-    the samples found already stored, the draws rejected and redrawn, and the wall time s."""
+    the samples found already stored, the draws rejected and redrawn (and why), and the wall time s."""
 
     path: Path
     n_samples: int
@@ -76,6 +76,7 @@ class DatasetRun:
     samples_resumed: int
     rejected_draws: int
     wall_s: float
+    rejections: tuple[str, ...] = ()
 
 
 def default_workers() -> int:
@@ -152,8 +153,8 @@ def _worker(path: str, scene: Scene, seed: int) -> tuple[DatasetSetup, RecordSto
     return _WORKER["setup"], attach(_paths(path)[0], batch=scene.dataset.samples_per_press)
 
 
-def _run_group(path: str, scene: Scene, seed: int, group: int, n_samples: int) -> tuple[int, int, int, float]:
-    """Compute and store ``group`` (one record file); returns (group, samples, rejected draws, s)."""
+def _run_group(path: str, scene: Scene, seed: int, group: int, n_samples: int) -> tuple[int, int, list[str], float]:
+    """Compute and store ``group`` (one record file); returns (group, samples, why draws were rejected, s)."""
     with _WORKER_LOCK:  # one group at a time per process: the set-up is not thread-safe
         t0 = time.perf_counter()
         setup, store = _worker(path, scene, seed)
@@ -289,11 +290,10 @@ def generate_dataset(
     todo = np.unique(missing // k)
     if on_start is not None:
         on_start(n_samples - len(missing), len(missing))
-    rejected = 0
+    rejected: list[str] = []
 
-    def tick(result: tuple[int, int, int, float]) -> None:
-        nonlocal rejected
-        rejected += result[2]
+    def tick(result: tuple[int, int, list[str], float]) -> None:
+        rejected.extend(result[2])
         if progress is not None:
             progress(result[1])
 
@@ -305,6 +305,6 @@ def generate_dataset(
             _run_local(tasks, min(workers, len(tasks)), tick)
     store.finalize(compression="gzip")
     rec = open_records(final, fields=["group"], verify=False)
-    return DatasetRun(final, n_samples, rec.data_sha256, len(tasks), n_samples - len(missing), rejected,
-                      time.perf_counter() - t0)
+    return DatasetRun(final, n_samples, rec.data_sha256, len(tasks), n_samples - len(missing), len(rejected),
+                      time.perf_counter() - t0, tuple(rejected))
 
