@@ -103,6 +103,8 @@ class MembraneModel:
     """The membrane of a dome with its loads; call :meth:`press` for target poses in order
     (each solve warm-starts from the previous one)."""
 
+    TANGENT_PREDICTOR = True  # see _tangent_guess; a subclass with other unknowns turns it off
+
     def __init__(
         self,
         dome: DomeSurface,
@@ -214,7 +216,14 @@ class MembraneModel:
             "centre": self.contact.centre.copy(),
             "pressure": np.float64(self.pressure.pressure),
             "compliance": np.float64(np.nan if self._compliance is None else self._compliance),
+            # where the solver's factor (the next step's tangent predictor) was taken; (0, n, 3): none
+            "tangent_u": self._tangent_u(),
         }
+
+    def _tangent_u(self) -> np.ndarray:
+        s = self.system
+        ready = self.TANGENT_PREDICTOR and s is not None and s.tangent_ready and s.tangent_u is not None
+        return np.array(s.tangent_u, float)[None] if ready else np.zeros((0,) + self.u.shape)
 
     def set_state(self, state: dict[str, np.ndarray]) -> None:
         """Restore a :meth:`get_state` of a model built from the same scene and mesh."""
@@ -227,6 +236,11 @@ class MembraneModel:
         self.pressure.pressure = float(state["pressure"])
         c = float(state.get("compliance", np.nan))
         self._compliance = None if np.isnan(c) else c
+        tangent = np.asarray(state.get("tangent_u", np.zeros((0,) + u.shape)), float)
+        if self.TANGENT_PREDICTOR and len(tangent):
+            self.system.factor_tangent(self.terms, tangent[0])
+        elif self.system is not None:
+            self.system.tangent_ready = False
 
     def first_contact_height(self, xy: np.ndarray) -> float:
         """Centre height of the target coming down at ``xy`` when it touches the outer surface
@@ -273,8 +287,9 @@ class MembraneModel:
         u_start = self.u
         if self.friction is not None:
             self.friction.lag(u_start, old_centre)
+        guess = self._tangent_guess(old_centre, centre) if self.TANGENT_PREDICTOR else None
         self.contact.centre = centre
-        res = self._newton(self._extrapolate(centre))
+        res = self._newton(self._extrapolate(centre) if guess is None else guess)
         for _ in range(FRICTION_PASSES if self.friction is not None else 0):
             self.friction.lag(u_start, old_centre, u_normal=res.u)
             res = self._newton(res.u)
@@ -334,6 +349,25 @@ class MembraneModel:
             st = self.press(np.array([xy[0], xy[1], z1]))
             f1 = float(st.force[2])
         raise NewtonError(f"force control: {f1:.4g} N after {max_iter} depth updates, commanded {force:.4g} N")
+
+    def _tangent_guess(self, old_centre: np.ndarray, centre: np.ndarray) -> np.ndarray | None:
+        """The first-order response of the last equilibrium to the target moving from
+        ``old_centre`` to ``centre``: K du = −∂g/∂c · dc with the factor of the equilibrium's
+        tangent K still held by the solver (one solve, no factorisation). None when that factor
+        is not at hand or the guess inverts an element. Better than the secant once the contact
+        zone grows (measured on the 64-rim membrane, 0.5 mm steps to 3 mm: 4–9 Newton
+        iterations per step against 5–8, 41 factorisations per press against 47)."""
+        dc = np.asarray(centre, float) - old_centre
+        if not self.system.tangent_ready or not dc.any() or self.friction is not None:
+            return None
+        rhs = self.contact.centre_sensitivity(self.u, dc)
+        if not rhs.any():
+            return None
+        free = self.system.free
+        du = np.zeros(self.u.size)
+        du[free] = self.system.full.solve(rhs[free])
+        guess = self.u + du.reshape(self.u.shape)
+        return guess if self.elastic.evaluate(guess, False)[3] else None
 
     def _extrapolate(self, centre: np.ndarray) -> np.ndarray:
         """Initial guess for the target at ``centre``: the last equilibrium moved along the
