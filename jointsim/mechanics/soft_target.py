@@ -247,20 +247,27 @@ class _MembranePressure:
 class _TargetContact:
     """The membrane–target contact with the interface of the rigid :class:`SphereContact`
     (``nodes``, ``radius``, ``centre``, ``force``, ``contact_area``, ``penetration``), so the
-    membrane model's pose logic serves both."""
+    membrane model's pose logic serves both. ``slave`` "target": the target's surface nodes
+    against the membrane's outer triangles; "membrane": the reverse."""
 
-    def __init__(self, X_membrane, nodes, weights, stiffness, target: SoftSphere, margin: float):
-        self.n_membrane = len(X_membrane)
+    def __init__(self, X_membrane, nodes, weights, outer_tris, stiffness, target: SoftSphere, margin: float, slave: str = "target"):
+        if slave not in ("target", "membrane"):
+            raise ValueError(f"slave = {slave!r}: allowed values are 'target', 'membrane'")
+        self.n_membrane = nm = len(X_membrane)
         self.target = target
         self.radius = target.radius
-        self.nodes = np.asarray(nodes)
-        self.weights = np.asarray(weights)
+        self.nodes = np.asarray(nodes)  # the membrane's outer-surface nodes (first contact)
         self.stiffness = float(stiffness)
         self._Xm = np.asarray(X_membrane, float)
-        self._t_nodes = self.n_membrane + np.arange(target.mesh.n_nodes)
-        self.surface = SurfaceContact(
-            self._world(np.array([0.0, 0.0, 1e3])), self.nodes, self.weights, self.n_membrane + target.tris, stiffness, margin
-        )
+        self._t_nodes = nm + np.arange(target.mesh.n_nodes)
+        X0 = self._world(np.array([0.0, 0.0, 1e3]))
+        # the membrane's outer nodes against the target, for the contact area whichever side
+        # is the slave (as the rigid case measures it)
+        self._probe = SurfaceContact(X0, self.nodes, weights, nm + target.tris, stiffness, margin)
+        if slave == "target":
+            self.surface = SurfaceContact(X0, nm + target.nodes, target.weights, outer_tris, stiffness, margin)
+        else:
+            self.surface = self._probe
         self._centre = np.array([0.0, 0.0, 1e3])
 
     def _world(self, centre):
@@ -277,14 +284,20 @@ class _TargetContact:
     @centre.setter
     def centre(self, c) -> None:
         self._centre = np.array(c, float)
-        self.surface.X = self._world(self._centre)
+        self.surface.X = self._probe.X = self._world(self._centre)
 
     def force(self, u: np.ndarray) -> np.ndarray:
         """Total force (3,) N that the membrane exerts on the target."""
         return self.surface.force_on(u, self._t_nodes)
 
     def contact_area(self, u: np.ndarray) -> float:
-        return self.surface.contact_area(u)
+        """Area (m²) of the membrane's outer surface in contact: its nodes whose gap to the
+        target is below the largest penetration (the interpenetration's scale)."""
+        if self._probe is self.surface:
+            return self.surface.contact_area(u)
+        self._probe.update_candidates(u)
+        tri, _, _, gap = self._probe._choose(u, self._probe.cand_s, self._probe.cand_t)
+        return float(self._probe.weights[(tri >= 0) & (gap <= self.penetration(u))].sum())
 
     def penetration(self, u: np.ndarray) -> float:
         return self.surface.penetration(u)
@@ -296,7 +309,11 @@ class SoftTargetModel(MembraneModel):
     the membrane's P2 nodes followed by the target's (in the target's moving frame);
     :attr:`target` is the :class:`SoftSphere`. ``target_mesh_size`` (m): the target's cell
     size at its lowest point (default: half the membrane's edge, at most R/8);
-    ``contact_margin`` (m): slave nodes within it of the target are contact candidates."""
+    ``contact_margin`` (m): slave nodes within it of the other surface are contact candidates;
+    ``contact_slave``: whose surface nodes are the contact's slaves, "target" or "membrane"
+    (default: the target's unless it is 10× stiffer than the membrane)."""
+
+    TANGENT_PREDICTOR = False  # the target's own unknowns are not in the rigid-contact tangent
 
     def __init__(
         self,
@@ -315,6 +332,7 @@ class SoftTargetModel(MembraneModel):
         friction: float = 0.0,
         closed: bool = False,
         contact_margin: float = 1e-3,
+        contact_slave: str | None = None,
     ):
         if friction != 0.0:
             raise ValueError(f"friction = {friction}: friction against a soft target is not modelled (use 0)")
@@ -325,7 +343,19 @@ class SoftTargetModel(MembraneModel):
         nm = self.mesh.n_nodes
         self.n_membrane = nm
         rigid = self.contact
-        self.contact = _TargetContact(self.mesh.nodes, rigid.nodes, rigid.weights, rigid.stiffness, self.target, contact_margin)
+        bf = self.mesh.boundary_faces
+        n = self.n_surface
+        outer = np.all(bf[:, :3] >= layers * n, axis=1) & np.all(bf[:, :3] < (layers + 1) * n, axis=1)
+        if contact_slave is None:
+            # the softer body's nodes are the slaves: a stiff master's facets stay flat, while a
+            # soft master dents around each slave node and its closest facet flips between the
+            # dent's sides from one Newton iteration to the next (measured: no convergence with
+            # membrane slaves on a target as soft as the membrane, nor with target slaves on a
+            # target 100× stiffer; both converge with the rule below)
+            contact_slave = "target" if self.target.material.mu < 10 * material.mu else "membrane"
+        self.contact = _TargetContact(
+            self.mesh.nodes, rigid.nodes, rigid.weights, linear_subtriangles(bf[outer]), rigid.stiffness, self.target, contact_margin, contact_slave
+        )
         self.contact.centre = rigid.centre
         self._membrane_pressure = self.pressure
         self.pressure = _MembranePressure(self._membrane_pressure, nm)
