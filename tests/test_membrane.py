@@ -182,3 +182,44 @@ def test_a_restored_state_continues_exactly(pressed):
     model.set_state(saved)  # leave the shared fixture as it was
     with pytest.raises(ValueError, match="another mesh"):
         MembraneModel(spherical_cap(0.02, 0.01, 32), 2e-3, layers=1).set_state(saved)
+
+
+def test_regularised_newton_and_tangent_predictor_reach_the_projected_equilibrium(monkeypatch):
+    """On PARDISO's path (≥ 5 k unknowns: a 40-rim membrane) the Levenberg–Marquardt steps and
+    the tangent predictor change the route, not the answer: the same equilibria as the
+    per-element PSD projection from the secant predictor, to the force tolerance; and a model
+    restored mid-press continues bit for bit (its tangent factor is rebuilt from the state)."""
+    import jointsim.mechanics.newton as newton
+    from jointsim.eit.solver import available_backends
+    from jointsim.geometry import isotropic_cap
+
+    if "pardiso" not in available_backends():
+        pytest.skip("needs PARDISO (the LDLᵀ inertia)")
+    dome = isotropic_cap(0.02, 0.01, 40)
+    depths = (0.5e-3, 1.0e-3, 1.5e-3)
+
+    def press(model, top, ds):
+        return [model.press(np.array([2e-3, 0.0, top - d])) for d in ds]
+
+    model = MembraneModel(dome, 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3)
+    assert model.system.full.backend == "pardiso"
+    top = model.first_contact_height((2e-3, 0.0))
+    fast = press(model, top, depths[:2])
+    saved = model.get_state()
+    assert len(saved["tangent_u"]) == 1  # the factor the next predictor uses was SPD
+    fast += press(model, top, depths[2:])
+
+    twin = MembraneModel(dome, 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3)
+    twin.set_state(saved)
+    np.testing.assert_array_equal(press(twin, top, depths[2:])[0].u, fast[2].u)
+
+    regularised = []
+    original = newton._regularised_step
+    monkeypatch.setattr(newton, "_regularised_step", lambda *a: regularised.append(original(*a)) or None)
+    monkeypatch.setattr(MembraneModel, "TANGENT_PREDICTOR", False)
+    slow = press(MembraneModel(dome, 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3), top, depths)
+    assert regularised, "the press never met an indefinite Hessian: the test checks nothing"
+    for a, b in zip(fast, slow):
+        # converged to |g| ≤ force_tol = 8.8e-8 N on forces of 10–30 mN
+        np.testing.assert_allclose(a.force, b.force, rtol=0, atol=1e-6 * abs(b.force[2]))
+        assert a.displaced_volume == pytest.approx(b.displaced_volume, rel=1e-6)
