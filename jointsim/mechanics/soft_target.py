@@ -385,6 +385,7 @@ class SoftTargetModel(MembraneModel):
 
     def _newton(self, guess: np.ndarray):
         kw = dict(rtol=0.0, atol=self.force_tol)
+        its = 0
         for _ in range(4):
             self._system(guess)
             try:
@@ -393,7 +394,9 @@ class SoftTargetModel(MembraneModel):
                 # the extrapolation may have overshot: start from the last equilibrium
                 self._system(self.u)
                 res = minimize_energy(self.terms, self.u, self.fixed, system=self.system, **kw)
+            its += res.iterations
             if self.contact.surface.covers(res.u):
+                res.iterations = its  # over the re-solves
                 return res
             guess = res.u  # a slave's closest triangle left its candidates: solve again
         raise NewtonError("soft target: the contact pairs did not settle in 4 solves")
