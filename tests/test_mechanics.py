@@ -210,16 +210,17 @@ def test_a_sliding_sphere_feels_coulomb_friction():
     assert abs(Ft[0]) == pytest.approx(cof * Fn[2], rel=0.03)
 
 
-def test_contact_hessian_is_gauss_newton_and_exact_on_request():
-    """The exact contact Hessian matches finite differences of the gradient; the default one
-    drops the sphere's curvature term k·w·pen/r·(I − n nᵀ), i.e. differs by exactly that."""
+def test_contact_hessian_exact_capped_and_gauss_newton():
+    """The exact contact Hessian matches finite differences of the gradient; the projected
+    (Gauss–Newton) one drops the sphere's curvature term k·w·pen/r·(I − n nᵀ), i.e. differs by
+    exactly that and is PSD; with ``curvature_cap`` the term uses min(pen, cap)."""
     from jointsim.mechanics.contact import SphereContact
 
     rng = np.random.default_rng(3)
     X = rng.uniform(-1e-3, 1e-3, (8, 3))
     X[:, 2] = 0.0
     c = SphereContact(X, np.arange(8), np.full(8, 1e-7), 5e-3, stiffness=1e9)
-    c.centre = np.array([0.0, 0.0, 5e-3 - 2e-5])
+    c.centre = np.array([0.0, 0.0, 5e-3 - 1e-4])  # penetrations −100 … +100 µm
     u = rng.normal(0, 1e-6, X.shape)
     _, g, H_exact, _ = c.evaluate(u, True, exact=True)
     h = 1e-10
@@ -229,7 +230,11 @@ def test_contact_hessian_is_gauss_newton_and_exact_on_request():
         gp = c.evaluate(u + du.reshape(u.shape), False)[1]
         gm = c.evaluate(u - du.reshape(u.shape), False)[1]
         np.testing.assert_allclose(H_exact.toarray()[:, i], (gp - gm) / (2 * h), rtol=1e-5, atol=1e-7 * np.abs(H_exact).max())
-    H_gn = c.evaluate(u, True)[2].toarray()
+    np.testing.assert_array_equal(c.evaluate(u, True)[2].toarray(), H_exact.toarray())  # cap ∞ by default
+    H_gn = c.projected_hessian(u).toarray()
+    cap = 3e-5  # among the nodes' penetrations
+    c.curvature_cap = cap
+    H_cap = c.evaluate(u, True)[2].toarray()
     d = X + u - c.centre
     r = np.linalg.norm(d, axis=1)
     pen = c.radius - r
@@ -238,4 +243,7 @@ def test_contact_hessian_is_gauss_newton_and_exact_on_request():
         block = slice(3 * k, 3 * k + 3)
         curvature = c.stiffness * c.weights[k] * pen[k] / r[k] * (np.eye(3) - np.outer(n[k], n[k]))
         np.testing.assert_allclose(H_gn[block, block] - H_exact.toarray()[block, block], curvature, rtol=1e-9, atol=1e-12 * np.abs(H_gn).max())
+        capped = curvature * min(pen[k], cap) / pen[k]
+        np.testing.assert_allclose(H_gn[block, block] - H_cap[block, block], capped, rtol=1e-9, atol=1e-12 * np.abs(H_gn).max())
+    assert (pen > cap).any() and ((pen > 0) & (pen < cap)).any()  # both branches of the cap exercised
     assert np.linalg.eigvalsh(H_gn).min() >= -1e-9 * np.abs(H_gn).max()  # Gauss–Newton: PSD

@@ -30,7 +30,7 @@ class SphereContact:
     surface nodes ``nodes`` (k,) with area weights ``weights`` (k,) of a mesh with reference
     positions ``X`` (n, 3)."""
 
-    def __init__(self, X: np.ndarray, nodes: np.ndarray, weights: np.ndarray, radius: float, stiffness: float):
+    def __init__(self, X: np.ndarray, nodes: np.ndarray, weights: np.ndarray, radius: float, stiffness: float, curvature_cap: float = np.inf):
         if radius <= 0:
             raise ValueError(f"radius = {radius}: must be > 0 m")
         if stiffness <= 0:
@@ -40,6 +40,7 @@ class SphereContact:
         self.weights = np.asarray(weights, float)
         self.radius = float(radius)
         self.stiffness = float(stiffness)
+        self.curvature_cap = float(curvature_cap)
         self.centre = np.zeros(3)
         self._n = 3 * len(X)
 
@@ -49,12 +50,13 @@ class SphereContact:
         return d, r, self.radius - r  # penetration > 0 inside the sphere
 
     def evaluate(self, u: np.ndarray, hessian: bool, exact: bool = False):
-        """(energy, gradient, Hessian, True). The Hessian is the Gauss–Newton one,
-        Σ k w ∇pen ∇penᵀ, unless ``exact``: the exact one adds k w pen ∇²pen, the sphere's
-        curvature, which is negative definite tangentially. At equilibrium pen/‖x − c‖ is
-        ~1e-4, so that term changes nothing there, but in a trial state with the target moved
-        half a millimetre into the membrane it makes hundreds of the Hessian's eigenvalues
-        negative and costs Newton regularised steps (measured: 20 → 12 per 3 mm press)."""
+        """(energy, gradient, Hessian, True). The Hessian is Σ k w (∇pen ∇penᵀ + min(pen, cap)
+        ∇²pen) with cap = ``curvature_cap`` (∞: exact; 0: Gauss–Newton), or exact when
+        ``exact``. The second term, the sphere's curvature, is negative definite tangentially:
+        small at equilibrium (pen ~ µm) but in a trial state with the target moved half a
+        millimetre into the membrane it makes hundreds of the Hessian's eigenvalues negative
+        and costs Newton regularised steps; the cap keeps it exact where it matters for
+        quadratic convergence and bounded where it does not."""
         d, r, pen = self._gap(u)
         act = pen > 0
         k, w = self.stiffness, self.weights[act]
@@ -68,15 +70,22 @@ class SphereContact:
         if hessian:
             nn = np.einsum("ki,kj->kij", n, n)
             blocks = (k * w)[:, None, None] * nn
-            if exact:
-                blocks = blocks - (k * w * pen[act] / r[act])[:, None, None] * (np.eye(3) - nn)
+            cap = np.inf if exact else self.curvature_cap
+            if cap > 0:
+                bent = np.minimum(pen[act], cap)
+                blocks = blocks - (k * w * bent / r[act])[:, None, None] * (np.eye(3) - nn)
             rows = np.repeat(3 * self.nodes[act, None] + np.arange(3), 3, axis=1).ravel()
             cols = np.tile(3 * self.nodes[act, None] + np.arange(3), (1, 3)).ravel()
             H = sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(self._n, self._n))
         return E, g, H, True
 
     def projected_hessian(self, u: np.ndarray) -> sp.csr_matrix:
-        return self.evaluate(u, True)[2]
+        """The Gauss–Newton Hessian Σ k w ∇pen ∇penᵀ (positive semi-definite)."""
+        cap, self.curvature_cap = self.curvature_cap, 0.0
+        try:
+            return self.evaluate(u, True)[2]
+        finally:
+            self.curvature_cap = cap
 
     def centre_sensitivity(self, u: np.ndarray, dc: np.ndarray) -> np.ndarray:
         """−∂g/∂c · dc (3n,): the change of the nodal forces the sphere exerts when its centre
