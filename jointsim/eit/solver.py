@@ -65,9 +65,13 @@ def _pardiso_solver(mtype: int):
     return solver
 
 
+PARDISO_REFINEMENT = 2  # iterative refinement steps per solve: MKL's default, iparm(8)
+
+
 def _release_pardiso(solver) -> None:
     """Free the factor MKL holds for ``solver`` and keep the solver for reuse."""
     solver.free_memory(everything=True)
+    solver.iparm[7] = PARDISO_REFINEMENT  # as a fresh solver, whoever set it
     _PARDISO_IDLE.setdefault(solver.mtype, []).append(solver)
 
 
@@ -143,7 +147,8 @@ class PatternSolver:
     Without PARDISO every factor call is a fresh SuperLU. ``mtype``: 2 SPD, −2 indefinite.
     ``negative_eigenvalues`` (PARDISO, indefinite) is the inertia of the last factor."""
 
-    def __init__(self, indptr: np.ndarray, indices: np.ndarray, spd: bool, backend: str = "auto"):
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray, spd: bool, backend: str = "auto", refinement: int = PARDISO_REFINEMENT):
+        self.refinement = int(refinement)
         self.indptr = np.asarray(indptr, np.int64)
         self.indices = np.asarray(indices, np.int64)
         self.n = len(self.indptr) - 1
@@ -169,6 +174,7 @@ class PatternSolver:
             return
         if self._solver is None:
             self._solver = _pardiso_solver(2 if self.spd else -2)
+            self._solver.iparm[7] = self.refinement
         b = np.zeros(self.n)
         if not self._analysed:
             self._solver.set_phase(11)
