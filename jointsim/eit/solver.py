@@ -62,6 +62,7 @@ def _pardiso_solver(mtype: int):
 
     solver = pypardiso.PyPardisoSolver(mtype=mtype)
     solver.set_statistical_info_off()
+    solver.jointsim_iparm = solver.iparm.copy()  # a fresh solver's settings, restored on release
     return solver
 
 
@@ -71,7 +72,9 @@ PARDISO_REFINEMENT = 2  # iterative refinement steps per solve: MKL's default, i
 def _release_pardiso(solver) -> None:
     """Free the factor MKL holds for ``solver`` and keep the solver for reuse."""
     solver.free_memory(everything=True)
-    solver.iparm[7] = PARDISO_REFINEMENT  # as a fresh solver, whoever set it
+    # iparm is read and written by MKL: a reused solver must start as a fresh one, or its
+    # next analysis (and the bits of every later solve) depends on who held it before
+    solver.iparm[:] = solver.jointsim_iparm
     _PARDISO_IDLE.setdefault(solver.mtype, []).append(solver)
 
 
