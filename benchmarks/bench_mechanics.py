@@ -95,8 +95,8 @@ def main() -> int:
     out = ROOT / "results" / "mechanics_benchmark"
     lines = ["# Mechanics benchmark and mesh convergence", "", f"Command: `{meta['command']}`  ", f"Machine: {meta['machine']}; run {meta['date']}.  ",
              "Rigid 15 mm sphere pressed on the axis of the paper's dome (neo-Hookean μ 22 kPa, κ = 1000 μ, 50 Pa reservoir), 0.5 mm steps",
-             "to 3 mm, each warm-started from the previous (secant extrapolation). Per-step means exclude the first step (first contact,",
-             "no extrapolation yet). Membrane meshes: the inner surface as an isotropic cap of edge 2π·20 mm / rim vertices, either",
+             "to 3 mm, each warm-started from the previous (tangent predictor). Per-step means exclude the first step (first contact,",
+             "no predictor yet). Membrane meshes: the inner surface as an isotropic cap of edge 2π·20 mm / rim vertices, either",
              "uniform or graded from the apex edge to the rim edge; P2 tetrahedra in prism layers through the 2 mm thickness.",
              f"Force error: against the last row ({ref['n_rim']} rim, {ref['layers']} layers, uniform).  ",
              f"1-min load average {meta['load_average_start_end'][0]:.1f} at the start, {meta['load_average_start_end'][1]:.1f} at the end "
