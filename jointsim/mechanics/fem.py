@@ -228,10 +228,19 @@ class ElementKernel:
             outputs=[self._energy, self._grad, self._hess if hessian else self._hess_empty, self._mindet],
             device=self.device,
         )
+        hess = None
+        if hessian:
+            # a read-only view of the kernel's buffer, valid until the next call with a Hessian
+            # (copying 900 doubles per element costs as much as assembling them; on CUDA,
+            # numpy() copies to the host anyway)
+            hess = self._hess.numpy()
+            if self.device == "cpu" or str(self.device).startswith("cpu"):
+                hess = hess.view()
+                hess.flags.writeable = False
         return ElementState(
             self._energy.numpy().copy(),
             self._grad.numpy().copy(),
-            self._hess.numpy().copy() if hessian else None,
+            hess,
             self._mindet.numpy().copy(),
         )
 

@@ -62,6 +62,7 @@ class NewtonSystem:
         self.n_kept = int(keep.sum())
         self.slot = np.full(len(cols), -1, np.int64)
         self.slot[keep] = np.arange(self.n_kept)
+        self._kept = np.flatnonzero(keep)  # kept entries in pattern order are the slots 0, 1, …
         new = np.cumsum(self.free) - 1
         r = new[rows[keep]]
         indptr_f = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=int(self.free.sum())))])
@@ -88,14 +89,14 @@ class NewtonSystem:
                 continue
             H = sp.csr_matrix(H)
             if H.nnz == len(self._cols) and np.array_equal(H.indptr, self._indptr) and np.array_equal(H.indices, self._cols):
-                vals, slot = H.data, self.slot  # assembled on the pattern itself (the elastic term)
-            else:
-                coo = H.tocoo()
-                k = coo.row.astype(np.int64) * self.n + coo.col
-                pos = np.minimum(np.searchsorted(self.keys, k), len(self.keys) - 1)
-                if not np.array_equal(self.keys[pos], k):
-                    raise ValueError("a Hessian term has entries outside the system's sparsity pattern")
-                vals, slot = coo.data, self.slot[pos]
+                out += H.data[self._kept]  # assembled on the pattern itself (the elastic term)
+                continue
+            coo = H.tocoo()
+            k = coo.row.astype(np.int64) * self.n + coo.col
+            pos = np.minimum(np.searchsorted(self.keys, k), len(self.keys) - 1)
+            if not np.array_equal(self.keys[pos], k):
+                raise ValueError("a Hessian term has entries outside the system's sparsity pattern")
+            vals, slot = coo.data, self.slot[pos]
             m = slot >= 0
             out += np.bincount(slot[m], weights=vals[m], minlength=self.n_kept)
         return out
