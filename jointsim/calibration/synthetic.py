@@ -1,8 +1,7 @@
 """Synthetic dataset stores with a known answer, for testing and demonstrating calibration.
 
-Owns :data:`DATASET_SCHEMA` (the ``jointsim dataset`` store contract, schema "dataset" v1, as
-calibration reads it) and :func:`write_synthetic_dataset`: presses of spheres at increasing
-depths whose "measurements" are known smooth functions of the labels — the CoM a smooth
+Owns :func:`write_synthetic_dataset`, written in :data:`DATASET_SCHEMA` (the ``jointsim dataset``
+store contract, schema "dataset" v1): presses of spheres at increasing depths whose "measurements" are known smooth functions of the labels — the CoM a smooth
 warp of (x, y, depth), Σσ and the image diameter monotone in size at each depth, the 256
 voltage changes Gaussian bumps around each measurement's sensitive spot, the force a Hertz
 law of the target and membrane moduli in series — plus noise at each press's SNR. No physics
@@ -16,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.store import Field, Schema, open_store
+from ..dataset.generate import dataset_schema
+from ..io.store import open_store
 
 __all__ = ["DATASET_SCHEMA", "synthetic_com", "write_synthetic_dataset", "MEMBRANE_MODULUS"]
 
@@ -26,38 +26,8 @@ MEMBRANE_MODULUS = 66e3  # Pa: 3 μ of the scene's Ecoflex
 MM = 1e-3
 
 
-def _schema() -> Schema:
-    F = Field
-    return Schema((
-        F("group", (), "int64", "", "press trajectory id"),
-        F("radius", (), "float64", "m", "target sphere radius"),
-        F("xy", (2,), "float64", "m", "target centre in the base plane"),
-        F("depth", (), "float64", "m", "indentation past first contact"),
-        F("target_modulus", (), "float64", "Pa", "Young's modulus (+inf rigid)"),
-        F("force", (3,), "float64", "N", "contact force of the membrane on the target"),
-        F("contact_area", (), "float64", "m^2", ""),
-        F("displaced_volume", (), "float64", "m^3", ""),
-        F("peak_strain", (), "float64", "", ""),
-        F("membrane_scale", (), "float64", "", ""),
-        F("conductivity", (), "float64", "S/m", ""),
-        F("contact_impedance", (), "float64", "Ohm m^2", ""),
-        F("electrode_jitter", (N_ELECTRODES, 2), "float64", "m", ""),
-        F("snr_db", (), "float64", "dB", ""),
-        F("voltages_clean", (N_MEAS,), "float64", "V", ""),
-        F("reference_clean", (N_MEAS,), "float64", "V", ""),
-        F("voltages", (N_MEAS,), "float64", "V", ""),
-        F("dv", (N_MEAS,), "float64", "V", ""),
-        F("dv_clean", (N_MEAS,), "float64", "V", ""),
-        F("com", (3,), "float64", "m", ""),
-        F("sum_sigma", (), "float64", "", ""),
-        F("diameter", (), "float64", "m", ""),
-        F("extent_xy", (), "float64", "m", ""),
-        F("cluster_cells", (), "int32", "", ""),
-        F("timings", (5,), "float64", "s", "", volatile=True),
-    ), name="dataset", version=1)
-
-
-DATASET_SCHEMA = _schema()
+# the store contract is the dataset generator's own schema (16 electrodes, 256 measurements, no images)
+DATASET_SCHEMA = dataset_schema(N_ELECTRODES, N_MEAS, None)
 
 
 def synthetic_com(position: np.ndarray) -> np.ndarray:
