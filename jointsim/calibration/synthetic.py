@@ -1,8 +1,8 @@
 """Synthetic dataset stores with a known answer, for testing and demonstrating calibration.
 
-Owns :func:`write_synthetic_dataset`, written in :data:`DATASET_SCHEMA` (the ``jointsim dataset``
-store contract, schema "dataset" v1): presses of spheres at increasing depths whose "measurements" are known smooth functions of the labels — the CoM a smooth
-warp of (x, y, depth), Σσ and the image diameter monotone in size at each depth, the 256
+Owns :func:`write_synthetic_dataset`, written in :data:`DATASET_SCHEMA` (the ``jointsim
+dataset`` store contract, schema "dataset" v1): presses of spheres at increasing depths whose
+"measurements" are known smooth functions of the labels — the CoM a smooth warp of (x, y, depth), Σσ and the image diameter monotone in size at each depth, the 256
 voltage changes Gaussian bumps around each measurement's sensitive spot, the force a Hertz
 law of the target and membrane moduli in series — plus noise at each press's SNR. No physics
 is simulated: a calibration fitted on it must recover these functions, and that is all such
