@@ -40,10 +40,8 @@ Determinism
 from __future__ import annotations
 
 import math
-import time
-from contextlib import contextmanager
 from dataclasses import dataclass, replace
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -55,7 +53,7 @@ from ..mechanics.newton import NewtonError
 from ..mesh.chamber import ChamberMesh
 from ..mesh.electrodes import ElectrodePatch, disc_patches
 from ..mesh.morph import MeshInversionError
-from ..palpation.pipeline import Palpation, metric_fields
+from ..palpation.pipeline import Palpation, metric_fields, timed
 from ..scene import DatasetSpec, Scene
 
 __all__ = ["SCHEMA_NAME", "SCHEMA_VERSION", "STAGES", "GroupDraw", "DatasetSetup", "draw_group", "dataset_schema",
@@ -178,13 +176,6 @@ def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str) -> dict[st
     return {"scene": d, "n_samples": int(n_samples), "chamber_sha256": chamber_sha256}
 
 
-@contextmanager
-def _timed(t: dict[str, float], name: str) -> Iterator[None]:
-    t0 = time.perf_counter()
-    yield
-    t[name] = t.get(name, 0.0) + time.perf_counter() - t0
-
-
 class DatasetSetup:
     """What every group shares, built once per worker: the nominal instrument
     (:class:`~jointsim.palpation.Palpation` of ``scene`` on ``chamber``: morpher, protocol,
@@ -222,7 +213,7 @@ class DatasetSetup:
         """Press ``draw``'s target through its first ``n_samples`` depths; one record each."""
         pal, scene = self.pal, self.scene
         t: dict[str, float] = {}
-        with _timed(t, "group_setup"):
+        with timed(t, "group_setup"):
             model = self._membrane(draw)
             ref_chamber = pal.deform(pal.inner_surface(model.state())).chamber
             patches = self._patches(ref_chamber.mesh, draw.jitter)
@@ -238,21 +229,21 @@ class DatasetSetup:
         for d in draw.depths[:n_samples]:
             t = {s: 0.0 for s in STAGES}
             t["group_setup"] = share
-            with _timed(t, "mechanics"):
+            with timed(t, "mechanics"):
                 # steps of at most spec.step, equal, ending on the sample's depth
                 n_steps = max(1, math.ceil((d - depth_done) / self.spec.step - 1e-9))
                 for s in range(1, n_steps + 1):
                     dz = depth_done + (d - depth_done) * s / n_steps
                     st = model.press(np.array([draw.xy[0], draw.xy[1], contact_z - dz]))
                 depth_done = d
-            with _timed(t, "mesh"):
+            with timed(t, "mesh"):
                 dc = pal.deform(pal.inner_surface(st))
                 p = patches if dc.path == "morph" else self._patches(dc.chamber.mesh, draw.jitter)
-            with _timed(t, "forward"):
+            with timed(t, "forward"):
                 clean = self._voltages(dc.chamber, p, z, draw.conductivity)
                 v = clean + rng.normal(0.0, std, clean.shape)
             dv = v - v_ref_measured
-            with _timed(t, "reconstruction"):
+            with timed(t, "reconstruction"):
                 image, _, metrics = pal.image(dv)
             rec = {
                 "group": draw.group, "radius": draw.radius, "xy": draw.xy, "depth": d, "target_modulus": draw.modulus,

@@ -57,6 +57,9 @@ class SphereContact:
         millimetre into the membrane it makes hundreds of the Hessian's eigenvalues negative
         and costs Newton regularised steps; the cap keeps it exact where it matters for
         quadratic convergence and bounded where it does not."""
+        return self._evaluate(u, hessian, np.inf if exact else self.curvature_cap)
+
+    def _evaluate(self, u: np.ndarray, hessian: bool, cap: float):
         d, r, pen = self._gap(u)
         act = pen > 0
         k, w = self.stiffness, self.weights[act]
@@ -70,7 +73,6 @@ class SphereContact:
         if hessian:
             nn = np.einsum("ki,kj->kij", n, n)
             blocks = (k * w)[:, None, None] * nn
-            cap = np.inf if exact else self.curvature_cap
             if cap > 0:
                 bent = np.minimum(pen[act], cap)
                 blocks = blocks - (k * w * bent / r[act])[:, None, None] * (np.eye(3) - nn)
@@ -81,11 +83,7 @@ class SphereContact:
 
     def projected_hessian(self, u: np.ndarray) -> sp.csr_matrix:
         """The Gauss–Newton Hessian Σ k w ∇pen ∇penᵀ (positive semi-definite)."""
-        cap, self.curvature_cap = self.curvature_cap, 0.0
-        try:
-            return self.evaluate(u, True)[2]
-        finally:
-            self.curvature_cap = cap
+        return self._evaluate(u, True, 0.0)[2]
 
     def centre_sensitivity(self, u: np.ndarray, dc: np.ndarray) -> np.ndarray:
         """−∂g/∂c · dc (3n,): the change of the nodal forces the sphere exerts when its centre

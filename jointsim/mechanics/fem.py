@@ -233,10 +233,8 @@ class ElementKernel:
             # a read-only view of the kernel's buffer, valid until the next call with a Hessian
             # (copying 900 doubles per element costs as much as assembling them; on CUDA,
             # numpy() copies to the host anyway)
-            hess = self._hess.numpy()
-            if self.device == "cpu" or str(self.device).startswith("cpu"):
-                hess = hess.view()
-                hess.flags.writeable = False
+            hess = self._hess.numpy().view()
+            hess.flags.writeable = False
         return ElementState(
             self._energy.numpy().copy(),
             self._grad.numpy().copy(),

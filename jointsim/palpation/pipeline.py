@@ -171,7 +171,7 @@ class Frame:
 
 
 @contextmanager
-def _timed(timings: dict[str, float], name: str) -> Iterator[None]:
+def timed(timings: dict[str, float], name: str) -> Iterator[None]:
     t0 = time.perf_counter()
     yield
     timings[name] = timings.get(name, 0.0) + time.perf_counter() - t0
@@ -258,7 +258,7 @@ class Palpation:
         self.segments = _segments(spec, self.frame_rate)
         self.n_records = self.segments[-1].start + self.segments[-1].n_frames
 
-        with _timed(t, "membrane"):
+        with timed(t, "membrane"):
             # the reservoir inflates the dome when the model is built: the reference is that state
             model = self.membrane(spec.target_radii[0])
             self._surface = _InnerSurface.of(model, scene.chamber.base_radius)
@@ -267,7 +267,7 @@ class Palpation:
             self.membrane_nodes = model.mesh.n_nodes
             # the membrane's corner tetrahedra (the P2 mesh without midside nodes), for export
             self.membrane_mesh = TetMesh(model.mesh.nodes, model.mesh.tets[:, :4])
-        with _timed(t, "chamber"):
+        with timed(t, "chamber"):
             self.chamber = chamber_mesh(scene) if chamber is None else chamber
             self.morpher = ChamberMorpher(self.chamber, self.membrane_dome)
             self.reference = self.morpher(self.reference_dome)
@@ -276,10 +276,10 @@ class Palpation:
         n_el = scene.electrodes.count
         self.protocol: Protocol = skip_protocol(n_el, scene.drive.skip, scene.drive.current)
         self.n_meas = self.protocol.n_meas
-        with _timed(t, "forward"):
+        with timed(t, "forward"):
             fields = ForwardModel.from_chamber(self.reference, scene).solve(scene.saline.conductivity)
             self.v_ref = self.voltages(self.reference) if spec.fdm_contact_impedance else fields.voltages(self.protocol)
-        with _timed(t, "jacobian"):
+        with timed(t, "jacobian"):
             self.grid = ChamberGrid.over(self.reference.mesh, spec.cells)
             self.jacobian = jacobian(fields, self.protocol, coarse=self.grid.C)
         self.noise_std = noise_std(self.v_ref, scene.noise.snr_db)
@@ -292,7 +292,7 @@ class Palpation:
             gain_drift(self.n_records, self.n_meas, scene.noise.drift_per_s, self.frame_rate, rng=self._rng("drift"))
             if scene.noise.drift_per_s > 0 else None
         )
-        with _timed(t, "lambda"):
+        with timed(t, "lambda"):
             self.lambda_press, dv_rep = self._representative_press()
             noisy = dv_rep[None] + self._rng("lambda").normal(0.0, self.dv_noise_std, (LAMBDA_REPEATS, self.n_meas))
             svd = SVD.of(self.jacobian)
@@ -611,19 +611,19 @@ def _in_context(e: Exception, where: str) -> Exception:
 
 def _frame(pal: Palpation, seg: Segment, k: int, model: MembraneModel, rig: Rig, force: np.ndarray, contact_z: float) -> Frame:
     t: dict[str, float] = {s: 0.0 for s in STAGES}
-    with _timed(t, "mujoco"):
+    with timed(t, "mujoco"):
         rf = rig.current if k == 0 else rig.frame(force)
-    with _timed(t, "mechanics"):
+    with timed(t, "mechanics"):
         st = model.press(rf.position)
-    with _timed(t, "mesh"):
+    with timed(t, "mesh"):
         dc = pal.deform(pal.inner_surface(st))
     index = seg.start + k
-    with _timed(t, "forward"):
+    with timed(t, "forward"):
         clean = pal.voltages(dc.chamber)
         gain = pal.gains[index] if pal.gains is not None else 1.0
         v = clean * gain + pal._rng("frame", index).normal(0.0, pal.noise_std, pal.n_meas)
     dv, dv_clean = v - pal.v_ref_measured, clean - pal.v_ref
-    with _timed(t, "reconstruction"):
+    with timed(t, "reconstruction"):
         centre = _displaced_centroid(pal.reference, dc.chamber)
         image, normalised, metrics = pal.image(dv, centre, st.displaced_volume)
     m = metric_fields(metrics)
