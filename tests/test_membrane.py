@@ -223,3 +223,50 @@ def test_regularised_newton_and_tangent_predictor_reach_the_projected_equilibriu
         # converged to |g| ≤ force_tol = 8.8e-8 N on forces of 10–30 mN
         np.testing.assert_allclose(a.force, b.force, rtol=0, atol=1e-6 * abs(b.force[2]))
         assert a.displaced_volume == pytest.approx(b.displaced_volume, rel=1e-6)
+
+
+def _fresh_model():
+    dome = spherical_cap(0.02, 0.01, 48)
+    model = MembraneModel(dome, 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3)
+    return model, model.first_contact_height((0.0, 0.0))
+
+
+def test_a_long_move_is_split_into_steps_and_reaches_the_same_equilibrium(pressed):
+    # frictionless hyperelastic contact: the equilibrium does not depend on the load path, so
+    # one 1 mm press (split into steps of at most MAX_STEP) lands where 0.5 mm steps did, to
+    # the Newton tolerance (out-of-balance force ~1e-7 N against ~10 mN)
+    model, (_, b) = pressed
+    other, top = _fresh_model()
+    st = other.press(np.array([0.0, 0.0, top - 1.0e-3]))
+    assert st.force[2] == pytest.approx(b.force[2], rel=1e-5)
+    np.testing.assert_allclose(st.u, b.u, atol=1e-9)
+
+
+def test_a_failing_step_is_halved_and_retried(monkeypatch, pressed):
+    import jointsim.mechanics.dome as dome_mod
+    from jointsim.mechanics.newton import NewtonError
+
+    _, (a, _) = pressed
+    model, top = _fresh_model()
+    solve = dome_mod.MembraneModel._solve_step
+    tried = []
+
+    def fussy(self, centre):
+        # a stand-in for Newton failing on long steps: refuse moves over 0.2 mm
+        old = self.contact.centre if np.linalg.norm(self.contact.centre) < 1e2 else np.array([0, 0, top])
+        tried.append(np.linalg.norm(centre - old))
+        if tried[-1] > 0.2e-3:
+            raise NewtonError("refused")
+        return solve(self, centre)
+
+    monkeypatch.setattr(dome_mod.MembraneModel, "_solve_step", fussy)
+    st = model.press(np.array([0.0, 0.0, top - 0.5e-3]))
+    assert max(tried) > 0.2e-3 and sorted(tried)[0] <= 0.2e-3  # halved 0.5 -> 0.25 -> 0.125 mm
+    assert st.force[2] == pytest.approx(a.force[2], rel=1e-5)
+    # a failure that halving cannot mend names the step and leaves the last equilibrium
+    u, centre = model.u.copy(), model.contact.centre.copy()
+    monkeypatch.setattr(dome_mod, "MAX_CUTBACKS", 1)
+    with pytest.raises(NewtonError, match=r"target step 1/1 .*halved up to 1 times"):
+        model.press(centre - np.array([0.0, 0.0, 0.5e-3]))
+    np.testing.assert_array_equal(model.u, u)
+    np.testing.assert_array_equal(model.contact.centre, centre)

@@ -384,7 +384,7 @@ class SoftTargetModel(MembraneModel):
             self.pattern_rebuilds += 1
 
     def _newton(self, guess: np.ndarray):
-        kw = dict(rtol=0.0, atol=self.force_tol)
+        kw = dict(rtol=0.0, atol=self._step_tol)
         its = 0
         for _ in range(4):
             self._system(guess)
