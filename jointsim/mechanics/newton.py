@@ -116,8 +116,8 @@ class NewtonSystem:
         self.projected.free()
 
 
-# σ of H + σ·diag|H|: the first try, the floor, and the tries (×10 each)
-SHIFT_START, SHIFT_MIN, SHIFT_TRIES = 1e-3, 1e-6, 8
+# σ of H + σ·diag|H|: the first try (and the floor it decays back to), and the tries (×10 each)
+SHIFT_START, SHIFT_TRIES = 1e-3, 8
 
 
 def _summed(Hs: list) -> sp.csr_matrix:
@@ -150,9 +150,10 @@ def _full_step(u, Hs, free, g, system, data=None) -> tuple[np.ndarray | None, bo
 
 def _regularised_step(data: np.ndarray, free, g, system: NewtonSystem) -> np.ndarray | None:
     """The step of H + σ·diag|H| (Levenberg–Marquardt), σ raised tenfold from ``system.shift``
-    until the LDLᵀ inertia shows it positive definite; the σ that worked starts the next one
-    (starting a decade lower wasted a factorisation in nearly every load step of the pressed
-    membrane: the σ needed stays put from step to step). None when no σ tried does.
+    until the LDLᵀ inertia shows it positive definite; the next one starts a decade lower, but
+    not below ``SHIFT_START`` (below it the pressed membrane nearly always needed raising again:
+    a wasted factorisation per load step; a σ kept where one hard step put it damps the later
+    ones into dozens of iterations). None when no σ tried does.
 
     Why not the per-element PSD projection: the stressed, pressurised membrane has small
     negative eigenvalues in ~98 % of its element Hessians (down to ~1e-3 of the largest), so
@@ -170,7 +171,7 @@ def _regularised_step(data: np.ndarray, free, g, system: NewtonSystem) -> np.nda
         system.full.factor(shifted)
         system.tangent_ready = False
         if system.full.negative_eigenvalues == 0:
-            system.shift = max(sigma, SHIFT_MIN)
+            system.shift = max(sigma / 10, SHIFT_START)
             d = system.full.solve(-g[free])
             return d if _descent(d, g[free]) else None
         sigma *= 10
