@@ -29,9 +29,7 @@ sys.path.insert(0, str(ROOT))
 from jointsim.geometry import isotropic_cap  # noqa: E402
 from jointsim.io.export import atomic_path  # noqa: E402
 from jointsim.mechanics.dome import MembraneModel  # noqa: E402
-from jointsim.mechanics.newton import NewtonSystem, minimize_energy  # noqa: E402
-from jointsim.mechanics.soft_target import CoupledTerms, SoftSphere, SoftTargetModel, soft_material  # noqa: E402
-from jointsim.mechanics.surface_contact import SurfaceContact  # noqa: E402
+from jointsim.mechanics.soft_target import SoftSphere, SoftTargetModel, press_on_rigid_flat, soft_material  # noqa: E402
 
 DEPTHS = (0.5e-3, 1.0e-3)
 HERTZ_D_OVER_R = (0.01, 0.02, 0.03, 0.05)
@@ -58,22 +56,13 @@ def step_costs() -> list[dict]:
 
 def hertz_sweep(R: float = 10e-3, E: float = 66e3, nu: float = 0.49, h0: float = 0.5e-3) -> list[dict]:
     sph = SoftSphere(R, soft_material(E, nu), h0, growth=1.5)
-    ns = sph.mesh.n_nodes
     rows = []
     for ratio in HERTZ_D_OVER_R:
         d = ratio * R
-        L = 2 * R
-        plate = np.array([[-L, -L, 0], [L, -L, 0], [L, L, 0], [-L, L, 0]], float) + [0, 0, -R + d]
-        X = np.vstack([sph.mesh.nodes, plate])
-        contact = SurfaceContact(X, sph.nodes, sph.weights, np.array([[0, 1, 2], [0, 2, 3]]) + ns, stiffness=100 * E / h0, margin=0.2 * R)
-        terms = CoupledTerms(ns + 4, [(0, sph.elastic, sph.mesh.sparsity[:2])], [contact])
-        u = np.zeros_like(X)
-        terms.refresh(u)
-        fixed = np.vstack([sph.fixed, np.ones((4, 3), bool)])
-        res = minimize_energy([terms], u, fixed, rtol=1e-9, system=NewtonSystem(terms.indptr, terms.indices, ~fixed.ravel()))
-        F = float(contact.force_on(res.u, np.arange(ns))[2])
+        force, penetration = press_on_rigid_flat(sph, d, 100 * E / h0)
+        F = float(force[2])
         hertz = 4 / 3 * E / (1 - nu**2) * np.sqrt(R) * d**1.5
-        rows.append({"d_over_R": ratio, "force_N": F, "hertz_N": hertz, "penetration_over_d": contact.penetration(res.u) / d})
+        rows.append({"d_over_R": ratio, "force_N": F, "hertz_N": hertz, "penetration_over_d": penetration / d})
     return rows
 
 

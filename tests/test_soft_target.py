@@ -7,8 +7,7 @@ import pytest
 
 from jointsim.geometry import isotropic_cap
 from jointsim.mechanics.dome import MembraneModel
-from jointsim.mechanics.newton import NewtonSystem, minimize_energy
-from jointsim.mechanics.soft_target import CoupledTerms, SoftSphere, SoftTargetModel, hemisphere_mesh, soft_material
+from jointsim.mechanics.soft_target import SoftSphere, SoftTargetModel, hemisphere_mesh, press_on_rigid_flat, soft_material
 from jointsim.mechanics.surface_contact import SurfaceContact, closest_points
 from jointsim.scene import SceneError, scene_from_dict
 
@@ -75,24 +74,13 @@ def test_soft_sphere_on_a_rigid_flat_follows_hertz():
     """A neo-Hookean sphere (ν = 0.49) pressed onto a rigid flat by d = R/20:
     F = 4/3 E* √R d^1.5, E* = E/(1 − ν²)."""
     R, E, nu, h0, d = 10e-3, 66e3, 0.49, 0.5e-3, 0.5e-3
-    sph = SoftSphere(R, soft_material(E, nu), h0, growth=1.5)
-    ns = sph.mesh.n_nodes
-    L = 2 * R
-    plate = np.array([[-L, -L, 0], [L, -L, 0], [L, L, 0], [-L, L, 0]], float) + [0, 0, -R + d]
-    X = np.vstack([sph.mesh.nodes, plate])
-    contact = SurfaceContact(X, sph.nodes, sph.weights, np.array([[0, 1, 2], [0, 2, 3]]) + ns, stiffness=100 * E / h0, margin=0.2 * R)
-    terms = CoupledTerms(ns + 4, [(0, sph.elastic, sph.mesh.sparsity[:2])], [contact])
-    u = np.zeros_like(X)
-    terms.refresh(u)
-    fixed = np.vstack([sph.fixed, np.ones((4, 3), bool)])
-    res = minimize_energy([terms], u, fixed, rtol=1e-9, system=NewtonSystem(terms.indptr, terms.indices, ~fixed.ravel()))
-    F = contact.force_on(res.u, np.arange(ns))
+    F, penetration = press_on_rigid_flat(SoftSphere(R, soft_material(E, nu), h0, growth=1.5), d, 100 * E / h0)
     hertz = 4 / 3 * E / (1 - nu**2) * np.sqrt(R) * d**1.5
     # measured −1.6 % (−2.1 % with 0.35 mm cells): the cut face and core bonded to the stage
     # stiffen, the finite sphere softens; the plate is frictionless, so no tangential force
     assert F[2] == pytest.approx(hertz, rel=0.05)
     assert abs(F[0]) < 1e-3 * F[2] and abs(F[1]) < 1e-3 * F[2]
-    assert contact.penetration(res.u) < 0.01 * d
+    assert penetration < 0.01 * d
 
 
 @pytest.fixture(scope="module")

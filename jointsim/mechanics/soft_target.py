@@ -30,7 +30,7 @@ from .newton import NewtonError, NewtonSystem, minimize_energy
 from .pressure import linear_subtriangles
 from .surface_contact import SurfaceContact
 
-__all__ = ["soft_material", "hemisphere_mesh", "SoftSphere", "CoupledTerms", "SoftTargetModel", "SYLGARD_184"]
+__all__ = ["soft_material", "hemisphere_mesh", "SoftSphere", "CoupledTerms", "SoftTargetModel", "SYLGARD_184", "press_on_rigid_flat"]
 
 
 def soft_material(youngs_modulus: float, poisson_ratio: float = 0.49) -> Material:
@@ -106,6 +106,23 @@ class SoftSphere:
         on_surface = np.all(bf[:, :3] < n, axis=1)  # every corner on layer 0, the sphere
         self.tris = linear_subtriangles(bf[on_surface])
         self.nodes, self.weights = nodal_areas(X, self.tris)
+
+
+def press_on_rigid_flat(sphere: SoftSphere, depth: float, penalty: float) -> tuple[np.ndarray, float]:
+    """The Hertz case: ``sphere`` pressed by ``depth`` (m) onto a rigid, frictionless flat (a
+    square plate of side 4R, contact penalty ``penalty`` Pa/m). (force (3,) N of the flat on
+    the sphere, largest penetration m)."""
+    R, ns = sphere.radius, sphere.mesh.n_nodes
+    L = 2 * R
+    plate = np.array([[-L, -L, 0], [L, -L, 0], [L, L, 0], [-L, L, 0]], float) + [0, 0, -R + depth]
+    X = np.vstack([sphere.mesh.nodes, plate])
+    contact = SurfaceContact(X, sphere.nodes, sphere.weights, np.array([[0, 1, 2], [0, 2, 3]]) + ns, stiffness=penalty, margin=0.2 * R)
+    terms = CoupledTerms(ns + 4, [(0, sphere.elastic, sphere.mesh.sparsity[:2])], [contact])
+    u = np.zeros_like(X)
+    terms.refresh(u)
+    fixed = np.vstack([sphere.fixed, np.ones((4, 3), bool)])
+    res = minimize_energy([terms], u, fixed, rtol=1e-9, system=NewtonSystem(terms.indptr, terms.indices, ~fixed.ravel()))
+    return contact.force_on(res.u, np.arange(ns)), contact.penetration(res.u)
 
 
 class CoupledTerms:
