@@ -7,7 +7,7 @@ import pytest
 
 from jointsim.geometry import isotropic_cap
 from jointsim.mechanics.dome import MembraneModel
-from jointsim.mechanics.soft_target import SoftSphere, SoftTargetModel, hemisphere_mesh, press_on_rigid_flat, soft_material
+from jointsim.mechanics.soft_target import CoupledTerms, SoftSphere, SoftTargetModel, hemisphere_mesh, press_on_rigid_flat, soft_material
 from jointsim.mechanics.surface_contact import SurfaceContact, closest_points
 from jointsim.scene import SceneError, scene_from_dict
 
@@ -81,6 +81,35 @@ def test_soft_sphere_on_a_rigid_flat_follows_hertz():
     assert F[2] == pytest.approx(hertz, rel=0.05)
     assert abs(F[0]) < 1e-3 * F[2] and abs(F[1]) < 1e-3 * F[2]
     assert penetration < 0.01 * d
+
+
+class _RepeatedCoupling:
+    """A contact whose candidates couple node 0 with node 1 ``times`` times over (as a slave
+    node near many master triangles does)."""
+
+    def __init__(self, times):
+        self.times = times
+
+    def update_candidates(self, u):
+        pass
+
+    def couplings(self):
+        return np.zeros(self.times, np.int64), np.ones(self.times, np.int64)
+
+
+@pytest.mark.parametrize("times", [1, 255, 256, 512])
+def test_coupled_pattern_keeps_couplings_however_often_they_repeat(times):
+    # the pattern once counted repeats in int8: 256 of them wrapped to 0 and the coupling
+    # (then a diagonal block) fell out of the pattern mid-press
+    eye = (np.arange(7, dtype=np.int64), np.arange(6, dtype=np.int32))
+    terms = CoupledTerms(2, [(0, None, eye)], [_RepeatedCoupling(times)])
+    assert terms.refresh(np.zeros((2, 3)))
+    P = np.zeros((6, 6), bool)
+    rows = np.repeat(np.arange(6), np.diff(terms.indptr))
+    P[rows, terms.indices] = True
+    expect = np.eye(6, dtype=bool)
+    expect[:3, 3:] = True
+    assert np.array_equal(P, expect)
 
 
 @pytest.fixture(scope="module")

@@ -96,7 +96,7 @@ class NewtonSystem:
             k = coo.row.astype(np.int64) * self.n + coo.col
             pos = np.minimum(np.searchsorted(self.keys, k), len(self.keys) - 1)
             if not np.array_equal(self.keys[pos], k):
-                raise ValueError("a Hessian term has entries outside the system's sparsity pattern")
+                raise RuntimeError("a Hessian term has entries outside the system's sparsity pattern")
             vals, slot = coo.data, self.slot[pos]
             m = slot >= 0
             out += np.bincount(slot[m], weights=vals[m], minlength=self.n_kept)

@@ -125,6 +125,11 @@ def press_on_rigid_flat(sphere: SoftSphere, depth: float, penalty: float) -> tup
     return contact.force_on(res.u, np.arange(ns)), contact.penetration(res.u)
 
 
+def _entries(P: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of a CSR matrix's stored entries."""
+    return np.repeat(np.arange(P.shape[0], dtype=np.int64), np.diff(P.indptr)), P.indices.astype(np.int64)
+
+
 class CoupledTerms:
     """One energy term over the unknowns of several bodies: ``blocks`` [(first node, term,
     (indptr, indices) of the term's own Hessian pattern)], each term evaluated on its rows of
@@ -145,9 +150,13 @@ class CoupledTerms:
         self.rebuilds = 0
 
     def _pattern(self, rows, cols) -> sp.csr_matrix:
-        P = sp.csr_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(self.n, self.n))
+        """The pattern of (rows, cols), every entry 1. Duplicates are summed and then reset:
+        a small integer type would wrap (256 contact couplings of one diagonal entry summed
+        to 0 in int8 and dropped it from the pattern)."""
+        P = sp.csr_matrix((np.ones(len(rows), np.int64), (rows, cols)), shape=(self.n, self.n))
         P.sum_duplicates()
         P.sort_indices()
+        P.data[:] = 1
         return P
 
     def _set_pattern(self, P: sp.csr_matrix) -> None:
@@ -178,7 +187,7 @@ class CoupledTerms:
         if self._find(rows * self.n + cols) is not None:
             return False
         C = self._pattern(rows, cols)
-        self._set_pattern(((self._base + C) != 0).astype(np.int8).tocsr())
+        self._set_pattern(self._pattern(*_entries(self._base + C)))
         self.rebuilds += 1
         return True
 
@@ -198,7 +207,7 @@ class CoupledTerms:
         rows = np.repeat(np.arange(H.shape[0], dtype=np.int64), np.diff(H.indptr)) + 3 * offset
         slot = self._find(rows * self.n + H.indices.astype(np.int64) + 3 * offset)
         if slot is None:
-            raise ValueError("a Hessian term has entries outside the coupled pattern (refresh the contacts)")
+            raise RuntimeError("a Hessian term has entries outside the coupled pattern (refresh the contacts)")
         if cache_key is not None:
             self._slots[cache_key] = (H.indptr.copy(), H.indices.copy(), slot)
         return slot, H.data
