@@ -29,6 +29,8 @@ __all__ = [
     "DatasetSpec",
     "Scene",
     "load_scene",
+    "scene_data",
+    "scene_toml",
     "scene_from_dict",
     "MESH_PRESETS",
 ]
@@ -399,8 +401,10 @@ def _target(data: dict[str, Any], base_r: float) -> Target:
     return Target(radius * MM, kind, friction, modulus * 1e3, poisson)
 
 
-def load_scene(path: str | Path) -> Scene:
-    """Read and validate a TOML scene file."""
+def scene_data(path: str | Path, _chain: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """The parsed TOML mapping of a scene file, with ``extends = "other.toml"`` (a path
+    relative to the file) resolved: the other scene's mapping, each of this file's sections
+    updated key by key over it (so a study scene states only what it changes)."""
     path = Path(path)
     if not path.is_file():
         raise SceneError(f"scene file not found: {path}")
@@ -408,7 +412,58 @@ def load_scene(path: str | Path) -> Scene:
         data = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise SceneError(f"{path}: not valid TOML: {e}") from None
-    return scene_from_dict(data, name=path.stem)
+    base = data.pop("extends", None)
+    if base is None:
+        return data
+    if not isinstance(base, str):
+        raise SceneError(f"{path}: extends = {base!r}: must be the path of another scene file")
+    base_path = (path.parent / base).resolve()
+    if base_path in _chain or base_path == path.resolve():
+        raise SceneError(f"{path}: extends = {base!r}: scenes extend each other in a cycle")
+    merged = scene_data(base_path, _chain + (path.resolve(),))
+    merged.pop("description", None)
+    for key, value in data.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = {**merged[key], **value}
+        else:
+            merged[key] = value
+    return merged
+
+
+def scene_toml(path: str | Path) -> str:
+    """A scene file's text with ``extends`` resolved (the file itself when it extends
+    nothing): self-contained, for the provenance of what a run computed."""
+    path = Path(path)
+    data = scene_data(path)
+    if "extends" not in tomllib.loads(path.read_text()):
+        return path.read_text()
+    return f"# {path.name} with its extends resolved\n" + _toml(data)
+
+
+def _toml(data: dict[str, Any]) -> str:
+    """TOML text of a scene mapping (top-level scalars, then one table per section)."""
+    def value(v: Any) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, (int, float)):
+            return repr(v)
+        if isinstance(v, str):
+            return json.dumps(v)  # a JSON string is a TOML basic string
+        if isinstance(v, list):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        raise SceneError(f"scene value {v!r}: not representable in a scene file")
+
+    lines = [f"{k} = {value(v)}" for k, v in data.items() if not isinstance(v, dict)]
+    for k, v in data.items():
+        if isinstance(v, dict):
+            lines += ["", f"[{k}]"] + [f"{kk} = {value(vv)}" for kk, vv in v.items()]
+    return "\n".join(lines) + "\n"
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Read and validate a TOML scene file (``extends`` resolved: :func:`scene_data`)."""
+    path = Path(path)
+    return scene_from_dict(scene_data(path), name=path.stem)
 
 
 # --------------------------------------------------------------------------------------------

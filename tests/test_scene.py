@@ -2,6 +2,8 @@ import math
 
 import pytest
 
+from conftest import PAPER_SCENE, ROOT
+
 from jointsim.scene import SceneError, load_scene, scene_from_dict
 
 
@@ -70,3 +72,40 @@ def test_missing_file_and_bad_toml(tmp_path):
 def test_digest_changes_with_content(paper_scene):
     assert paper_scene.digest() != paper_scene.with_mesh_preset("paper").digest()
     assert paper_scene.digest("chamber") == paper_scene.with_mesh_preset("paper").digest("chamber")
+
+
+def test_a_scene_extends_another_section_by_section(tmp_path, paper_scene):
+    import tomllib
+    from dataclasses import replace
+
+    from jointsim.scene import scene_toml
+
+    study = ROOT / "scenes" / "paper_sensor_stiffness.toml"
+    s = load_scene(study)
+    assert s.name == "paper_sensor_stiffness"
+    assert s.dataset.rigid_fraction == 0.0
+    # every other value is the paper scene's, [dataset] included
+    assert replace(s, name=paper_scene.name, dataset=replace(s.dataset, rigid_fraction=1.0)) == paper_scene
+    # the provenance text is self-contained and reads back as the same scene
+    text = scene_toml(study)
+    assert "extends" not in tomllib.loads(text)
+    assert scene_from_dict(tomllib.loads(text)) == s
+    assert scene_toml(PAPER_SCENE) == PAPER_SCENE.read_text()
+
+
+def test_extends_errors_name_the_problem(tmp_path):
+    a, b = tmp_path / "a.toml", tmp_path / "b.toml"
+    a.write_text('extends = "b.toml"\n')
+    b.write_text('extends = "a.toml"\n')
+    with pytest.raises(SceneError, match="cycle"):
+        load_scene(a)
+    a.write_text('extends = "missing.toml"\n')
+    with pytest.raises(SceneError, match="not found"):
+        load_scene(a)
+    a.write_text("extends = 3\n")
+    with pytest.raises(SceneError, match="extends = 3"):
+        load_scene(a)
+    a.write_text('extends = "b.toml"\n[chamber]\nbase_radius_mm = -1\n')
+    b.write_text("")
+    with pytest.raises(SceneError, match="chamber.base_radius_mm"):
+        load_scene(a)

@@ -18,6 +18,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..dataset import default_workers, generate_dataset
+from ..scene import scene_toml
 from .common import add_scene_arguments, scene_from_args
 
 HELP = "synthetic labelled dataset (voltages, labels, force, image metrics) in one resumable HDF5 file"
@@ -63,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     command = ["jointsim", "dataset", *(sys.argv[2:] if sys.argv[1:2] == ["dataset"] else [])]
     with bar:
         res = generate_dataset(scene, args.n, args.out, seed=args.seed, workers=args.workers, scheduler=args.scheduler,
-                               scene_toml=Path(args.scene).read_text(), command=command, progress=bar.update,
+                               scene_toml=scene_toml(args.scene), command=command, progress=bar.update,
                                on_start=start)
     if res.groups_run == 0:
         print(f"  {res.path} is complete ({res.n_samples} samples): nothing to do")

@@ -20,7 +20,7 @@ from tqdm import tqdm
 from ..io.store import open_records, open_store
 from ..palpation import Palpation, program_params, run_palpation
 from ..palpation.report import VtuSeries, summarise, write_pvd, write_report, write_setup
-from ..scene import PALPATION_MODES
+from ..scene import PALPATION_MODES, scene_toml
 from .common import add_scene_arguments, scene_from_args
 
 HELP = "virtual palpation with the MuJoCo rig (paper Fig. 4): HDF5 frames, VTU series, PNG, summary"
@@ -137,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
         print("  set-up: " + ", ".join(f"{k} {v:.1f} s" for k, v in pal.setup_timings.items())
               + f"; chamber {pal.reference.mesh.n_tets:,} tets, membrane {pal.membrane_nodes:,} P2 nodes, "
               f"{pal.grid.n_cells:,} voxels, lambda {pal.reconstructor.lam:.3g}")
-        store = open_store(h5, pal.schema(), scene_toml=Path(args.scene).read_text(), seed=scene.noise.seed,
+        store = open_store(h5, pal.schema(), scene_toml=scene_toml(args.scene), seed=scene.noise.seed,
                            n_records=pal.n_records, params=params, command=shlex.split(command))
         done = len(store.done())
         if done:
