@@ -229,6 +229,12 @@ class _Table:
         self.seen.add(k)
         return self.data.get(k, default)
 
+    def choice(self, k: str, default: str, allowed: tuple[str, ...]) -> str:
+        v = self.raw(k, default)
+        if v not in allowed:
+            raise SceneError(f"{self.key(k)} = {v!r}: allowed values are {', '.join(map(repr, allowed))}")
+        return v
+
     def finish(self) -> None:
         unknown = sorted(set(self.data) - self.seen)
         if unknown:
@@ -561,6 +567,9 @@ def _palpation(data: dict[str, Any], base_r: float, height: float, thick: float,
 # [dataset]: synthetic labelled samples (jointsim.dataset, `jointsim dataset`)
 
 
+DATASET_CONTROLS = ("depth", "force")
+
+
 @dataclass(frozen=True)
 class DatasetSpec:
     """What ``jointsim dataset`` samples (SI). Each press trajectory ("group") draws a target
@@ -574,7 +583,9 @@ class DatasetSpec:
     most ``step`` (m) and ``samples_per_press`` samples are taken at depths past first contact
     stratified over ``depth`` (m): one in each of as many equal slices of the range. The
     steady-state reference is the mean of ``reference_frames`` noisy frames; ``images`` stores
-    each reconstructed image."""
+    each reconstructed image. ``control`` "force" takes the samples at contact forces (N, along
+    z) stratified over ``force`` instead, the target lowered until each is reached; the depth
+    reached is the label then."""
 
     radius: tuple[float, float] = (4 * MM, 15 * MM)
     r_max: float = 15 * MM
@@ -590,6 +601,8 @@ class DatasetSpec:
     target_modulus: tuple[float, float] = (10e3, 3e6)
     reference_frames: int = 50
     images: bool = False
+    control: str = "depth"
+    force: tuple[float, float] = (5e-3, 50e-3)
 
 
 def _range(t: _Table, k: str, default: tuple[float, float], lo: float, hi: float, *, lo_open: bool = False) -> tuple[float, float]:
@@ -637,8 +650,10 @@ def _dataset(data: dict[str, Any], base_r: float, height: float, ring: float, di
     images = t.raw("images", False)
     if not isinstance(images, bool):
         raise SceneError(f"dataset.images = {images!r}: must be true or false")
+    control = t.choice("control", "depth", DATASET_CONTROLS)
+    force = _range(t, "force_n", d.force, 0.0, 100.0, lo_open=True)
     t.finish()
     return DatasetSpec(
         (radius[0] * MM, radius[1] * MM), r_max * MM, (depth[0] * MM, depth[1] * MM), k, step * MM, scale, sigma, z,
-        jitter * MM, snr, rigid, (modulus[0] * 1e3, modulus[1] * 1e3), n_ref, images,
+        jitter * MM, snr, rigid, (modulus[0] * 1e3, modulus[1] * 1e3), n_ref, images, control, force,
     )

@@ -186,12 +186,29 @@ def test_a_finished_file_is_not_recomputed(scene, scene_file, reference):
         generate_dataset(scene, N + 1, reference[0].path, seed=SEED)
 
 
+def test_force_control_samples_at_the_drawn_forces(scene, scene_file, tmp_path):
+    """control = "force": one press, its samples at forces one in each third of force_n, reached
+    to the press's tolerance (1e-3), at increasing depths."""
+    from dataclasses import replace
+
+    lo, hi = 0.004, 0.02
+    fscene = replace(scene, dataset=replace(scene.dataset, control="force", force=(lo, hi)))
+    run = generate_dataset(fscene, K, tmp_path / "force", seed=SEED, scene_toml=scene_file.read_text(), workers=1)
+    rec = open_records(run.path)
+    fz = rec["force"][:, 2]
+    np.testing.assert_array_equal(np.floor((fz - lo) / (hi - lo) * K), np.arange(K))
+    want = draw_group(fscene.dataset, SEED, 0, run.rejected_draws).levels
+    np.testing.assert_allclose(fz, want, rtol=1.5e-3)
+    assert (rec["depth"] > 0).all() and (np.diff(rec["depth"]) > 0).all()
+    assert rec.provenance["params"]["scene"]["dataset"]["control"] == "force"
+
+
 def test_draws_are_seeded_per_group():
     from jointsim.scene import DatasetSpec
 
     spec = DatasetSpec()
     a, b = draw_group(spec, 0, 5), draw_group(spec, 0, 5)
-    assert a.radius == b.radius and np.array_equal(a.jitter, b.jitter) and np.array_equal(a.depths, b.depths)
+    assert a.radius == b.radius and np.array_equal(a.jitter, b.jitter) and np.array_equal(a.levels, b.levels)
     assert draw_group(spec, 1, 5).radius != a.radius and draw_group(spec, 0, 6).radius != a.radius
     assert draw_group(spec, 0, 5, attempt=1).radius != a.radius
 
@@ -218,6 +235,8 @@ def test_schema_has_the_image_only_when_asked():
         ({"step_mm": 0.0}, r"dataset\.step_mm = 0: must be in \(0, 5\]"),
         ({"rigid_fraction": 1.5}, r"dataset\.rigid_fraction = 1.5: must be in \[0, 1\]"),
         ({"images": "yes"}, r"dataset\.images = 'yes': must be true or false"),
+        ({"control": "torque"}, r"dataset\.control = 'torque': allowed values are 'depth', 'force'"),
+        ({"force_n": [0.05, 0.01]}, r"dataset\.force_n = \[0.05, 0.01\]: min must not exceed max"),
         ({"radius_mm": [4, 8], "diameter_mm": [8, 16]}, r"give radius_mm or diameter_mm"),
         ({"sample": 3}, r"unknown key\(s\) in \[dataset\]: sample"),
     ],

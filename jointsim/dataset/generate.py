@@ -7,7 +7,10 @@ quasi-static steps of at most ``[dataset] step_mm`` (each warm-started from the 
 ``samples_per_press`` depths stratified over ``[dataset] depth_mm``; at each of them the
 sample is taken: membrane state, morphed chamber, clean and noisy voltages, δV against the
 noisy steady-state reference, the instrument's image and its metrics. The marginal cost of a
-sample is therefore one or two mechanics steps, not a whole press.
+sample is therefore one or two mechanics steps, not a whole press. With ``control = "force"``
+the samples are at contact forces stratified over ``force_n``: the target is lowered by secant
+steps on its depth until each force is reached (a few mechanics steps per sample), and the
+depth reached is the label.
 
 The instrument
     Voltages come from the randomised sensor, images from the **nominal** one: δV is imaged
@@ -69,8 +72,9 @@ MAX_ATTEMPTS = 16  # draws of one group before its failure is reported
 class GroupDraw:
     """One press trajectory's draw (SI): target ``radius`` m, centre ``xy`` (2,) m,
     ``modulus`` Pa (inf: rigid), ``membrane_scale``, ``conductivity`` S/m,
-    ``contact_impedance`` Ω·m², ``jitter`` (n_el, 2) m, ``snr_db``, and the sample
-    ``depths`` (K,) m past first contact, increasing."""
+    ``contact_impedance`` Ω·m², ``jitter`` (n_el, 2) m, ``snr_db``, and the samples'
+    ``levels`` (K,), increasing: depths m past first contact, or contact forces N when the
+    spec's ``control`` is "force"."""
 
     group: int
     attempt: int
@@ -82,7 +86,7 @@ class GroupDraw:
     contact_impedance: float
     jitter: np.ndarray
     snr_db: float
-    depths: np.ndarray
+    levels: np.ndarray
 
 
 def _rng(seed: int, group: int, attempt: int, stream: int) -> np.random.Generator:
@@ -98,7 +102,7 @@ def draw_group(spec: DatasetSpec, seed: int, group: int, attempt: int = 0, n_ele
     """The draw of ``group`` (its ``attempt``-th): uniform radius, centre uniform over the
     disc r ≤ r_max, log-uniform moduli scale, contact impedance and target modulus, uniform
     conductivity and SNR, each electrode moved uniformly within a disc of radius
-    ``electrode_jitter``, K depths one per equal slice of the depth range."""
+    ``electrode_jitter``, K depths (or forces) one per equal slice of their range."""
     rng = _rng(seed, group, attempt, 0)
     radius = float(rng.uniform(*spec.radius))
     r, phi = spec.r_max * math.sqrt(rng.uniform()), 2 * math.pi * rng.uniform()
@@ -111,11 +115,11 @@ def draw_group(spec: DatasetSpec, seed: int, group: int, attempt: int = 0, n_ele
     ja = 2 * np.pi * rng.uniform(size=n_electrodes)
     snr = float(rng.uniform(*spec.snr_db))
     k = spec.samples_per_press
-    lo, hi = spec.depth
-    depths = lo + (hi - lo) * (np.arange(k) + rng.uniform(size=k)) / k
+    lo, hi = spec.force if spec.control == "force" else spec.depth
+    levels = lo + (hi - lo) * (np.arange(k) + rng.uniform(size=k)) / k
     return GroupDraw(
         group, attempt, radius, np.array([r * math.cos(phi), r * math.sin(phi)]), math.inf if rigid else modulus,
-        scale, sigma, z, np.column_stack([jr * np.cos(ja), jr * np.sin(ja)]), snr, depths,
+        scale, sigma, z, np.column_stack([jr * np.cos(ja), jr * np.sin(ja)]), snr, levels,
     )
 
 
@@ -226,15 +230,20 @@ class DatasetSetup:
             contact_z = model.first_contact_height(draw.xy)
         share = t["group_setup"] / n_samples
         records, depth_done = [], 0.0
-        for d in draw.depths[:n_samples]:
+        for level in draw.levels[:n_samples]:
             t = {s: 0.0 for s in STAGES}
             t["group_setup"] = share
             with timed(t, "mechanics"):
-                # steps of at most spec.step, equal, ending on the sample's depth
-                n_steps = max(1, math.ceil((d - depth_done) / self.spec.step - 1e-9))
-                for s in range(1, n_steps + 1):
-                    dz = depth_done + (d - depth_done) * s / n_steps
-                    st = model.press(np.array([draw.xy[0], draw.xy[1], contact_z - dz]))
+                if self.spec.control == "force":
+                    st = model.press_to_force(draw.xy, level)
+                    d = contact_z - float(model.contact.centre[2])
+                else:
+                    # steps of at most spec.step, equal, ending on the sample's depth
+                    d = level
+                    n_steps = max(1, math.ceil((d - depth_done) / self.spec.step - 1e-9))
+                    for s in range(1, n_steps + 1):
+                        dz = depth_done + (d - depth_done) * s / n_steps
+                        st = model.press(np.array([draw.xy[0], draw.xy[1], contact_z - dz]))
                 depth_done = d
             with timed(t, "mesh"):
                 dc = pal.deform(pal.inner_surface(st))
