@@ -120,6 +120,10 @@ def test_calibration_recovers_the_known_transforms(built):
     assert ev["size_per_frame"][route]["all"]["median"] < 1.5
     # stiffness from force and image at fixed depths: the synthetic Hertz law in series
     assert ev["stiffness"]["estimable"] and ev["stiffness"]["relative"]["median"] < 0.2
+    # per decade of the true modulus, the held-out presses all counted once
+    dec = ev["stiffness"]["by_decade"]
+    assert sum(b["n"] for b in dec) == ev["stiffness"]["relative"]["n"]
+    assert all(b["to_pa"] == pytest.approx(10 * b["from_pa"]) for b in dec)
     # the goals table says, for every goal, a value and whether it is met
     assert {g["goal"] for g in ev["goals"]} >= {"depth", "modulus (relative)"}
     assert all(isinstance(g["met"], bool) for g in ev["goals"])

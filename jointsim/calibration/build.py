@@ -218,6 +218,12 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
         true = dict(zip(t.group[first].tolist(), t.modulus[first].tolist()))
         Et = np.array([true[i] for i in ids.tolist()])
         ev["stiffness"]["relative"] = err_stats(E / Et - 1, 1.0)
+        # how far the modulus can be told depends on how the target compares with the membrane
+        # (a target much stiffer than it presses like a rigid one): the error per decade of E
+        ev["stiffness"]["by_decade"] = [
+            {"from_pa": float(lo), "to_pa": float(lo * 10), **err_stats((E / Et - 1)[(Et >= lo) & (Et < lo * 10)], 1.0)}
+            for lo in 10.0 ** np.arange(np.floor(np.log10(Et.min())), np.log10(Et.max()))
+        ]
         tables["stiffness"] = {"group": ids, "true_modulus": Et, "predicted_modulus": E}
 
     # goals

@@ -199,6 +199,11 @@ def _markdown(cal: Calibration, command: str, files: list[str]) -> str:
         r = st["relative"]
         L.append(f"{st['reason']}. Held-out relative modulus error: median {_fmt(r['median'])}, P95 {_fmt(r['p95'])} "
                  f"({r['n']} presses). `stiffness.png`, `stiffness.csv`.")
+        rows = [b for b in st.get("by_decade", []) if b["n"]]
+        if rows:
+            L += ["", "| true modulus (kPa) | presses | median | P95 |", "|---|---|---|---|"]
+            L += [f"| {b['from_pa'] / 1e3:g}-{b['to_pa'] / 1e3:g} | {b['n']} | {_fmt(b['median'])} | {_fmt(b['p95'])} |"
+                  for b in rows]
     else:
         L.append(f"**Not estimable**: {st['reason']}. The map predicts no modulus (NaN).")
     L += ["", "## Files", "", *[f"- `{f}`" for f in files], ""]
