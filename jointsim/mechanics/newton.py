@@ -81,26 +81,38 @@ class NewtonSystem:
         # last equilibrium's tangent, for predictors)
         self.tangent_ready = False
         self.tangent_u: np.ndarray | None = None  # the displacement that factor was taken at
+        self._placements: dict[int, tuple[np.ndarray, ...]] = {}  # see _placement
 
     def data(self, matrices: list) -> np.ndarray:
         """The free upper-triangle values of Σ matrices, in the pattern's order."""
         out = np.zeros(self.n_kept)
-        for H in matrices:
+        for i, H in enumerate(matrices):
             if H is None or H.nnz == 0:
                 continue
             H = sp.csr_matrix(H)
             if H.nnz == len(self._cols) and np.array_equal(H.indptr, self._indptr) and np.array_equal(H.indices, self._cols):
                 out += H.data[self._kept]  # assembled on the pattern itself (the elastic term)
                 continue
-            coo = H.tocoo()
-            k = coo.row.astype(np.int64) * self.n + coo.col
-            pos = np.minimum(np.searchsorted(self.keys, k), len(self.keys) - 1)
-            if not np.array_equal(self.keys[pos], k):
-                raise RuntimeError("a Hessian term has entries outside the system's sparsity pattern")
-            vals, slot = coo.data, self.slot[pos]
-            m = slot >= 0
-            out += np.bincount(slot[m], weights=vals[m], minlength=self.n_kept)
+            entries, where = self._placement(i, H)
+            out += np.bincount(where, weights=H.data[entries], minlength=self.n_kept)
         return out
+
+    def _placement(self, i: int, H: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
+        """(entries of H.data kept, their slots) for the ``i``-th matrix, cached while its
+        pattern stays (a term's pattern rarely changes between Newton iterations: the
+        pressure's never, the contact's with its active set), as the search costs ~10 ms."""
+        hit = self._placements.get(i)
+        if hit is not None and np.array_equal(hit[0], H.indptr) and np.array_equal(hit[1], H.indices):
+            return hit[2], hit[3]
+        rows = np.repeat(np.arange(H.shape[0], dtype=np.int64), np.diff(H.indptr))
+        k = rows * self.n + H.indices
+        pos = np.minimum(np.searchsorted(self.keys, k), len(self.keys) - 1)
+        if not np.array_equal(self.keys[pos], k):
+            raise RuntimeError("a Hessian term has entries outside the system's sparsity pattern")
+        slot = self.slot[pos]
+        entries = np.flatnonzero(slot >= 0)
+        self._placements[i] = (H.indptr.copy(), H.indices.copy(), entries, slot[entries])
+        return entries, slot[entries]
 
     def factor_tangent(self, terms: list, u: np.ndarray) -> None:
         """Factor the full Hessian of ``terms`` at ``u`` into ``full``, as the last Newton
