@@ -62,7 +62,7 @@ def spherical_cap(base_radius: float, height: float, n_rim: int = 192, n_rings: 
     a, h = base_radius, height
     R = (a * a + h * h) / (2 * h)
     zc = h - R
-    theta_max = np.arcsin(a / R)  # polar angle of the rim seen from the sphere centre
+    theta_max = np.arcsin(min(a / R, 1.0))  # polar angle of the rim seen from the sphere centre
     if n_rings is None:
         n_rings = max(4, int(np.ceil(R * theta_max / (2 * np.pi * a / n_rim))))
     theta = theta_max * np.arange(n_rings, 0, -1) / n_rings  # rim first, apex excluded
@@ -108,7 +108,8 @@ def isotropic_cap(base_radius: float, height: float, n_rim: int = 96, apex_edge:
         raise ValueError(f"n_rim = {n_rim}: must be >= 8")
     a, h = base_radius, height
     R = (a * a + h * h) / (2 * h)
-    theta_max = np.arcsin(a / R) if h <= R else np.pi - np.arcsin(a / R)
+    # min(·, 1): for a hemisphere (h = a) a / R rounds to 1 + 1 ulp for some radii
+    theta_max = np.arcsin(min(a / R, 1.0)) if h <= R else np.pi - np.arcsin(min(a / R, 1.0))
     edge = 2 * np.pi * a / n_rim
     sym = next(s for s in (16, 8, 4, 2, 1) if n_rim % s == 0)
     S = R * theta_max  # geodesic distance apex → rim
