@@ -237,6 +237,20 @@ def _store(path, schema, records):
     return st.finalize()
 
 
+def test_a_version_1_dataset_takes_the_target_centre_as_position(tmp_path, stores):
+    from jointsim.io.store import open_records
+
+    v2 = load_samples(stores["rigid"])
+    assert v2.contact_known
+    np.testing.assert_array_equal(v2.position[:, :2], v2.contact_xy)
+    keep = tuple(f for f in DATASET_SCHEMA.fields if f.name != "contact_centre")
+    rec = open_records(stores["rigid"])
+    rows = [{f.name: rec[f.name][i] for f in keep} for i in range(len(rec))]
+    v1 = load_samples(_store(tmp_path / "v1.h5", Schema(keep, name="dataset", version=1), rows))
+    assert not v1.contact_known and np.isnan(v1.contact_xy).all()
+    np.testing.assert_array_equal(v1.position[:, :2], v1.xy)
+
+
 def test_bad_datasets_get_clear_errors(tmp_path, stores):
     with pytest.raises(ValueError, match="no such file"):
         load_samples(tmp_path / "missing.h5")

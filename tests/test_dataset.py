@@ -69,7 +69,7 @@ def reference(scene, scene_file, tmp_path_factory):
 def test_records_follow_the_contract(reference):
     run, rec = reference
     assert len(rec) == N and run.groups_run == 3 and run.samples_resumed == 0
-    assert rec.schema.name == "dataset" and rec.schema.version == 1
+    assert rec.schema.name == "dataset" and rec.schema.version == 2
     shapes = {"xy": (N, 2), "force": (N, 3), "electrode_jitter": (N, 16, 2), "voltages": (N, 256), "dv": (N, 256),
               "reference_clean": (N, 256), "com": (N, 3), "timings": (N, 5)}
     for name, shape in shapes.items():
@@ -94,6 +94,13 @@ def test_labels_lie_in_the_requested_ranges(scene, reference):
     assert (jitter <= d.electrode_jitter).all() and jitter.max() > 0.3 * d.electrode_jitter
     assert np.isinf(rec["target_modulus"]).all()  # rigid_fraction = 1
     assert (rec["force"][:, 2] > 0).all() and (rec["displaced_volume"] > 0).all()
+    # the contact lies on the line from the target's centre towards the dome's axis (the dome
+    # slopes away from it), on the outer surface (10 mm dome + 2 mm membrane at the apex)
+    c = rec["contact_centre"]
+    r_t, r_c = np.hypot(*rec["xy"].T), np.hypot(*c[:, :2].T)
+    assert (r_c < r_t).all() and (r_c > 0.3 * r_t).all()
+    assert (np.einsum("ij,ij->i", c[:, :2], rec["xy"]) > 0.99 * r_c * r_t).all()
+    assert ((c[:, 2] > 3e-3) & (c[:, 2] < 12e-3)).all()
 
 
 def test_groups_are_consistent(reference):

@@ -152,16 +152,18 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
     pred = com_map(test.com)
     err = pred - test.position
     exy = np.hypot(err[:, 0], err[:, 1])
-    r = np.hypot(test.xy[:, 0], test.xy[:, 1])
+    r = np.hypot(test.position[:, 0], test.position[:, 1])
     inside = r <= SENSING_RADIUS
     ev["com"] = {
         "smoothing": com_map.smoothing, "cv_mse_mm2": {f"{k:g}": v for k, v in cv.items()},
         "fitted_points": int(len(com_map.points)), "test_without_com": int((~np.isfinite(test.com).all(axis=1)).sum()),
         "xy_all": err_stats(exy), "xy_r15": err_stats(exy[inside]), "xy_r15_goal_band": err_stats(exy[inside & band]),
         "depth_all": err_stats(err[:, 2]), "depth_goal_band": err_stats(err[:, 2][band]),
-        "raw_xy_r15": err_stats(np.hypot(*(test.com[:, :2] - test.xy).T)[inside]),
+        "raw_xy_r15": err_stats(np.hypot(*(test.com[:, :2] - test.position[:, :2]).T)[inside]),
+        "position": "contact centre of pressure" if test.contact_known else "target centre",
     }
-    tables["com"] = {"group": test.group, "x": test.xy[:, 0], "y": test.xy[:, 1], "depth": test.depth,
+    tables["com"] = {"group": test.group, "x": test.position[:, 0], "y": test.position[:, 1], "depth": test.depth,
+                     "target_x": test.xy[:, 0], "target_y": test.xy[:, 1],
                      "snr_db": test.snr_db, "com_x": test.com[:, 0], "com_y": test.com[:, 1], "com_z": test.com[:, 2],
                      "cal_x": pred[:, 0], "cal_y": pred[:, 1], "cal_depth": pred[:, 2], "error_xy": exy,
                      "error_depth": err[:, 2]}

@@ -20,7 +20,8 @@ __all__ = ["SCHEMA_NAME", "SCHEMA_VERSION", "REQUIRED", "MIN_GROUPS", "Samples",
            "first_per_group", "voltage_features"]
 
 SCHEMA_NAME = "dataset"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+SCHEMA_VERSIONS = (1, 2)  # version 1 has no contact_centre: positions are then the target's centre
 REQUIRED = ("group", "radius", "xy", "depth", "target_modulus", "force", "snr_db", "voltages", "dv", "com",
             "sum_sigma", "diameter")
 MIN_GROUPS = 5  # 3 to fit, 2 held out, at the least
@@ -38,7 +39,8 @@ class Samples:
     """Labelled samples, (n,) or (n, k) arrays in SI units: press ``group``, target ``radius``
     m, centre ``xy`` (n, 2) m, ``depth`` m past first contact, ``modulus`` Pa (+inf rigid),
     contact ``force`` (n, 3) N, ``snr_db``, ``voltages`` and ``dv`` (n, 256) V, reconstructed
-    ``com`` (n, 3) m, ``sum_sigma``, image ``diameter`` m; ``fingerprint`` of the sensor and
+    ``com`` (n, 3) m, ``sum_sigma``, image ``diameter`` m, the contact's centre of pressure
+    ``contact_xy`` (n, 2) m (NaN from a version-1 store); ``fingerprint`` of the sensor and
     ``source`` (path, data_sha256, n_records, seed)."""
 
     group: np.ndarray
@@ -53,6 +55,7 @@ class Samples:
     com: np.ndarray
     sum_sigma: np.ndarray
     diameter: np.ndarray
+    contact_xy: np.ndarray
     fingerprint: dict[str, Any] = field(default_factory=dict)
     source: dict[str, Any] = field(default_factory=dict)
 
@@ -75,9 +78,18 @@ class Samples:
         return np.sqrt(np.mean(self.dv**2, axis=1))
 
     @property
+    def contact_known(self) -> bool:
+        """Whether every sample has its contact's centre of pressure (a version-2 store)."""
+        return bool(len(self.contact_xy) and np.isfinite(self.contact_xy).all())
+
+    @property
     def position(self) -> np.ndarray:
-        """True (x, y, depth) (n, 3) m: what the CoM map and the regression estimate."""
-        return np.column_stack([self.xy, self.depth])
+        """True (x, y, depth) (n, 3) m: what the CoM map and the regression estimate. (x, y)
+        is where the target presses the sensor, the contact's centre of pressure, when the
+        store has it; else the target's centre (off the axis they differ: the dome slopes,
+        and the contact lies between the target's centre and the dome's, by an amount that
+        grows with the target's radius, which the image does not see directly)."""
+        return np.column_stack([self.contact_xy if self.contact_known else self.xy, self.depth])
 
     def metric(self, name: str) -> np.ndarray:
         """An image or voltage metric (n,) by name: sum_sigma, diameter, rms_dv, force."""
@@ -91,7 +103,7 @@ class Samples:
 
 
 REQUIRED_ATTRS = ("group", "radius", "xy", "depth", "modulus", "force", "snr_db", "voltages", "dv", "com",
-                  "sum_sigma", "diameter")
+                  "sum_sigma", "diameter", "contact_xy")
 
 
 def _check_shapes(fields: Mapping[str, np.ndarray], n: int) -> None:
@@ -118,15 +130,16 @@ def load_samples(path: str | Path) -> Samples:
     except (OSError, KeyError) as e:
         raise ValueError(f"dataset {path}: not a jointsim record store ({e})") from None
     s = head.schema
-    if (s.name, s.version) != (SCHEMA_NAME, SCHEMA_VERSION):
+    if s.name != SCHEMA_NAME or s.version not in SCHEMA_VERSIONS:
         raise ValueError(
             f"dataset {path}: a {s.name!r} store (schema version {s.version}); calibration reads "
-            f"{SCHEMA_NAME!r} stores of schema version {SCHEMA_VERSION} (from jointsim dataset)"
+            f"{SCHEMA_NAME!r} stores of schema version {' or '.join(map(str, SCHEMA_VERSIONS))} (from jointsim dataset)"
         )
     if missing := [n for n in REQUIRED if n not in s.names]:
         raise ValueError(f"dataset {path}: missing field(s) {missing}; calibration needs {list(REQUIRED)}")
+    extra = ["contact_centre"] if "contact_centre" in s.names else []
     try:
-        rec = open_records(path, fields=list(REQUIRED))
+        rec = open_records(path, fields=list(REQUIRED) + extra)
     except OSError as e:  # pragma: no cover - a damaged file
         raise ValueError(f"dataset {path}: cannot be read ({e})") from None
     f = {k: np.asarray(rec[k]) for k in REQUIRED}
@@ -139,6 +152,7 @@ def load_samples(path: str | Path) -> Samples:
         depth=f["depth"].astype(float), modulus=f["target_modulus"].astype(float), force=f["force"].astype(float),
         snr_db=f["snr_db"].astype(float), voltages=f["voltages"].astype(float), dv=f["dv"].astype(float),
         com=f["com"].astype(float), sum_sigma=f["sum_sigma"].astype(float), diameter=f["diameter"].astype(float),
+        contact_xy=np.asarray(rec["contact_centre"], float)[:, :2] if extra else np.full((n, 2), np.nan),
         fingerprint=provenance_fingerprint(rec.provenance), source=source,
     )
 

@@ -63,7 +63,7 @@ __all__ = ["SCHEMA_NAME", "SCHEMA_VERSION", "STAGES", "GroupDraw", "DatasetSetup
            "dataset_params", "group_indices", "n_groups"]
 
 SCHEMA_NAME = "dataset"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: contact_centre
 STAGES = ("group_setup", "mechanics", "mesh", "forward", "reconstruction")
 MAX_ATTEMPTS = 16  # draws of one group before its failure is reported
 
@@ -144,6 +144,8 @@ def dataset_schema(n_electrodes: int, n_meas: int, n_cells: int | None) -> Schem
         F("depth", (), "float64", "m", "indentation past first contact (target centre below its first-contact height)"),
         F("target_modulus", (), "float64", "Pa", "target Young's modulus (inf: rigid)"),
         F("force", (3,), "float64", "N", "FEM contact force of the membrane on the target"),
+        F("contact_centre", (3,), "float64", "m", "FEM centre of pressure of the contact on the membrane's outer surface "
+          "(off the axis it lies between the target's centre and the dome's, not below the target's centre)"),
         F("contact_area", (), "float64", "m^2", "FEM contact area"),
         F("displaced_volume", (), "float64", "m^3", "saline displaced to the reservoir (from the inflated state)"),
         F("peak_strain", (), "float64", "", "largest principal Green-Lagrange strain in the membrane"),
@@ -256,7 +258,7 @@ class DatasetSetup:
                 image, _, metrics = pal.image(dv)
             rec = {
                 "group": draw.group, "radius": draw.radius, "xy": draw.xy, "depth": d, "target_modulus": draw.modulus,
-                "force": st.force, "contact_area": st.contact_area, "displaced_volume": st.displaced_volume,
+                "force": st.force, "contact_centre": st.contact_centre, "contact_area": st.contact_area, "displaced_volume": st.displaced_volume,
                 "peak_strain": st.peak_strain, "membrane_scale": draw.membrane_scale, "conductivity": draw.conductivity,
                 "contact_impedance": draw.contact_impedance, "electrode_jitter": draw.jitter, "snr_db": draw.snr_db,
                 "voltages_clean": clean, "reference_clean": v_ref, "voltages": v, "dv": dv, "dv_clean": clean - v_ref,

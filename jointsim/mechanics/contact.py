@@ -103,6 +103,17 @@ class SphereContact:
     def contact_area(self, u: np.ndarray) -> float:
         return float(self.weights[self._gap(u)[2] > 0].sum())
 
+    def centre_of_pressure(self, u: np.ndarray) -> np.ndarray:
+        """The contact's centre of pressure (3,) m: the nodes in contact (deformed), weighted
+        by the normal force each carries; NaN when none is."""
+        _, _, pen = self._gap(u)
+        act = pen > 0
+        w = self.weights[act] * pen[act]
+        if not act.any() or w.sum() <= 0:
+            return np.full(3, np.nan)
+        x = self.X[self.nodes[act]] + u[self.nodes[act]]
+        return (w[:, None] * x).sum(axis=0) / w.sum()
+
     def penetration(self, u: np.ndarray) -> float:
         return float(max(self._gap(u)[2].max(), 0.0))
 

@@ -9,7 +9,7 @@ remesh), with the contact force, contact area, displaced saline volume and solve
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -94,8 +94,12 @@ class MembraneState:
     exerts on the target, ``contact_area`` m², ``displaced_volume`` m³ (saline pushed out to
     the reservoir), ``peak_strain`` (largest principal Green–Lagrange strain), Newton
     ``iterations`` and ``residual``, ``penetration`` m (largest, at the surface nodes), the
-    saline ``pressure`` Pa (the reservoir's, or the closed chamber's multiplier) and the element
-    quality ``min_jacobian`` (smallest det F over the quadrature points; ≤ 0 would be inverted)."""
+    saline ``pressure`` Pa (the reservoir's, or the closed chamber's multiplier), the element
+    quality ``min_jacobian`` (smallest det F over the quadrature points; ≤ 0 would be inverted)
+    and the ``contact_centre`` (3,) m, the contact's centre of pressure on the deformed outer
+    surface (NaN without contact): where on the sensor the target presses, which is not
+    below the target's centre off the axis (the dome slopes: the contact lies between the
+    target's centre and the dome's)."""
 
     dome: DomeSurface
     u: np.ndarray
@@ -108,6 +112,7 @@ class MembraneState:
     penetration: float
     pressure: float = 0.0
     min_jacobian: float = 1.0
+    contact_centre: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
 
 
 class MembraneModel:
@@ -440,6 +445,7 @@ class MembraneModel:
             penetration=self.contact.penetration(u),
             pressure=self.pressure.pressure,
             min_jacobian=float(s.min_det.min()),
+            contact_centre=self.contact.centre_of_pressure(u),
         )
 
 

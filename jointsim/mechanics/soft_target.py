@@ -328,6 +328,9 @@ class _TargetContact:
     def penetration(self, u: np.ndarray) -> float:
         return self.surface.penetration(u)
 
+    def centre_of_pressure(self, u: np.ndarray) -> np.ndarray:
+        return self.surface.centre_of_pressure(u)
+
 
 class SoftTargetModel(MembraneModel):
     """:class:`MembraneModel` pressed by a soft sphere (``target_material``, radius
@@ -460,4 +463,5 @@ class SoftTargetModel(MembraneModel):
             penetration=self.contact.penetration(u),
             pressure=self.pressure.pressure,
             min_jacobian=float(min(jm, jt)),
+            contact_centre=self.contact.centre_of_pressure(u),
         )

@@ -256,6 +256,17 @@ class SurfaceContact:
         g = self.evaluate(u, False)[1].reshape(-1, 3)
         return -g[np.asarray(nodes)].sum(axis=0)
 
+    def centre_of_pressure(self, u: np.ndarray) -> np.ndarray:
+        """The slave nodes in contact (deformed), weighted by their penalty forces at the
+        lagged closest points: (3,) m, NaN when none is."""
+        idx, _, _, _, g = self._gaps(u)
+        act = g < 0
+        w = self.weights[idx[act]] * -g[act]
+        if not act.any() or w.sum() <= 0:
+            return np.full(3, np.nan)
+        x = self.X[self.slaves[idx[act]]] + u[self.slaves[idx[act]]]
+        return (w[:, None] * x).sum(axis=0) / w.sum()
+
     def penetration(self, u: np.ndarray) -> float:
         """Largest penetration (m) of a slave node into the master surface (0 when none)."""
         tri, _, _, gap = self._choose(u, self.cand_s, self.cand_t)
