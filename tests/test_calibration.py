@@ -124,6 +124,10 @@ def test_calibration_recovers_the_known_transforms(built):
     dec = ev["stiffness"]["by_decade"]
     assert sum(b["n"] for b in dec) == ev["stiffness"]["relative"]["n"]
     assert all(b["to_pa"] == pytest.approx(10 * b["from_pa"]) for b in dec)
+    # the synthetic force is Hertz with target and membrane (E 66 kPa) in series: a decade of
+    # soft targets below the membrane presses with less force than one well above it
+    sens = ev["stiffness"]["force_sensitivity"]["by_decade"]
+    assert len(sens) >= 3 and sens[0]["mean_percent"] < sens[-1]["mean_percent"] - 10
     # the goals table says, for every goal, a value and whether it is met
     assert {g["goal"] for g in ev["goals"]} >= {"depth", "modulus (relative)"}
     assert all(isinstance(g["met"], bool) for g in ev["goals"])

@@ -21,7 +21,7 @@ from .curves import ALONG, LevelCurves, default_levels, fit_level_curves, value_
 from .data import Samples, split_groups, voltage_features
 from .maps import VERSION_PACKAGES, CalibrationMap, _now
 from .regression import KINDS, OUTPUTS, fit_regressor, regression_targets
-from .stiffness import fit_stiffness, group_features
+from .stiffness import fit_stiffness, force_sensitivity, group_features
 
 __all__ = ["Settings", "Calibration", "calibrate", "err_stats", "METRICS", "GOALS"]
 
@@ -211,6 +211,13 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
     stiff = fit_stiffness(train.group, train.depth, train.force_mag, train.sum_sigma, train.diameter, train.modulus,
                           st_levels)
     ev["stiffness"] = {"estimable": stiff.estimable, "reason": stiff.reason, "depth_levels_m": st_levels.tolist()}
+    # a diagnostic of the data, not an evaluation: all presses, labels included
+    # (at a shallow level: the deeper the press, the more even a soft target's contact stiffens)
+    shallow = float(levels["depth"][min(1, len(levels["depth"]) - 1)])
+    ev["stiffness"]["force_sensitivity"] = {
+        "depth_m": shallow,
+        "by_decade": force_sensitivity(samples.group, samples.depth, samples.force_mag, samples.radius, samples.modulus,
+                                       shallow)}
     if stiff.estimable:
         soft = np.isfinite(test.modulus)
         t = test.subset(soft)

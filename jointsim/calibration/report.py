@@ -208,6 +208,13 @@ def _markdown(cal: Calibration, command: str, files: list[str]) -> str:
                   for b in rows]
     else:
         L.append(f"**Not estimable**: {st['reason']}. The map predicts no modulus (NaN).")
+    fs = st.get("force_sensitivity", {})
+    if fs.get("by_decade"):
+        L += ["", f"What the force tells of the modulus (all soft presses, labels known): |F| at {fs['depth_m'] * 1e3:.2g} mm "
+              "against a target of the same radius (fit of log |F| on log R), per decade of E:", "",
+              "| true modulus (kPa) | presses | mean | spread (SD) |", "|---|---|---|---|"]
+        L += [f"| {b['from_pa'] / 1e3:g}-{b['to_pa'] / 1e3:g} | {b['n']} | {b['mean_percent']:+.1f} % | {b['sd_percent']:.1f} % |"
+              for b in fs["by_decade"]]
     L += ["", "## Files", "", *[f"- `{f}`" for f in files], ""]
     return "\n".join(L)
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from .curves import value_at
 
-__all__ = ["StiffnessModel", "group_features", "fit_stiffness", "MIN_SOFT_GROUPS"]
+__all__ = ["StiffnessModel", "group_features", "fit_stiffness", "force_sensitivity", "MIN_SOFT_GROUPS"]
 
 MIN_SOFT_GROUPS = 8
 MIN_DECADES = 0.1  # soft moduli spanning less than this (log10) carry no modulus information
@@ -77,6 +77,28 @@ class StiffnessModel:
     def not_estimable(cls, reason: str, levels: np.ndarray) -> "StiffnessModel":
         e = np.zeros(0)
         return cls(False, reason, np.asarray(levels, float), e, e, np.zeros((0, 0), int), e, float("nan"))
+
+
+def force_sensitivity(group: np.ndarray, depth: np.ndarray, force_mag: np.ndarray, radius: np.ndarray,
+                      modulus: np.ndarray, level: float) -> list[dict[str, float]]:
+    """How much the target's modulus changes the force, per decade of E (soft presses): |F| at
+    depth ``level`` (m) relative to the fit of log |F| on log R over all of them, mean and
+    spread (%). What the dataset offers a modulus estimate, whatever the estimator: a decade
+    whose mean sits within the spread of the others cannot be told apart from them by force."""
+    soft = np.isfinite(modulus)
+    g, v = value_at(group[soft], depth[soft], np.column_stack([force_mag, radius, modulus])[soft], float(level))
+    if len(g) < 3:
+        return []
+    lf, lr, E = np.log(v[:, 0]), np.log(v[:, 1]), v[:, 2]
+    A = np.column_stack([np.ones(len(g)), lr])
+    res = lf - A @ np.linalg.lstsq(A, lf, rcond=None)[0]
+    out = []
+    for lo in 10.0 ** np.arange(np.floor(np.log10(E.min())), np.log10(E.max())):
+        m = (E >= lo) & (E < 10 * lo)
+        if m.any():
+            out.append({"from_pa": float(lo), "to_pa": float(10 * lo), "n": int(m.sum()),
+                        "mean_percent": float(100 * np.expm1(res[m].mean())), "sd_percent": float(100 * res[m].std())})
+    return out
 
 
 def fit_stiffness(group: np.ndarray, depth: np.ndarray, force_mag: np.ndarray, sum_sigma: np.ndarray,
