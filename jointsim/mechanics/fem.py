@@ -13,7 +13,6 @@ before assembly, so Newton directions are descent directions.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -38,18 +37,6 @@ _QA, _QB = 0.5854101966249685, 0.1381966011250105
 QUAD_BARY = np.array([[_QA, _QB, _QB, _QB], [_QB, _QA, _QB, _QB], [_QB, _QB, _QA, _QB], [_QB, _QB, _QB, _QA]])
 QUAD_W = np.full(4, 0.25)
 FD_STEP = 1e-6
-MIN_TETS_PER_THREAD = 1000  # below, a thread's start-up outweighs its share of the Hessian kernel
-
-
-def kernel_threads() -> int:
-    """Threads for the element Hessian kernel on the CPU: the cores this process may use, at
-    most ``OMP_NUM_THREADS`` when that is set (dataset workers set it to 1: one core each)."""
-    try:
-        n = len(os.sched_getaffinity(0))
-    except AttributeError:  # platforms without affinity
-        n = os.cpu_count() or 1
-    env = os.environ.get("OMP_NUM_THREADS", "")
-    return max(1, min(n, int(env))) if env.isdigit() else n
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,19 +104,12 @@ def _p2_element(
     qw: wp.array(dtype=wp.float64),
     want_hessian: int,
     h: wp.float64,
-    first: int,
     energy: wp.array(dtype=wp.float64),
     grad: wp.array2d(dtype=wp.float64),
     hess: wp.array3d(dtype=wp.float64),
     min_det: wp.array(dtype=wp.float64),
 ):
-    e = wp.tid() + first
-    # each element clears its own rows (in the kernel's threads, not in a serial memset first)
-    for r in range(30):
-        grad[e, r] = wp.float64(0.0)
-        if want_hessian != 0:
-            for c in range(30):
-                hess[e, r, c] = wp.float64(0.0)
+    e = wp.tid()
     x0 = X[tets[e, 0]]
     Dm = wp.matrix_from_cols(X[tets[e, 1]] - x0, X[tets[e, 2]] - x0, X[tets[e, 3]] - x0)
     vol = wp.determinant(Dm) / wp.float64(6.0)
@@ -235,37 +215,19 @@ class ElementKernel:
         self._hess = wp.zeros((m, 30, 30), dtype=wp.float64, device=device)
         self._hess_empty = wp.zeros((1, 1, 1), dtype=wp.float64, device=device)
         self._mindet = wp.zeros(m, dtype=wp.float64, device=device)
-        n = kernel_threads() if device == "cpu" and m >= MIN_TETS_PER_THREAD * 2 else 1
-        edges = np.linspace(0, m, n + 1).astype(int)
-        self._spans = [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
-        self._executor = None
-
-    def _pool(self):
-        if self._executor is None:
-            from concurrent.futures import ThreadPoolExecutor
-
-            self._executor = ThreadPoolExecutor(len(self._spans), thread_name_prefix="p2-element")
-        return self._executor
 
     def __call__(self, u: np.ndarray, hessian: bool = True) -> ElementState:
         uw = wp.array(np.ascontiguousarray(u, dtype=np.float64), dtype=wp.vec3d, device=self.device)
-
-        def launch(span: tuple[int, int]) -> None:
-            wp.launch(
-                _p2_element,
-                dim=span[1] - span[0],
-                inputs=[self._X, uw, self._tets, self._params, self._qb, self._qw, int(hessian), FD_STEP, span[0]],
-                outputs=[self._energy, self._grad, self._hess if hessian else self._hess_empty, self._mindet],
-                device=self.device,
-            )
-
-        spans = self._spans if hessian else [(0, self.mesh.n_tets)]
-        if len(spans) == 1:
-            launch(spans[0])
-        else:
-            # Warp runs a CPU kernel on one thread, but calls it through ctypes, which lets go
-            # of the GIL: the element blocks run in parallel threads (disjoint outputs)
-            list(self._pool().map(launch, spans))
+        self._grad.zero_()
+        if hessian:
+            self._hess.zero_()
+        wp.launch(
+            _p2_element,
+            dim=self.mesh.n_tets,
+            inputs=[self._X, uw, self._tets, self._params, self._qb, self._qw, int(hessian), FD_STEP],
+            outputs=[self._energy, self._grad, self._hess if hessian else self._hess_empty, self._mindet],
+            device=self.device,
+        )
         hess = None
         if hessian:
             # a read-only view of the kernel's buffer, valid until the next call with a Hessian
