@@ -230,6 +230,7 @@ class _Table:
         return self.data.get(k, default)
 
     def choice(self, k: str, default: str, allowed: tuple[str, ...]) -> str:
+        """A value that must be one of ``allowed``."""
         v = self.raw(k, default)
         if v not in allowed:
             raise SceneError(f"{self.key(k)} = {v!r}: allowed values are {', '.join(map(repr, allowed))}")
@@ -352,9 +353,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         preset = "custom"
 
     t = _Table(data.get("membrane", {}), "membrane")
-    law = t.raw("law", "neo-hookean")
-    if law not in ("neo-hookean", "yeoh"):
-        raise SceneError(f"membrane.law = {law!r}: allowed values are 'neo-hookean', 'yeoh'")
+    law = t.choice("law", "neo-hookean", ("neo-hookean", "yeoh"))
     mu = t.number("shear_modulus_kpa", 22.0, 0.0, 1e6, lo_open=True)
     yc = _number_list("membrane.yeoh_c_kpa", t.raw("yeoh_c_kpa", [9.8, 0.91, -0.16]), 3, -1e6, 1e6, False)
     if law == "yeoh" and yc[0] <= 0:
@@ -362,9 +361,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     bulk_ratio = t.number("bulk_ratio", 1000.0, 1.0, 1e5)
     layers = t.integer("layers", 2, 1, 8)
     p_res = t.number("reservoir_pressure_pa", 0.0, -1e4, 1e5)
-    closed = t.raw("chamber", "open")
-    if closed not in ("open", "closed"):
-        raise SceneError(f"membrane.chamber = {closed!r}: allowed values are 'open', 'closed'")
+    closed = t.choice("chamber", "open", ("open", "closed"))
     rim_vertices = t.integer("rim_vertices", 64, 16, 1024)
     t.finish()
 
@@ -394,9 +391,7 @@ def _target(data: dict[str, Any], base_r: float) -> Target:
         radius = t.number("diameter_mm", 15.0, 0.0, 10 * base_r, lo_open=True) / 2
     else:
         radius = t.number("radius_mm", 7.5, 0.0, 5 * base_r, lo_open=True)
-    kind = t.raw("kind", "rigid")
-    if kind not in ("rigid", "soft"):
-        raise SceneError(f"target.kind = {kind!r}: allowed values are 'rigid', 'soft'")
+    kind = t.choice("kind", "rigid", ("rigid", "soft"))
     friction = t.number("friction", 0.0, 0.0, 2.0)
     # soft targets: Sylgard 184 ~0.6-3 MPa, tumour-like inclusions ~10-100 kPa (DESIGN.md)
     modulus = t.number("youngs_modulus_kpa", 1500.0, 0.0, 1e6, lo_open=True)
@@ -440,9 +435,10 @@ def scene_toml(path: str | Path) -> str:
     """A scene file's text with ``extends`` resolved (the file itself when it extends
     nothing): self-contained, for the provenance of what a run computed."""
     path = Path(path)
-    data = scene_data(path)
-    if "extends" not in tomllib.loads(path.read_text()):
-        return path.read_text()
+    data = scene_data(path)  # checks the file (and what it extends) first
+    text = path.read_text()
+    if "extends" not in tomllib.loads(text):
+        return text
     return f"# {path.name} with its extends resolved\n" + _toml(data)
 
 
@@ -515,9 +511,7 @@ def _palpation(data: dict[str, Any], base_r: float, height: float, thick: float,
     """Parse [palpation] (mm, s, N in the key names); ``base_r``, ``height``, ``thick`` in mm;
     ``has_zf``: the scene gives per-carrier contact impedances."""
     t = _Table(data, "palpation")
-    mode = t.raw("mode", "position")
-    if mode not in PALPATION_MODES:
-        raise SceneError(f"palpation.mode = {mode!r}: allowed values are {', '.join(map(repr, PALPATION_MODES))}")
+    mode = t.choice("mode", "position", PALPATION_MODES)
     has_r, has_d = "target_radii_mm" in data, "target_diameters_mm" in data
     if has_r and has_d:
         raise SceneError("[palpation]: give target_radii_mm or target_diameters_mm, not both")
@@ -545,12 +539,8 @@ def _palpation(data: dict[str, Any], base_r: float, height: float, thick: float,
     c = None if c is None else _check_number("palpation.probe_damping_ns_per_m", c, 0.0, 1e4, True, False)
     n_ref = t.integer("reference_frames", 50, 1, 100_000)
     cells = t.integer("cells", 7000, 100, 200_000)
-    lam = t.raw("lambda_method", "kfold")
-    if lam not in LAMBDA_METHODS:
-        raise SceneError(f"palpation.lambda_method = {lam!r}: allowed values are {', '.join(map(repr, LAMBDA_METHODS))}")
-    upd = t.raw("mesh_update", "auto")
-    if upd not in MESH_UPDATES:
-        raise SceneError(f"palpation.mesh_update = {upd!r}: allowed values are {', '.join(map(repr, MESH_UPDATES))}")
+    lam = t.choice("lambda_method", "kfold", LAMBDA_METHODS)
+    upd = t.choice("mesh_update", "auto", MESH_UPDATES)
     fdm = t.raw("fdm_contact_impedance", False)
     if not isinstance(fdm, bool):
         raise SceneError(f"palpation.fdm_contact_impedance = {fdm!r}: must be true or false")
