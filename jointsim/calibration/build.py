@@ -21,7 +21,7 @@ from .curves import ALONG, LevelCurves, default_levels, fit_level_curves, value_
 from .data import Samples, split_groups, voltage_features
 from .maps import VERSION_PACKAGES, CalibrationMap, _now
 from .regression import KINDS, OUTPUTS, fit_regressor, regression_targets
-from .stiffness import fit_stiffness, force_sensitivity, group_features
+from .stiffness import decades, fit_stiffness, force_sensitivity, group_features
 
 __all__ = ["Settings", "Calibration", "calibrate", "err_stats", "METRICS", "GOALS"]
 
@@ -229,10 +229,8 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
         ev["stiffness"]["relative"] = err_stats(E / Et - 1, 1.0)
         # how far the modulus can be told depends on how the target compares with the membrane
         # (a target much stiffer than it presses like a rigid one): the error per decade of E
-        ev["stiffness"]["by_decade"] = [
-            {"from_pa": float(lo), "to_pa": float(lo * 10), **err_stats((E / Et - 1)[(Et >= lo) & (Et < lo * 10)], 1.0)}
-            for lo in 10.0 ** np.arange(np.floor(np.log10(Et.min())), np.log10(Et.max()))
-        ]
+        ev["stiffness"]["by_decade"] = [{"from_pa": lo, "to_pa": 10 * lo, **err_stats((E / Et - 1)[m], 1.0)}
+                                        for lo, m in decades(Et)]
         tables["stiffness"] = {"group": ids, "true_modulus": Et, "predicted_modulus": E}
 
     # goals

@@ -16,7 +16,7 @@ import numpy as np
 
 from .curves import value_at
 
-__all__ = ["StiffnessModel", "group_features", "fit_stiffness", "force_sensitivity", "MIN_SOFT_GROUPS"]
+__all__ = ["StiffnessModel", "group_features", "fit_stiffness", "force_sensitivity", "decades", "MIN_SOFT_GROUPS"]
 
 MIN_SOFT_GROUPS = 8
 MIN_DECADES = 0.1  # soft moduli spanning less than this (log10) carry no modulus information
@@ -79,6 +79,12 @@ class StiffnessModel:
         return cls(False, reason, np.asarray(levels, float), e, e, np.zeros((0, 0), int), e, float("nan"))
 
 
+def decades(E: np.ndarray) -> list[tuple[float, np.ndarray]]:
+    """The decades [lo, 10 lo) of moduli ``E`` (n,) Pa from the one holding the least, each
+    with its mask (n,) bool."""
+    return [(float(lo), (E >= lo) & (E < 10 * lo)) for lo in 10.0 ** np.arange(np.floor(np.log10(E.min())), np.log10(E.max()))]
+
+
 def force_sensitivity(group: np.ndarray, depth: np.ndarray, force_mag: np.ndarray, radius: np.ndarray,
                       modulus: np.ndarray, level: float) -> list[dict[str, float]]:
     """How much the target's modulus changes the force, per decade of E (soft presses): |F| at
@@ -92,13 +98,8 @@ def force_sensitivity(group: np.ndarray, depth: np.ndarray, force_mag: np.ndarra
     lf, lr, E = np.log(v[:, 0]), np.log(v[:, 1]), v[:, 2]
     A = np.column_stack([np.ones(len(g)), lr])
     res = lf - A @ np.linalg.lstsq(A, lf, rcond=None)[0]
-    out = []
-    for lo in 10.0 ** np.arange(np.floor(np.log10(E.min())), np.log10(E.max())):
-        m = (E >= lo) & (E < 10 * lo)
-        if m.any():
-            out.append({"from_pa": float(lo), "to_pa": float(10 * lo), "n": int(m.sum()),
-                        "mean_percent": float(100 * np.expm1(res[m].mean())), "sd_percent": float(100 * res[m].std())})
-    return out
+    return [{"from_pa": lo, "to_pa": 10 * lo, "n": int(m.sum()), "mean_percent": float(100 * np.expm1(res[m].mean())),
+             "sd_percent": float(100 * res[m].std())} for lo, m in decades(E) if m.any()]
 
 
 def fit_stiffness(group: np.ndarray, depth: np.ndarray, force_mag: np.ndarray, sum_sigma: np.ndarray,
