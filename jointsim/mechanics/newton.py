@@ -44,6 +44,20 @@ class NewtonResult:
 _BACKEND = "pardiso" if "pardiso" in available_backends() else "superlu"
 
 
+def csr_rows(indptr: np.ndarray) -> np.ndarray:
+    """The row (int64) of each stored entry of a CSR pattern."""
+    return np.repeat(np.arange(len(indptr) - 1, dtype=np.int64), np.diff(indptr))
+
+
+def find_keys(keys: np.ndarray, k: np.ndarray) -> np.ndarray | None:
+    """Positions of the keys ``k`` in the sorted ``keys`` (row · n + column of a pattern's
+    entries), or None when any is missing."""
+    if len(k) == 0:
+        return np.zeros(0, np.int64)
+    pos = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
+    return pos if np.array_equal(keys[pos], k) else None
+
+
 class NewtonSystem:
     """Newton's linear systems on a fixed sparsity pattern ``(indptr, indices)`` of the full
     3n × 3n Hessian (a superset of every term's entries: the P2 element pattern covers the
@@ -53,7 +67,7 @@ class NewtonSystem:
 
     def __init__(self, indptr: np.ndarray, indices: np.ndarray, free: np.ndarray):
         n = len(indptr) - 1
-        rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr))
+        rows = csr_rows(indptr)
         cols = np.asarray(indices, np.int64)
         self.n, self._indptr, self._cols = n, np.asarray(indptr), cols
         self.keys = rows * n + cols  # sorted: CSR rows in order, columns sorted within rows
@@ -104,10 +118,8 @@ class NewtonSystem:
         hit = self._placements.get(i)
         if hit is not None and np.array_equal(hit[0], H.indptr) and np.array_equal(hit[1], H.indices):
             return hit[2], hit[3]
-        rows = np.repeat(np.arange(H.shape[0], dtype=np.int64), np.diff(H.indptr))
-        k = rows * self.n + H.indices
-        pos = np.minimum(np.searchsorted(self.keys, k), len(self.keys) - 1)
-        if not np.array_equal(self.keys[pos], k):
+        pos = find_keys(self.keys, csr_rows(H.indptr) * self.n + H.indices)
+        if pos is None:
             raise RuntimeError("a Hessian term has entries outside the system's sparsity pattern")
         slot = self.slot[pos]
         entries = np.flatnonzero(slot >= 0)

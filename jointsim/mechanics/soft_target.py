@@ -26,7 +26,7 @@ from .contact import nodal_areas
 from .dome import ECOFLEX_00_50, MembraneModel, MembraneState, _peak_green_strain
 from .fem import ElasticTerm, P2Mesh
 from .materials import Material
-from .newton import NewtonError, NewtonSystem, minimize_energy
+from .newton import NewtonError, NewtonSystem, csr_rows, find_keys, minimize_energy
 from .pressure import linear_subtriangles
 from .surface_contact import SurfaceContact
 
@@ -127,7 +127,7 @@ def press_on_rigid_flat(sphere: SoftSphere, depth: float, penalty: float) -> tup
 
 def _entries(P: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
     """(rows, cols) of a CSR matrix's stored entries."""
-    return np.repeat(np.arange(P.shape[0], dtype=np.int64), np.diff(P.indptr)), P.indices.astype(np.int64)
+    return csr_rows(P.indptr), P.indices.astype(np.int64)
 
 
 class CoupledTerms:
@@ -142,7 +142,7 @@ class CoupledTerms:
         self.blocks = [(int(o), t, int(len(p[0]) - 1) // 3) for o, t, p in blocks]
         rows, cols = [], []
         for o, _, (indptr, indices) in blocks:
-            rows.append(np.repeat(np.arange(len(indptr) - 1, dtype=np.int64), np.diff(indptr)) + 3 * o)
+            rows.append(csr_rows(indptr) + 3 * o)
             cols.append(np.asarray(indices, np.int64) + 3 * o)
         self._base = self._pattern(np.concatenate(rows), np.concatenate(cols))
         self.contacts = contacts
@@ -163,8 +163,7 @@ class CoupledTerms:
         P.sort_indices()
         self.indptr = P.indptr.astype(np.int64)
         self.indices = P.indices.astype(np.int32)
-        rows = np.repeat(np.arange(self.n, dtype=np.int64), np.diff(self.indptr))
-        self.keys = rows * self.n + self.indices
+        self.keys = csr_rows(self.indptr) * self.n + self.indices
         self._slots: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def _coupling_dofs(self):
@@ -184,19 +183,12 @@ class CoupledTerms:
         for ct in self.contacts:
             ct.update_candidates(u)
         rows, cols = self._coupling_dofs()
-        if self._find(rows * self.n + cols) is not None:
+        if find_keys(self.keys, rows * self.n + cols) is not None:
             return False
         C = self._pattern(rows, cols)
         self._set_pattern(self._pattern(*_entries(self._base + C)))
         self.rebuilds += 1
         return True
-
-    def _find(self, k: np.ndarray) -> np.ndarray | None:
-        """Positions of keys ``k`` in the pattern, or None when any is missing."""
-        if len(k) == 0:
-            return np.zeros(0, np.int64)
-        pos = np.minimum(np.searchsorted(self.keys, k), len(self.keys) - 1)
-        return pos if np.array_equal(self.keys[pos], k) else None
 
     def _place(self, H: sp.spmatrix, offset: int, cache_key: int | None) -> tuple[np.ndarray, np.ndarray]:
         """(slots, values) of the block matrix ``H`` placed at node ``offset`` in the pattern."""
@@ -204,8 +196,8 @@ class CoupledTerms:
         hit = self._slots.get(cache_key) if cache_key is not None else None
         if hit is not None and np.array_equal(hit[0], H.indptr) and np.array_equal(hit[1], H.indices):
             return hit[2], H.data
-        rows = np.repeat(np.arange(H.shape[0], dtype=np.int64), np.diff(H.indptr)) + 3 * offset
-        slot = self._find(rows * self.n + H.indices.astype(np.int64) + 3 * offset)
+        rows = csr_rows(H.indptr) + 3 * offset
+        slot = find_keys(self.keys, rows * self.n + H.indices.astype(np.int64) + 3 * offset)
         if slot is None:
             raise RuntimeError("a Hessian term has entries outside the coupled pattern (refresh the contacts)")
         if cache_key is not None:
