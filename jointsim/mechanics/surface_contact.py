@@ -96,7 +96,7 @@ class SurfaceContact:
         self.cand_t = np.zeros(0, np.int64)
         self._lagged = None
         self._seen: list[np.ndarray] = []  # each lag's triangles since the candidates were updated
-        self._pinned = np.zeros(len(self.slaves), bool)
+        self._pinned = np.zeros(len(self.slaves), bool)  # slaves held to their triangle until then
 
     # -- candidates and the coupling pattern --------------------------------------------------
 
@@ -128,6 +128,7 @@ class SurfaceContact:
         self.cand_s, self.cand_t = self._candidate_pairs(u)
         self._lagged = None
         self._seen = []
+        self._pinned = np.zeros(len(self.slaves), bool)
 
     def covers(self, u: np.ndarray) -> bool:
         """Whether the current candidates hold every slave's closest triangle at ``u`` (n, 3)
@@ -197,8 +198,6 @@ class SurfaceContact:
             if len(s):
                 t2, l2, n2, _ = self._choose(u, s, last[s])
                 tri[s], lam[s], nrm[s] = t2[s], l2[s], n2[s]
-        else:
-            self._pinned = np.zeros(len(self.slaves), bool)
         self._seen.append(tri)
         has = tri >= 0
         self._lagged = (np.flatnonzero(has), self.tris[tri[has]], lam[has], nrm[has])
