@@ -160,7 +160,8 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
         "xy_all": err_stats(exy), "xy_r15": err_stats(exy[inside]), "xy_r15_goal_band": err_stats(exy[inside & band]),
         "depth_all": err_stats(err[:, 2]), "depth_goal_band": err_stats(err[:, 2][band]),
         "raw_xy_r15": err_stats(np.hypot(*(test.com[:, :2] - test.position[:, :2]).T)[inside]),
-        "position": "contact centre of pressure" if test.contact_known else "target centre",
+        "position": ("the contact's centre of pressure (the FEM's, in the dataset)" if test.contact_known
+                     else "the target's centre (the dataset has no contact centre: schema version 1)"),
     }
     tables["com"] = {"group": test.group, "x": test.position[:, 0], "y": test.position[:, 1], "depth": test.depth,
                      "target_x": test.xy[:, 0], "target_y": test.xy[:, 1],

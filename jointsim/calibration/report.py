@@ -165,9 +165,7 @@ def _markdown(cal: Calibration, command: str, files: list[str]) -> str:
                  f"{'yes' if g['met'] else 'no'}{(' — ' + g['note']) if g['note'] else ''} |")
     L += ["", "## CoM map (thin-plate spline, reconstructed CoM → x, y, depth)", "",
           f"Smoothing {com['smoothing']:g} (grouped 3-fold CV on the training presses), {com['fitted_points']} points; "
-          f"{com['test_without_com']} held-out samples had no reconstructed CoM. Position (x, y): the "
-          f"{com.get('position', 'target centre')}" + (" (the FEM's, in the dataset)" if com.get("position", "").startswith("contact")
-                                                       else " (the dataset has no contact centre: schema version 1)") + ".", "",
+          f"{com['test_without_com']} held-out samples had no reconstructed CoM. Position (x, y): {com['position']}.", "",
           "| error (mm) | n | median | P95 |", "|---|---|---|---|"]
     for name, key in (("xy, all", "xy_all"), ("xy, r ≤ 15 mm", "xy_r15"), ("xy, r ≤ 15 mm, goal SNR band", "xy_r15_goal_band"),
                       ("depth, all", "depth_all"), ("depth, goal SNR band", "depth_goal_band"),
