@@ -335,7 +335,7 @@ class MembraneModel:
         guess = self._tangent_guess(old_centre, centre) if self.TANGENT_PREDICTOR else None
         self._step_tol = max(self.force_tol, FORCE_RTOL * float(np.linalg.norm(self.contact.force(self.u))))
         self.contact.centre = centre
-        res = self._newton(self._extrapolate(centre) if guess is None else guess)
+        res = self._newton(self._extrapolate(centre) if guess is None else guess, predicted=guess is not None)
         for _ in range(FRICTION_PASSES if self.friction is not None else 0):
             self.friction.lag(u_start, old_centre, u_normal=res.u)
             res = self._newton(res.u)
@@ -343,9 +343,9 @@ class MembraneModel:
             res = self._hold_volume(res)
         return res
 
-    def _newton(self, guess: np.ndarray):
+    def _newton(self, guess: np.ndarray, predicted: bool = False):
         try:
-            return minimize_energy(self.terms, guess, self.fixed, rtol=0.0, atol=self._step_tol, system=self.system)
+            return minimize_energy(self.terms, guess, self.fixed, rtol=0.0, atol=self._step_tol, system=self.system, regularise_first=predicted)
         except NewtonError:
             # the extrapolation may have overshot: start from the last equilibrium
             return minimize_energy(self.terms, self.u, self.fixed, rtol=0.0, atol=self._step_tol, system=self.system)

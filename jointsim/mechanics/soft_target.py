@@ -404,7 +404,8 @@ class SoftTargetModel(MembraneModel):
             self.system = NewtonSystem(self.coupled.indptr, self.coupled.indices, ~self.fixed.ravel())
             self.pattern_rebuilds += 1
 
-    def _newton(self, guess: np.ndarray):
+    def _newton(self, guess: np.ndarray, predicted: bool = False):
+        # predicted is always False here: no tangent predictor (TANGENT_PREDICTOR)
         kw = dict(rtol=0.0, atol=self._step_tol)
         its = 0
         for _ in range(4):
