@@ -231,6 +231,56 @@ def test_load_map_refuses_other_files(tmp_path, stores):
         load_map(tmp_path / "text.h5")
 
 
+def _noisy_com_samples(n: int, seed: int):
+    """Contacts over r ≤ 15 mm, depth 0.5–3 mm, whose CoM is the contact plus noise of SD
+    2 mm at 40 dB falling 10x per 20 dB (to 0.02 mm at 80 dB); the CoM's z tracks the depth."""
+    rng = np.random.default_rng(seed)
+    r, t = 15e-3 * np.sqrt(rng.uniform(0, 1, n)), rng.uniform(0, 2 * np.pi, n)
+    pos = np.column_stack([r * np.cos(t), r * np.sin(t), rng.uniform(0.5e-3, 3e-3, n)])
+    snr = rng.uniform(40, 80, n)
+    sd = 2e-3 * 10 ** ((40 - snr) / 20)
+    com = np.column_stack([pos[:, :2], 5e-3 - 0.5 * pos[:, 2]]) + sd[:, None] * rng.standard_normal((n, 3))
+    return pos, com, snr, np.arange(n) // 3
+
+
+def test_com_map_weights_noisy_frames_less():
+    from jointsim.calibration.com import fit_com_map
+
+    pos, com, snr, group = _noisy_com_samples(600, 3)
+    weighted, _ = fit_com_map(com, pos, group, snr)
+    plain, _ = fit_com_map(com, pos, group)
+    clean_pos, _, _, _ = _noisy_com_samples(300, 4)
+    clean_com = np.column_stack([clean_pos[:, :2], 5e-3 - 0.5 * clean_pos[:, 2]])
+    err = {k: np.median(np.linalg.norm(m(clean_com) - clean_pos, axis=1)) for k, m in (("weighted", weighted), ("plain", plain))}
+    # the exact map is the identity in x, y and linear in z, and a third of the points lie
+    # within 0.2 mm of it (SNR ≥ 67 dB): weighted by their noise, the map must follow them
+    # (unweighted it measured 0.50 mm, weighted 0.04 mm)
+    assert err["weighted"] < 0.1e-3 and err["weighted"] < 0.5 * err["plain"], err
+
+
+def test_a_version_1_map_still_loads(built, tmp_path):
+    """A format-1 map stored the position itself (no CoM correction) and one smoothing."""
+    import h5py
+
+    path = save_map(built.map, tmp_path / "v1.h5")
+    com = built.map.com
+    with h5py.File(path, "r+") as h5:
+        h5.attrs["format_version"] = 1
+        c = h5["com"]
+        values = com.values.copy()
+        values[:, :2] += com.points[:, :2]  # the v1 map fitted the position (mm) itself
+        c["values"][...] = values
+        del c["smoothing"]
+        c.attrs["smoothing"] = 1e-3
+    old = load_map(path).com
+    assert not old.residual and float(old.smoothing) == 1e-3
+    probe = np.array([[1e-3, -2e-3, 4e-3], [5e-3, 3e-3, 3.5e-3]])
+    assert np.all(np.isfinite(old(probe)))
+    h5py.File(path, "r+").attrs["format_version"] = 3
+    with pytest.raises(ValueError, match="format version 3"):
+        load_map(path)
+
+
 # -- bad datasets ------------------------------------------------------------------------------
 
 

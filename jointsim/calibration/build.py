@@ -148,14 +148,15 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
 
     # CoM map
     progress("CoM map (thin-plate spline, smoothing by grouped CV)")
-    com_map, cv = fit_com_map(train.com, train.position, train.group, seed=s.seed, max_points=s.max_com_points)
+    com_map, cv = fit_com_map(train.com, train.position, train.group, train.snr_db, seed=s.seed,
+                              max_points=s.max_com_points)
     pred = com_map(test.com)
     err = pred - test.position
     exy = np.hypot(err[:, 0], err[:, 1])
     r = np.hypot(test.position[:, 0], test.position[:, 1])
     inside = r <= SENSING_RADIUS
     ev["com"] = {
-        "smoothing": com_map.smoothing, "cv_mse_mm2": {f"{k:g}": v for k, v in cv.items()},
+        "smoothing": min(cv, key=cv.get), "cv_mean_error_mm": {f"{k:g}": v for k, v in cv.items()},
         "fitted_points": int(len(com_map.points)), "test_without_com": int((~np.isfinite(test.com).all(axis=1)).sum()),
         "xy_all": err_stats(exy), "xy_r15": err_stats(exy[inside]), "xy_r15_goal_band": err_stats(exy[inside & band]),
         "depth_all": err_stats(err[:, 2]), "depth_goal_band": err_stats(err[:, 2][band]),

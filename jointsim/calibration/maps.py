@@ -7,12 +7,14 @@ and :meth:`CalibrationMap.apply`: per frame, the calibrated position and depth (
 (the best inverse size curve), the direct regression's five outputs, and per press the
 modulus where the map can estimate it.
 
-Layout (``FORMAT`` = "jointsim-calibration", ``FORMAT_VERSION`` = 1)::
+Layout (``FORMAT`` = "jointsim-calibration", ``FORMAT_VERSION`` = 2; version 1 maps, whose
+CoM spline fitted the position itself with one smoothing, still load)::
 
     /            attrs: format, format_version, created, size_route, and JSON strings
                  fingerprint (the sensor), source (dataset path, digest, size), settings,
                  evaluation (held-out errors), versions (packages that built it)
-    /com         points (p, 3), values (p, 3) in mm; attrs smoothing, kernel, degree
+    /com         points (p, 3), values (p, 3) in mm (x, y: corrections to the CoM), smoothing
+                 (p,); attrs kernel, degree
     /size/<along>__<metric>   levels (L,); x (diameter m), y (metric) (L, K) breakpoints of each
                  level's monotone curve, NaN-padded; count (L,); attrs along, metric, increasing
     /regression  x_mean, components, x_scale, y_mean, y_scale, W<i>, b<i>; attrs kind, layers
@@ -42,7 +44,8 @@ from .stiffness import StiffnessModel
 __all__ = ["FORMAT", "FORMAT_VERSION", "CalibrationMap", "save_map", "load_map", "APPLIED"]
 
 FORMAT = "jointsim-calibration"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 VERSION_PACKAGES = ("jointsim", "numpy", "scipy", "scikit-learn", "h5py")
 # what apply() returns per frame (SI): the image route, the direct regression, the modulus
 APPLIED = ("cal_x", "cal_y", "cal_depth", "cal_diameter", *(f"direct_{o}" for o in OUTPUTS), "modulus")
@@ -137,7 +140,8 @@ def save_map(cmap: CalibrationMap, path: str | Path) -> Path:
             c = h5.create_group("com")
             c.create_dataset("points", data=cmap.com.points)
             c.create_dataset("values", data=cmap.com.values)
-            c.attrs.update(smoothing=cmap.com.smoothing, kernel=cmap.com.kernel, degree=cmap.com.degree)
+            c.create_dataset("smoothing", data=np.broadcast_to(cmap.com.smoothing, len(cmap.com.points)))
+            c.attrs.update(kernel=cmap.com.kernel, degree=cmap.com.degree)
             s = h5.create_group("size")
             for key, lc in cmap.size.items():
                 g = s.create_group(key.replace("/", "__"))
@@ -191,12 +195,14 @@ def load_map(path: str | Path) -> CalibrationMap:
         a = h5.attrs
         if a.get("format") != FORMAT:
             raise ValueError(f"calibration map {path}: not a jointsim calibration map (format {a.get('format')!r})")
-        if int(a["format_version"]) != FORMAT_VERSION:
-            raise ValueError(f"calibration map {path}: format version {int(a['format_version'])}; this jointsim reads "
-                             f"version {FORMAT_VERSION} (rebuild it with jointsim calibrate)")
+        version = int(a["format_version"])
+        if version not in READABLE_VERSIONS:
+            raise ValueError(f"calibration map {path}: format version {version}; this jointsim reads "
+                             f"versions {list(READABLE_VERSIONS)} (rebuild it with jointsim calibrate)")
         c = h5["com"]
-        com = ComMap(c["points"][()], c["values"][()], float(c.attrs["smoothing"]), str(c.attrs["kernel"]),
-                     int(c.attrs["degree"]))
+        smoothing = float(c.attrs["smoothing"]) if version == 1 else c["smoothing"][()]
+        com = ComMap(c["points"][()], c["values"][()], smoothing, str(c.attrs["kernel"]), int(c.attrs["degree"]),
+                     residual=version >= 2)
         size = {}
         for key, g in h5["size"].items():
             x, y, count = g["x"][()], g["y"][()], g["count"][()]

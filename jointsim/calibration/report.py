@@ -164,7 +164,10 @@ def _markdown(cal: Calibration, command: str, files: list[str]) -> str:
         L.append(f"| {g['goal']} | {g['statistic']} | {g['limit']:g} {unit} | {_fmt(g['value'])} {g['unit']} | "
                  f"{'yes' if g['met'] else 'no'}{(' — ' + g['note']) if g['note'] else ''} |")
     L += ["", "## CoM map (thin-plate spline, reconstructed CoM → x, y, depth)", "",
-          f"Smoothing {com['smoothing']:g} (grouped 3-fold CV on the training presses), {com['fitted_points']} points; "
+          "In x and y the spline fits the correction to the reconstructed CoM; each training point's smoothing is "
+          "scaled by its noise power.",
+          f"Smoothing {com['smoothing']:g} at the median SNR (grouped 3-fold CV on the training presses: mean 3-D error, weighted by inverse noise), "
+          f"{com['fitted_points']} points; "
           f"{com['test_without_com']} held-out samples had no reconstructed CoM. Position (x, y): {com['position']}.", "",
           "| error (mm) | n | median | P95 |", "|---|---|---|---|"]
     for name, key in (("xy, all", "xy_all"), ("xy, r ≤ 15 mm", "xy_r15"), ("xy, r ≤ 15 mm, goal SNR band", "xy_r15_goal_band"),
