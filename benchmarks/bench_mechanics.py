@@ -20,7 +20,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 # (rim vertices, layers through the thickness, apex edge mm or 0 for uniform); the last is the reference
-RESOLUTIONS = [(32, 2, 0.0), (48, 2, 0.0), (64, 2, 0.0), (32, 2, 1.3), (48, 2, 1.3), (32, 2, 0.9), (48, 3, 0.9), (96, 2, 0.0)]
+RESOLUTIONS = [(32, 2, 0.0), (48, 2, 0.0), (64, 2, 0.0), (48, 3, 0.0), (32, 2, 1.3), (48, 2, 1.3), (32, 2, 0.9), (40, 3, 0.9),
+               (48, 3, 0.9), (96, 2, 0.0)]
+GOAL_S, CONVERGED = 1.0, 0.02  # the goal: ≤ 1 s per step at a mesh within 2 % in force
 DEPTHS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 
 
@@ -109,6 +111,17 @@ def main() -> int:
         lines.append(f"| {r['n_rim']} | {r['layers']} | {r['apex_mm'] or 'uniform'} | {r['p2_nodes']:,} | {np.mean([x['wall_s'] for x in s]):.2f} | "
                      f"{np.mean([x['iterations'] for x in s]):.1f} | {np.mean([x['kernel_s'] for x in s]):.2f} | {np.mean([x['factorise+solve_s'] for x in s]):.2f} | "
                      f"{_force(r, 1.0):.2f} | {_force(r, 2.0):.2f} | {_force(r, 3.0):.2f} | {err} |")
+    ok = [r for r in rows[:-1] if all(abs(_force(r, d) / _force(ref, d) - 1) <= CONVERGED for d in (1.0, 2.0, 3.0))]
+    per_step = {id(r): np.mean([x["wall_s"] for x in r["steps"][1:]]) for r in rows}
+    if ok:
+        best = min(ok, key=lambda r: per_step[id(r)])
+        lines += ["", f"Within {CONVERGED:.0%} of the reference at 1, 2 and 3 mm: "
+                  + ", ".join(f"{r['n_rim']}/{r['layers']}/{r['apex_mm'] or 'uniform'} ({per_step[id(r)]:.2f} s/step)" for r in ok)
+                  + f". The fastest, {best['n_rim']}/{best['layers']}/{best['apex_mm'] or 'uniform'}, takes {per_step[id(best)]:.2f} s per step: "
+                  + ("meets" if per_step[id(best)] <= GOAL_S else "misses") + f" the {GOAL_S:g} s goal."]
+    lines += ["", "The graded meshes are refined at the apex, where this benchmark presses: off the axis a press meets their "
+              "coarser rim-ward cells, so they stand for a mesh graded around the contact, not for the uniform default the "
+              "datasets and palpation use."]
     for suffix, text in ((".json", json.dumps({"meta": meta, "rows": rows}, indent=2)), (".md", "\n".join(lines) + "\n")):
         tmp = out.with_suffix(suffix + ".tmp")
         tmp.write_text(text)
