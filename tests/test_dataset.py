@@ -220,6 +220,36 @@ def test_draws_are_seeded_per_group():
     assert draw_group(spec, 0, 5, attempt=1).radius != a.radius
 
 
+def test_only_draws_the_simulator_cannot_take_are_redrawn():
+    """A pose the dome cannot take (UnreachablePose), a Newton failure or an inverted mesh
+    rejects the draw and the group draws again; any other error is a fault and stops the run."""
+    from types import SimpleNamespace
+
+    from jointsim.dataset.generate import DatasetSetup
+    from jointsim.mechanics.dome import UnreachablePose
+    from jointsim.mechanics.newton import NewtonError
+
+    spec = load_scene(ROOT / "scenes" / "paper_sensor.toml").dataset
+    failures = [UnreachablePose("too deep"), NewtonError("no convergence")]
+
+    def press(draw, k):
+        if failures:
+            raise failures.pop(0)
+        return [{"radius": draw.radius}] * k
+
+    fake = SimpleNamespace(spec=spec, seed=0, n_electrodes=16, press=press)
+    records, errors = DatasetSetup.group(fake, 3, n_samples=2)
+    assert len(records) == 2 and len(errors) == 2
+    assert records[0]["radius"] == draw_group(spec, 0, 3, 2, 16).radius  # the third attempt's draw
+    assert "UnreachablePose" in errors[0] and "NewtonError" in errors[1]
+
+    def faulty(draw, k):
+        raise ValueError("a bug, not a draw")
+
+    with pytest.raises(ValueError, match=r"^a bug, not a draw$"):  # not redrawn MAX_ATTEMPTS times
+        DatasetSetup.group(SimpleNamespace(spec=spec, seed=0, n_electrodes=16, press=faulty), 3)
+
+
 def test_schema_has_the_image_only_when_asked():
     assert "image" not in dataset_schema(16, 256, None).names
     s = dataset_schema(16, 256, 1234)

@@ -35,9 +35,10 @@ Determinism
     Everything a group draws comes from ``SeedSequence(seed, spawn_key=(group, attempt, stream))``:
     the same seed gives the same group whatever worker computes it and in whatever order. A
     draw the mechanics or the chamber mesh cannot take (a sphere that would reach the base,
-    a chamber that collapses onto the electrodes, a Newton failure) is rejected as a whole and
-    the group draws again (attempt + 1), deterministically; so the dataset samples the draws
-    the simulator can take.
+    a chamber that collapses onto the electrodes: ``UnreachablePose``; a Newton failure; an
+    inverted morph) is rejected as a whole and the group draws again (attempt + 1),
+    deterministically; so the dataset samples the draws the simulator can take. Any other
+    error stops the run.
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ import numpy as np
 from ..eit.forward import ForwardModel
 from ..eit.noise import noise_std
 from ..io.store import Field, Schema
-from ..mechanics.dome import MembraneModel
+from ..mechanics.dome import MembraneModel, UnreachablePose
 from ..mechanics.newton import NewtonError
 from ..mesh.chamber import ChamberMesh
 from ..mesh.electrodes import ElectrodePatch, disc_patches
@@ -209,7 +210,9 @@ class DatasetSetup:
             draw = draw_group(self.spec, self.seed, group, attempt, self.n_electrodes)
             try:
                 return self.press(draw, k), errors
-            except (ValueError, NewtonError, MeshInversionError) as e:
+            # only what a draw can cause: any other error (a bug, a bad setting) stops the run
+            # rather than being redrawn around, as an int8 overflow once was
+            except (UnreachablePose, NewtonError, MeshInversionError) as e:
                 errors.append(f"group {group} attempt {attempt} (radius {draw.radius * 1e3:.2f} mm, xy {np.round(draw.xy * 1e3, 2).tolist()} mm, "
                               f"target modulus {draw.modulus:.3g} Pa, membrane x{draw.membrane_scale:.2f}): {type(e).__name__}: {e}")
         raise ValueError(f"group {group}: no draw in {MAX_ATTEMPTS} could be pressed ({'; '.join(errors[-3:])}); "

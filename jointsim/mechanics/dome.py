@@ -21,7 +21,7 @@ from .materials import Material
 from .newton import NewtonError, NewtonSystem, minimize_energy
 from .pressure import PressureTerm, linear_subtriangles
 
-__all__ = ["MembraneModel", "MembraneState", "membrane_mesh", "ECOFLEX_00_50"]
+__all__ = ["MembraneModel", "MembraneState", "UnreachablePose", "membrane_mesh", "ECOFLEX_00_50"]
 
 ECOFLEX_00_50 = Material.neo_hookean(22e3)  # DESIGN.md: μ ≈ 22 kPa, κ = 1000 μ
 # re-lagging passes of the friction's normal forces per load step (tests/test_mechanics.py
@@ -38,6 +38,12 @@ MAX_CUTBACKS = 3
 # displacement within 0.07 µm, displaced volume within 1e-4 — far below the 2 % mesh error and
 # the EIT noise — for ~15 % fewer Newton iterations
 FORCE_RTOL = 1e-3
+
+
+class UnreachablePose(ValueError):
+    """The target pose asked for cannot be simulated on this dome: the target misses it, or
+    would press it beyond what it can take. A property of the pose, not a fault: a dataset
+    redraws such a target, while any other error stops the run."""
 
 
 def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -271,7 +277,7 @@ class MembraneModel:
         d2 = ((x[:, :2] - np.asarray(xy)) ** 2).sum(axis=1)
         near = d2 < R * R
         if not near.any():
-            raise ValueError(f"target at xy = {np.asarray(xy) * 1e3} mm misses the dome")
+            raise UnreachablePose(f"target at xy = {np.asarray(xy) * 1e3} mm misses the dome")
         return float((x[near, 2] + np.sqrt(R * R - d2[near])).max())
 
     def press(self, centre: np.ndarray, substeps: int = 1) -> MembraneState:
@@ -282,7 +288,7 @@ class MembraneModel:
         centre = np.asarray(centre, float)
         lowest = centre[2] - self.contact.radius
         if lowest < self.thickness:
-            raise ValueError(
+            raise UnreachablePose(
                 f"target centre z = {centre[2] * 1e3:.3g} mm: the sphere's lowest point would be "
                 f"{lowest * 1e3:.3g} mm above the base, less than the membrane thickness "
                 f"{self.thickness * 1e3:.3g} mm; indentation beyond what the dome can take"

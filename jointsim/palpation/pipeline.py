@@ -52,7 +52,7 @@ from ..eit.noise import gain_drift, noise_std
 from ..eit.protocol import Protocol, skip_protocol
 from ..geometry import DomeSurface
 from ..io.store import Field, RecordStore, Schema
-from ..mechanics.dome import MembraneModel, MembraneState
+from ..mechanics.dome import MembraneModel, MembraneState, UnreachablePose
 from ..mechanics.geometric import indent_dome
 from ..mesh.chamber import ChamberMesh, chamber_mesh, mesh_chamber
 from ..mesh.tetmesh import TetMesh
@@ -376,7 +376,7 @@ class Palpation:
         free[dome.rim] = False
         gap = float(dome.vertices[free, 2].min())
         if gap < MIN_CHAMBER_GAP:
-            raise ValueError(
+            raise UnreachablePose(
                 f"the membrane's inner surface is {gap * 1e3:.2f} mm above the base at its lowest (the chamber collapses "
                 f"onto the electrodes; at least {MIN_CHAMBER_GAP * 1e3:g} mm is needed): palpation.depth_mm is too deep for this target"
             )
