@@ -15,3 +15,31 @@ def cpu_name() -> str:
     except OSError:
         pass
     return platform.processor() or "unknown CPU"
+
+
+def speed_reference(repeats: int = 3) -> float:
+    """Seconds (best of ``repeats``) of a fixed workload like the benchmarks' hot path: the
+    sparse LDLᵀ factorisation and one solve of a 3-D 7-point Laplacian on a 32³ grid (32 768
+    unknowns), with PARDISO where the project has it. The 2 cores of this machine are shared with
+    other virtual machines, and its speed varies from day to day by up to ~1.5×: a benchmark
+    that records this figure beside its own can be compared with a run of another day by
+    the ratio of the two."""
+    import time
+
+    import numpy as np
+    import scipy.sparse as sp
+
+    from jointsim.eit.solver import available_backends, factorize
+
+    n = 32
+    d1 = sp.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1])
+    eye = sp.identity(n)
+    A = (sp.kron(sp.kron(d1, eye), eye) + sp.kron(sp.kron(eye, d1), eye) + sp.kron(sp.kron(eye, eye), d1)).tocsr()
+    b = np.ones(A.shape[0])
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        with factorize(A, "pardiso" if "pardiso" in available_backends() else "superlu") as solve:
+            solve(b)
+        best = min(best, time.perf_counter() - t0)
+    return best

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from _machine import speed_reference
+
 ROOT = Path(__file__).resolve().parents[1]
 # (rim vertices, layers through the thickness, apex edge mm or 0 for uniform); the last is the reference
 RESOLUTIONS = [(32, 2, 0.0), (48, 2, 0.0), (64, 2, 0.0), (48, 3, 0.0), (32, 2, 1.3), (48, 2, 1.3), (32, 2, 0.9), (40, 3, 0.9),
@@ -83,6 +85,7 @@ def main() -> int:
 
     rows = []
     load0 = os.getloadavg()[0]
+    speed0 = speed_reference()
     for n_rim, layers, apex in RESOLUTIONS:
         r = subprocess.run([sys.executable, __file__, "--one", str(n_rim), str(layers), str(apex)], capture_output=True, text=True)
         if r.returncode:
@@ -92,7 +95,8 @@ def main() -> int:
         s = rows[-1]["steps"]
         print(f"{n_rim} rim, {layers} layers, apex {apex} mm: {np.mean([x['wall_s'] for x in s[1:]]):.2f} s/step, F(3 mm) {s[-1]['force_mN']:.2f} mN", flush=True)
     meta = {"command": "python benchmarks/bench_mechanics.py", "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
-            "date": time.strftime("%Y-%m-%d"), "load_average_start_end": [load0, os.getloadavg()[0]]}
+            "date": time.strftime("%Y-%m-%d"), "load_average_start_end": [load0, os.getloadavg()[0]],
+            "speed_reference_s_start_end": [speed0, speed_reference()]}
     ref = rows[-1]
     out = ROOT / "results" / "mechanics_benchmark"
     lines = ["# Mechanics benchmark and mesh convergence", "", f"Command: `{meta['command']}`  ", f"Machine: {meta['machine']}; run {meta['date']}.  ",
@@ -102,7 +106,10 @@ def main() -> int:
              "uniform or graded from the apex edge to the rim edge; P2 tetrahedra in prism layers through the 2 mm thickness.",
              f"Force error: against the last row ({ref['n_rim']} rim, {ref['layers']} layers, uniform).  ",
              f"1-min load average {meta['load_average_start_end'][0]:.1f} at the start, {meta['load_average_start_end'][1]:.1f} at the end "
-             "(on 2 cores a load above 1 inflates the times; the forces do not depend on it).", "",
+             "(on 2 cores a load above 1 inflates the times; the forces do not depend on it).  ",
+             "Reference workload (`benchmarks/_machine.py` speed_reference, a fixed sparse factorisation): "
+             f"{meta['speed_reference_s_start_end'][0]:.3f} s at the start, {meta['speed_reference_s_start_end'][1]:.3f} s at the end; "
+             "to compare with a run of another day, scale by the ratio of this figure.", "",
              "| rim | layers | apex edge mm | P2 nodes | s / step | Newton its / step | kernel s | factorise+solve s | F 1 mm | F 2 mm | F 3 mm, mN | error at 1 / 2 / 3 mm |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:

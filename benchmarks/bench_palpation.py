@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _machine import cpu_name
+from _machine import cpu_name, speed_reference
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -98,12 +98,13 @@ def _stats(rows: list[dict]) -> dict:
     }
 
 
-def write(results: list[dict], command: str) -> None:
+def write(results: list[dict], command: str, speed: list[float]) -> None:
     machine = f"{platform.machine()} {cpu_name()}, {_cores()} cores, Python {platform.python_version()}"
     date = time.strftime("%Y-%m-%d")
     res = ROOT / "results"
     (res / "palpation_benchmark.json").write_text(json.dumps(
-        {"command": command, "machine": machine, "date": date, "goals_s": GOALS, "mesh_goal_s": MESH_GOAL, "results": results},
+        {"command": command, "machine": machine, "date": date, "goals_s": GOALS, "mesh_goal_s": MESH_GOAL,
+         "speed_reference_s_start_end": speed, "results": results},
         indent=2, default=float))
     lines = [
         "# Palpation frame benchmark",
@@ -111,6 +112,9 @@ def write(results: list[dict], command: str) -> None:
         f"Command: `{command}`  ",
         f"Machine: {machine}; run {date}. The 2 cores are shared with other jobs: times are noisy "
         "(load averages below).  ",
+        "Reference workload (`benchmarks/_machine.py` speed_reference, a fixed sparse factorisation): "
+        f"{speed[0]:.3f} s at the start, {speed[1]:.3f} s at the end; to compare with a run of another day, scale by the "
+        "ratio of this figure.  ",
         "Frames: the paper's 15 mm target on the axis, position control at 25 mm/s (0.5 mm per frame) to 2 mm past first "
         "contact, then the hold; the scene's membrane (neo-Hookean, 50 Pa reservoir). Statistics over the frames after "
         "frame 0 (at rest at first contact, nothing to solve).",
@@ -178,9 +182,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         bench("dataset", 4)
         return 0
+    speed0 = speed_reference()
     results = [bench("dataset", args.frames), bench("paper", args.paper_frames)]
     cmd = "python benchmarks/bench_palpation.py" + ("" if argv is None and len(sys.argv) == 1 else " " + " ".join(sys.argv[1:] if argv is None else argv))
-    write(results, cmd)
+    write(results, cmd, [speed0, speed_reference()])
     print(Path(ROOT / "results" / "palpation_benchmark.md").read_text())
     return 0
 
