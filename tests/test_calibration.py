@@ -276,7 +276,8 @@ def test_a_version_1_map_still_loads(built, tmp_path):
     assert not old.residual and float(old.smoothing) == 1e-3
     probe = np.array([[1e-3, -2e-3, 4e-3], [5e-3, 3e-3, 3.5e-3]])
     assert np.all(np.isfinite(old(probe)))
-    h5py.File(path, "r+").attrs["format_version"] = 3
+    with h5py.File(path, "r+") as h5:
+        h5.attrs["format_version"] = 3
     with pytest.raises(ValueError, match="format version 3"):
         load_map(path)
 

@@ -258,10 +258,11 @@ def minimize_energy(
 
     ``regularise_first``: take the first step with the positive definite modification of the
     Hessian, without trying the full one. For a start from a load-step predictor: there the
-    Hessian is indefinite (the predictor pushes the nodes that newly touch the target deep into
-    it), so the full step is rejected, a wasted factorisation, or accepted because it lowers the
-    energy and followed by more iterations (measured on the 40- and 48-rim, 3-layer membranes,
-    0.5 mm steps to 3 mm: 3–5 factorisations per step instead of 4–9)."""
+    Hessian was indefinite in every 0.5 mm press step traced (not from deep penetrations: the
+    predicted ones stay below the contact's curvature cap), so the full step is rejected, a
+    wasted factorisation, or accepted because it lowers the energy and followed by more
+    iterations (measured on the 40- and 48-rim, 3-layer membranes, 0.5 mm steps to 3 mm: 3–5
+    factorisations per step instead of 4–9)."""
     u = np.array(u0, dtype=float)
     free = ~np.asarray(fixed, bool).ravel()
     if system is not None and not np.array_equal(system.free, free):
