@@ -5,10 +5,12 @@ Why P2: linear tetrahedra lock when the material is nearly incompressible (κ/μ
 silicone); quadratic displacement fields can follow an isochoric deformation, and the closed-form
 checks in tests/test_mechanics.py show no locking at κ/μ = 1000.
 
-The element Hessian uses the material tangent A = ∂P/∂F by central differences of P in
-float64 (relative error ~1e-9, enough for quadratic Newton convergence), and each element's
-30 × 30 Hessian is projected onto the positive semi-definite cone (eigenvalues clamped at 0)
-before assembly, so Newton directions are descent directions.
+The element Hessian uses the material tangent A = ∂P/∂F in closed form
+(:func:`materials.piola_derivative`). Each element's 30 × 30 matrix is accumulated in the kernel
+(its upper block triangle, mirrored) and added straight into the values of the global sparse
+pattern, so no (m, 30, 30) array is written and re-read for assembly. The per-element matrices
+are still available for the positive semi-definite projection (eigenvalues clamped at 0), the
+Newton solver's fallback when the shifted Hessian fails.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import warp as wp
 from threadpoolctl import threadpool_limits
 
 from ..mesh.tetmesh import TetMesh, edge_midpoints
-from .materials import Material, first_piola, strain_energy
+from .materials import Material, first_piola, piola_derivative, strain_energy, tangent_at
 
 __all__ = ["P2Mesh", "ElementState", "ElementKernel", "ElasticTerm", "project_psd", "assemble_hessian", "assemble_gradient"]
 
@@ -36,7 +38,6 @@ _MatN = wp.types.matrix(shape=(10, 3), dtype=wp.float64)
 _QA, _QB = 0.5854101966249685, 0.1381966011250105
 QUAD_BARY = np.array([[_QA, _QB, _QB, _QB], [_QB, _QA, _QB, _QB], [_QB, _QB, _QA, _QB], [_QB, _QB, _QB, _QA]])
 QUAD_W = np.full(4, 0.25)
-FD_STEP = 1e-6
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,6 +95,12 @@ class P2Mesh:
         return indptr.astype(np.int64), (uniq % n).astype(np.int32), slot.ravel()
 
 
+_Mat30 = wp.types.matrix(shape=(30, 30), dtype=wp.float64)
+
+# what the element kernel computes besides the energy and gradient
+NO_HESSIAN, ASSEMBLED, WITH_ELEMENTS = 0, 1, 2
+
+
 @wp.kernel
 def _p2_element(
     X: wp.array(dtype=wp.vec3d),
@@ -102,10 +109,11 @@ def _p2_element(
     params: wp.array2d(dtype=wp.float64),
     qbary: wp.array(dtype=wp.vec4d),
     qw: wp.array(dtype=wp.float64),
-    want_hessian: int,
-    h: wp.float64,
+    mode: int,
+    slot: wp.array2d(dtype=wp.int32),
     energy: wp.array(dtype=wp.float64),
     grad: wp.array2d(dtype=wp.float64),
+    hess_data: wp.array(dtype=wp.float64),
     hess: wp.array3d(dtype=wp.float64),
     min_det: wp.array(dtype=wp.float64),
 ):
@@ -126,6 +134,7 @@ def _p2_element(
     four = wp.float64(4.0)
     E = wp.float64(0.0)
     jmin = wp.float64(1.0e30)
+    K = _Mat30()
     for q in range(4):
         l = qbary[q]
         w = qw[q] * vol
@@ -162,35 +171,45 @@ def _p2_element(
         for n in range(10):
             for i in range(3):
                 grad[e, 3 * n + i] += w * (P[i, 0] * G[n, 0] + P[i, 1] * G[n, 1] + P[i, 2] * G[n, 2])
-        if want_hessian != 0:
+        if mode != NO_HESSIAN:
+            t = tangent_at(F, c1, c2, c3, kappa)
             for j in range(3):
                 for m in range(3):
-                    dF = wp.mat33d()
-                    dF[j, m] = h
-                    dP = (first_piola(F + dF, c1, c2, c3, kappa) - first_piola(F - dF, c1, c2, c3, kappa)) / (wp.float64(2.0) * h)
-                    # H[(a,i),(b,j)] += w Σ_k dP[i,k] G[a,k] G[b,m]
+                    dP = piola_derivative(t, j, m)
+                    # K[(a,i),(b,j)] += w Σ_k dP[i,k] G[a,k] G[b,m], blocks b ≥ a (K is symmetric)
                     for a in range(10):
-                        t0 = dP[0, 0] * G[a, 0] + dP[0, 1] * G[a, 1] + dP[0, 2] * G[a, 2]
-                        t1 = dP[1, 0] * G[a, 0] + dP[1, 1] * G[a, 1] + dP[1, 2] * G[a, 2]
-                        t2 = dP[2, 0] * G[a, 0] + dP[2, 1] * G[a, 1] + dP[2, 2] * G[a, 2]
-                        for b in range(10):
+                        ta = dP @ wp.vec3d(G[a, 0], G[a, 1], G[a, 2])
+                        for b in range(a, 10):
                             s = w * G[b, m]
-                            hess[e, 3 * a + 0, 3 * b + j] += t0 * s
-                            hess[e, 3 * a + 1, 3 * b + j] += t1 * s
-                            hess[e, 3 * a + 2, 3 * b + j] += t2 * s
+                            K[3 * a + 0, 3 * b + j] = K[3 * a + 0, 3 * b + j] + ta[0] * s
+                            K[3 * a + 1, 3 * b + j] = K[3 * a + 1, 3 * b + j] + ta[1] * s
+                            K[3 * a + 2, 3 * b + j] = K[3 * a + 2, 3 * b + j] + ta[2] * s
     energy[e] = E
     min_det[e] = jmin
+    if mode != NO_HESSIAN:
+        for a in range(10):
+            for b in range(a + 1, 10):
+                for i in range(3):
+                    for j in range(3):
+                        K[3 * b + j, 3 * a + i] = K[3 * a + i, 3 * b + j]
+        for r in range(30):
+            for c in range(30):
+                wp.atomic_add(hess_data, slot[e, 30 * r + c], K[r, c])
+                if mode == WITH_ELEMENTS:
+                    hess[e, r, c] = K[r, c]
 
 
 @dataclass
 class ElementState:
-    """Per-element energy (m,), gradient (m, 30), Hessian (m, 30, 30) or None, and the smallest
-    det F over the quadrature points (m,) (≤ 0: the element inverted)."""
+    """Per-element energy (m,), gradient (m, 30) and smallest det F over the quadrature points
+    (m,) (≤ 0: the element inverted); the assembled Hessian (3n × 3n CSR on the mesh's pattern)
+    or None; the per-element Hessians (m, 30, 30) when asked for, else None."""
 
     energy: np.ndarray
     grad: np.ndarray
-    hess: np.ndarray | None
+    hessian: sp.csr_matrix | None
     min_det: np.ndarray
+    element_hessians: np.ndarray | None = None
 
 
 class ElementKernel:
@@ -210,36 +229,50 @@ class ElementKernel:
         self._qb = wp.array(QUAD_BARY, dtype=wp.vec4d, device=device)
         self._qw = wp.array(QUAD_W, dtype=wp.float64, device=device)
         m = mesh.n_tets
+        indptr, indices, slot = mesh.sparsity
+        self._indptr, self._indices = indptr, indices
+        self._slot = wp.array(slot.reshape(m, 900).astype(np.int32), dtype=wp.int32, device=device)
         self._energy = wp.zeros(m, dtype=wp.float64, device=device)
         self._grad = wp.zeros((m, 30), dtype=wp.float64, device=device)
-        self._hess = wp.zeros((m, 30, 30), dtype=wp.float64, device=device)
-        self._hess_empty = wp.zeros((1, 1, 1), dtype=wp.float64, device=device)
+        self._empty1 = wp.zeros(1, dtype=wp.float64, device=device)
+        self._empty3 = wp.zeros((1, 1, 1), dtype=wp.float64, device=device)
         self._mindet = wp.zeros(m, dtype=wp.float64, device=device)
 
-    def __call__(self, u: np.ndarray, hessian: bool = True) -> ElementState:
+    def __call__(self, u: np.ndarray, hessian: bool = True, elements: bool = False) -> ElementState:
+        """The element quantities at displacement ``u`` (n, 3); ``elements``: also the
+        per-element Hessians (for the PSD projection)."""
         uw = wp.array(np.ascontiguousarray(u, dtype=np.float64), dtype=wp.vec3d, device=self.device)
         self._grad.zero_()
+        mode = NO_HESSIAN if not hessian else WITH_ELEMENTS if elements else ASSEMBLED
+        data = self._empty1
         if hessian:
-            self._hess.zero_()
+            # a fresh buffer per call: the returned matrix must not change under a caller that
+            # keeps it while another Hessian is evaluated. On the CPU the kernel writes straight
+            # into numpy's (lazily zeroed) memory
+            host = np.zeros(len(self._indices))
+            if self.device == "cpu":
+                data = wp.array(host, dtype=wp.float64, device=self.device, copy=False)
+            else:
+                data = wp.zeros(len(host), dtype=wp.float64, device=self.device)
+        hess = wp.zeros((self.mesh.n_tets, 30, 30), dtype=wp.float64, device=self.device) if elements else self._empty3
         wp.launch(
             _p2_element,
             dim=self.mesh.n_tets,
-            inputs=[self._X, uw, self._tets, self._params, self._qb, self._qw, int(hessian), FD_STEP],
-            outputs=[self._energy, self._grad, self._hess if hessian else self._hess_empty, self._mindet],
+            inputs=[self._X, uw, self._tets, self._params, self._qb, self._qw, mode, self._slot],
+            outputs=[self._energy, self._grad, data, hess, self._mindet],
             device=self.device,
         )
-        hess = None
+        H = None
         if hessian:
-            # a read-only view of the kernel's buffer, valid until the next call with a Hessian
-            # (copying 900 doubles per element costs as much as assembling them; on CUDA,
-            # numpy() copies to the host anyway)
-            hess = self._hess.numpy().view()
-            hess.flags.writeable = False
+            values = host if self.device == "cpu" else data.numpy()
+            n = 3 * self.mesh.n_nodes
+            H = sp.csr_matrix((values, self._indices, self._indptr), shape=(n, n))
         return ElementState(
             self._energy.numpy().copy(),
             self._grad.numpy().copy(),
-            hess,
+            H,
             self._mindet.numpy().copy(),
+            hess.numpy() if elements else None,
         )
 
 
@@ -272,19 +305,15 @@ class ElasticTerm:
     def __init__(self, mesh: P2Mesh, materials: Material | list[Material], material_of: np.ndarray | None = None, device: str = "cpu"):
         self.mesh = mesh
         self.kernel = ElementKernel(mesh, materials, material_of, device)
-        self.last: ElementState | None = None
 
     def evaluate(self, u: np.ndarray, hessian: bool):
         s = self.kernel(u, hessian)
-        self.last = s
         ok = bool((s.min_det > 0).all() and np.isfinite(s.energy).all())
         if not ok:
             return np.inf, np.zeros(u.size), None, False
         g = assemble_gradient(self.mesh, s.grad)
-        H = assemble_hessian(self.mesh, s.hess) if hessian else None
-        return float(s.energy.sum()), g, H, True
+        return float(s.energy.sum()), g, s.hessian, True
 
     def projected_hessian(self, u: np.ndarray) -> sp.csr_matrix:
         """The Hessian with each element's negative eigenvalues clamped to zero (SPD-projected)."""
-        s = self.last if self.last is not None and self.last.hess is not None else self.kernel(u, True)
-        return assemble_hessian(self.mesh, project_psd(s.hess))
+        return assemble_hessian(self.mesh, project_psd(self.kernel(u, True, elements=True).element_hessians))

@@ -6,7 +6,14 @@ Yeoh with a volumetric penalty, in the isochoric invariant Ī₁ = J^{-2/3} tr(F
 
 Neo-Hookean is the case C₁ = μ/2, C₂ = C₃ = 0. The first Piola–Kirchhoff stress is
 
-    P = 2 W₁ J^{-2/3} (F − Ī₁·J^{2/3}/3 · F^{-T}) + κ (J − 1) J F^{-T},   W₁ = ∂W/∂Ī₁.
+    P = 2 W₁ J^{-2/3} (F − Ī₁·J^{2/3}/3 · F^{-T}) + κ (J − 1) J F^{-T},   W₁ = ∂W/∂Ī₁,
+
+and its derivative along dF = e_j e_mᵀ (the tangent's column jm), with D = F − I₁/3 F^{-T},
+T = F^{-T}, I₁ = tr FᵀF, W₂ = ∂²W/∂Ī₁², p̃ = κ(J² − J):
+
+    ∂P/∂F_jm = (4 W₂ J^{-4/3} D_jm − 4/3 W₁ J^{-2/3} T_jm) D
+             + (κ(2J − 1) J T_jm − 4/3 W₁ J^{-2/3} F_jm) T
+             + (2/3 W₁ J^{-2/3} I₁ − p̃) T_{·m} ⊗ T_{j·} + 2 W₁ J^{-2/3} e_j e_mᵀ
 
 Defaults (DESIGN.md): neo-Hookean μ ≈ 22 kPa, or Yeoh C₁ 9.8, C₂ 0.91, C₃ −0.16 kPa (fits to
 Marechal et al., Soft Robotics 2021, λ ≤ 2); κ = 1000·μ (ν ≈ 0.4995), nearly incompressible.
@@ -24,7 +31,7 @@ import warp as wp
 # Warp's start-up banner and per-module load lines are noise on a command line
 wp.config.log_level = max(getattr(wp.config, "log_level", logging.WARNING), logging.WARNING)
 
-__all__ = ["Material", "first_piola", "strain_energy"]
+__all__ = ["Material", "Tangent", "first_piola", "piola_derivative", "strain_energy", "tangent_at"]
 
 
 @dataclass(frozen=True)
@@ -91,3 +98,49 @@ def first_piola(F: wp.mat33d, c1: wp.float64, c2: wp.float64, c3: wp.float64, ka
     d = I1 * jm23 - wp.float64(3.0)
     w1 = c1 + wp.float64(2.0) * c2 * d + wp.float64(3.0) * c3 * d * d
     return wp.float64(2.0) * w1 * jm23 * (F - I1 / wp.float64(3.0) * Finv_t) + kappa * (J - wp.float64(1.0)) * J * Finv_t
+
+
+
+@wp.struct
+class Tangent:
+    """What the tangent's columns ∂P/∂F_jm share at one F (module docstring's notation)."""
+
+    F: wp.mat33d
+    T: wp.mat33d  # F^{-T}
+    D: wp.mat33d  # F − I₁/3 F^{-T}
+    c_dd: wp.float64  # 4 W₂ J^{-4/3}
+    c_dt: wp.float64  # 4/3 W₁ J^{-2/3}
+    c_tt: wp.float64  # κ (2J − 1) J
+    c_outer: wp.float64  # 2/3 W₁ J^{-2/3} I₁ − κ (J² − J)
+    c_e: wp.float64  # 2 W₁ J^{-2/3}
+
+
+@wp.func
+def tangent_at(F: wp.mat33d, c1: wp.float64, c2: wp.float64, c3: wp.float64, kappa: wp.float64) -> Tangent:
+    t = Tangent()
+    J = wp.determinant(F)
+    T = wp.transpose(wp.inverse(F))
+    jm23 = wp.pow(J, wp.float64(-2.0 / 3.0))
+    I1 = wp.trace(wp.transpose(F) @ F)
+    d = I1 * jm23 - wp.float64(3.0)
+    w1 = c1 + wp.float64(2.0) * c2 * d + wp.float64(3.0) * c3 * d * d
+    w2 = wp.float64(2.0) * c2 + wp.float64(6.0) * c3 * d
+    t.F = F
+    t.T = T
+    t.D = F - I1 / wp.float64(3.0) * T
+    t.c_dd = wp.float64(4.0) * w2 * jm23 * jm23
+    t.c_dt = wp.float64(4.0 / 3.0) * w1 * jm23
+    t.c_tt = kappa * (wp.float64(2.0) * J - wp.float64(1.0)) * J
+    t.c_outer = wp.float64(2.0 / 3.0) * w1 * jm23 * I1 - kappa * (J * J - J)
+    t.c_e = wp.float64(2.0) * w1 * jm23
+    return t
+
+
+@wp.func
+def piola_derivative(t: Tangent, j: int, m: int) -> wp.mat33d:
+    """∂P/∂F_jm in closed form: column jm of the material tangent A = ∂P/∂F."""
+    col = wp.vec3d(t.T[0, m], t.T[1, m], t.T[2, m])
+    row = wp.vec3d(t.T[j, 0], t.T[j, 1], t.T[j, 2])
+    dP = (t.c_dd * t.D[j, m] - t.c_dt * t.T[j, m]) * t.D + (t.c_tt * t.T[j, m] - t.c_dt * t.F[j, m]) * t.T + t.c_outer * wp.outer(col, row)
+    dP[j, m] = dP[j, m] + t.c_e
+    return dP
