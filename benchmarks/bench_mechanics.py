@@ -2,7 +2,8 @@
 at 25 mm/s) of a rigid 15 mm target pressed on the axis of the paper's dome, warm-started, at
 several membrane meshes (uniform isotropic caps, and caps graded from a fine apex). Reports the
 contact force at 1, 2 and 3 mm against the finest mesh, wall time per step, Newton iterations,
-and the split between the Warp element kernel, the sparse factorisations and the rest.
+and the split between the Warp element kernel (which also assembles the elastic Hessian into
+its sparse pattern), the sparse factorisations and the rest.
 
     python benchmarks/bench_mechanics.py            # writes results/mechanics_benchmark.{md,json}
 """
@@ -104,6 +105,7 @@ def main() -> int:
              "to 3 mm, each warm-started from the previous (tangent predictor). Per-step means exclude the first step (first contact,",
              "no predictor yet). Membrane meshes: the inner surface as an isotropic cap of edge 2π·20 mm / rim vertices, either",
              "uniform or graded from the apex edge to the rim edge; P2 tetrahedra in prism layers through the 2 mm thickness.",
+             "Kernel s: the Warp element kernel's calls, which include the elastic Hessian's assembly into its sparse pattern.",
              f"Force error: against the last row ({ref['n_rim']} rim, {ref['layers']} layers, uniform).  ",
              f"1-min load average {meta['load_average_start_end'][0]:.1f} at the start, {meta['load_average_start_end'][1]:.1f} at the end "
              "(on 2 cores a load above 1 inflates the times; the forces do not depend on it).  ",
