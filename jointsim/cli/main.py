@@ -6,10 +6,10 @@ import argparse
 import sys
 
 from ..scene import SceneError
-from . import calibrate, dataset, forward, indent, mesh, palpate, protocol_study
+from . import calibrate, dataset, forward, indent, mesh, palpate, protocol_study, stiffness_study
 
 SUBCOMMANDS = {"forward": forward, "mesh": mesh, "protocol-study": protocol_study, "indent": indent, "palpate": palpate,
-               "dataset": dataset, "calibrate": calibrate}
+               "dataset": dataset, "calibrate": calibrate, "stiffness-study": stiffness_study}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -121,6 +121,13 @@ class MembraneState:
     contact_centre: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
 
 
+def membrane_material(membrane) -> Material:
+    """The material law of a scene's [membrane] section."""
+    if membrane.law == "yeoh":
+        return Material.yeoh(*membrane.yeoh_c, bulk_ratio=membrane.bulk_ratio)
+    return Material.neo_hookean(membrane.shear_modulus, bulk_ratio=membrane.bulk_ratio)
+
+
 class MembraneModel:
     """The membrane of a dome with its loads; call :meth:`press` for target poses in order
     (each solve warm-starts from the previous one)."""
@@ -194,20 +201,19 @@ class MembraneModel:
         dome: DomeSurface | None = None,
         target_modulus: float | None = None,
         target_poisson: float | None = None,
+        contact_slave: str | None = None,
     ) -> "MembraneModel":
         """The membrane of ``scene`` (its [membrane] and [target] sections and chamber); the
         target's radius may be overridden by ``target_radius`` m; ``dome`` defaults to the
         scene's undeformed dome, meshed isotropically with [membrane] rim_vertices. A soft
         target ([target] kind = "soft", or any ``target_modulus`` Pa given) gives a
         :class:`~jointsim.mechanics.soft_target.SoftTargetModel` with that Young's modulus and
-        ``target_poisson`` (default the scene's)."""
+        ``target_poisson`` (default the scene's), and ``contact_slave`` passed on to it (None:
+        its rule, the softer body's nodes)."""
         from ..geometry import isotropic_cap
 
         m = scene.membrane
-        if m.law == "yeoh":
-            material = Material.yeoh(*m.yeoh_c, bulk_ratio=m.bulk_ratio)
-        else:
-            material = Material.neo_hookean(m.shear_modulus, bulk_ratio=m.bulk_ratio)
+        material = membrane_material(m)
         c = scene.chamber
         t = scene.target
         kw = {}
@@ -219,6 +225,9 @@ class MembraneModel:
                 t.youngs_modulus if target_modulus is None else target_modulus,
                 t.poisson_ratio if target_poisson is None else target_poisson,
             )
+            kw["contact_slave"] = contact_slave
+        elif contact_slave is not None:
+            raise ValueError(f"contact_slave = {contact_slave!r}: only for a soft target (give target_modulus)")
         return cls(
             isotropic_cap(c.base_radius, c.dome_height, m.rim_vertices) if dome is None else dome,
             c.membrane_thickness,

@@ -130,6 +130,12 @@ def _entries(P: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
     return csr_rows(P.indptr), P.indices.astype(np.int64)
 
 
+def default_contact_slave(target: Material, membrane: Material) -> str:
+    """Whose surface nodes are the soft contact's slaves by default: the target's unless it is
+    10× stiffer (shear modulus) than the membrane (see :class:`SoftTargetModel`)."""
+    return "target" if target.mu < 10 * membrane.mu else "membrane"
+
+
 class CoupledTerms:
     """One energy term over the unknowns of several bodies: ``blocks`` [(first node, term,
     (indptr, indices) of the term's own Hessian pattern)], each term evaluated on its rows of
@@ -272,6 +278,7 @@ class _TargetContact:
         if slave not in ("target", "membrane"):
             raise ValueError(f"slave = {slave!r}: allowed values are 'target', 'membrane'")
         self.n_membrane = nm = len(X_membrane)
+        self.slave = slave
         self.target = target
         self.radius = target.radius
         self.nodes = np.asarray(nodes)  # the membrane's outer-surface nodes (first contact)
@@ -373,7 +380,7 @@ class SoftTargetModel(MembraneModel):
             # dent's sides from one Newton iteration to the next (measured: no convergence with
             # membrane slaves on a target as soft as the membrane, nor with target slaves on a
             # target 100× stiffer; both converge with the rule below)
-            contact_slave = "target" if self.target.material.mu < 10 * material.mu else "membrane"
+            contact_slave = default_contact_slave(self.target.material, material)
         self.contact = _TargetContact(
             self.mesh.nodes, rigid.nodes, rigid.weights, linear_subtriangles(bf[outer]), rigid.stiffness, self.target, contact_margin, contact_slave
         )

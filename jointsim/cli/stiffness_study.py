@@ -1,0 +1,52 @@
+"""How far a target's Young's modulus moves the force, displaced volume and contact area of an
+on-axis press, against the membrane's own modulus: the sensitivities S_E and S_μ and the modulus
+error they imply (the physics limit of elastography with this sensor). Writes CSV, JSON,
+Markdown and PNG to --out."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+
+from tqdm import tqdm
+
+from ..studies.stiffness_sensitivity import DEFAULT_DEPTHS_MM, DEFAULT_MODULI_KPA, run_study, write_report
+from .common import add_scene_arguments, scene_from_args
+
+HELP = "stiffness identifiability: force sensitivity to target and membrane moduli"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_scene_arguments(p)
+    p.add_argument("--out", type=Path, default=Path("results/stiffness_sensitivity"), help="output folder")
+    p.add_argument("--target-radius-mm", type=float, default=7.5, help="target sphere radius (default 7.5)")
+    p.add_argument("--target-diameter-mm", type=float, help="target sphere diameter (instead of the radius)")
+    p.add_argument("--moduli-kpa", type=float, nargs="+", default=list(DEFAULT_MODULI_KPA), help="soft target moduli (a rigid one is added)")
+    p.add_argument("--depths-mm", type=float, nargs="+", default=list(DEFAULT_DEPTHS_MM), help="stage depths past first contact")
+    p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
+
+
+def run(args: argparse.Namespace) -> int:
+    scene = scene_from_args(args)
+    radius = args.target_diameter_mm / 2 if args.target_diameter_mm is not None else args.target_radius_mm
+    if not 0 < radius <= 100:
+        raise ValueError(f"target radius = {radius} mm: must be in (0, 100]")
+    if len(args.moduli_kpa) < 2 or min(args.moduli_kpa) <= 0:
+        raise ValueError(f"--moduli-kpa = {args.moduli_kpa}: at least two moduli, each > 0 kPa")
+    height = scene.chamber.dome_height * 1e3
+    if min(args.depths_mm) <= 0 or max(args.depths_mm) >= height or sorted(set(args.depths_mm)) != list(args.depths_mm):
+        raise ValueError(f"--depths-mm = {args.depths_mm}: increasing, distinct, in (0, {height:g}) mm (the dome height)")
+    print(f"jointsim stiffness-study: scene {scene.name}, target r = {radius:g} mm")
+    with tqdm(unit="press", disable=None) as bar:
+
+        def progress(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
+
+        result = run_study(scene, radius * 1e-3, args.moduli_kpa, args.depths_mm, args.workers, progress=progress)
+    command = "jointsim stiffness-study " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["stiffness-study"] else "jointsim stiffness-study"
+    written = write_report(result, args.out, command)
+    print(f"  wrote {len(written)} files to {args.out}")
+    return 0
