@@ -38,6 +38,7 @@ MAX_CUTBACKS = 3
 # displacement within 0.07 µm, displaced volume within 1e-4 — far below the 2 % mesh error and
 # the EIT noise — for ~15 % fewer Newton iterations
 FORCE_RTOL = 1e-3
+TOUCH_CLEARANCE = 1e-12  # × target radius: ~1000 ulps of the gap, physically nothing
 
 
 class UnreachablePose(ValueError):
@@ -280,14 +281,16 @@ class MembraneModel:
 
     def first_contact_height(self, xy: np.ndarray) -> float:
         """Centre height of the target coming down at ``xy`` when it touches the outer surface
-        of the current (deformed) membrane."""
+        of the current (deformed) membrane, raised by ``TOUCH_CLEARANCE``·R: the touching node's
+        gap is R − |x − c| up to round-off, and a touch must give exactly zero force, not a
+        force of either sign from the last bits."""
         x = self.contact.X[self.contact.nodes] + self.u[self.contact.nodes]
         R = self.contact.radius
         d2 = ((x[:, :2] - np.asarray(xy)) ** 2).sum(axis=1)
         near = d2 < R * R
         if not near.any():
             raise UnreachablePose(f"target at xy = {np.asarray(xy) * 1e3} mm misses the dome")
-        return float((x[near, 2] + np.sqrt(R * R - d2[near])).max())
+        return float((x[near, 2] + np.sqrt(R * R - d2[near])).max()) + TOUCH_CLEARANCE * R
 
     def press(self, centre: np.ndarray, substeps: int = 1) -> MembraneState:
         """Move the target centre to ``centre`` (3,) m in ``substeps`` straight-line steps (more
