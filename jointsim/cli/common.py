@@ -18,6 +18,27 @@ def add_scene_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh", dest="mesh_preset", choices=["test", "dataset", "paper"], help="override the scene's mesh preset")
 
 
+def add_target_size_arguments(p: argparse.ArgumentParser, default: str) -> None:
+    """--target-radius-mm or --target-diameter-mm (one of them); ``default`` says in the help
+    what applies without either."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--target-radius-mm", type=float, help=f"target sphere radius (default: {default})")
+    g.add_argument("--target-diameter-mm", type=float, help="target sphere diameter (instead of the radius)")
+
+
+def target_radius_mm(args: argparse.Namespace, default: float) -> float:
+    """The target radius (mm) from :func:`add_target_size_arguments`, else ``default``."""
+    if args.target_radius_mm is not None:
+        radius = args.target_radius_mm
+    elif args.target_diameter_mm is not None:
+        radius = args.target_diameter_mm / 2
+    else:
+        radius = default
+    if not 0 < radius <= 100:
+        raise ValueError(f"target radius = {radius} mm: must be in (0, 100]")
+    return radius
+
+
 def scene_from_args(args: argparse.Namespace) -> Scene:
     scene = load_scene(args.scene)
     return scene.with_mesh_preset(args.mesh_preset) if args.mesh_preset else scene

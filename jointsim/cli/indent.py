@@ -19,7 +19,7 @@ from .. import __version__
 from ..io.export import atomic_path, write_npz, write_vtu
 from ..mechanics.dome import MembraneModel
 from ..mesh.tetmesh import TetMesh
-from .common import add_scene_arguments, scene_from_args
+from .common import add_scene_arguments, add_target_size_arguments, scene_from_args, target_radius_mm
 
 HELP = "force-indentation sweep of the dome membrane (FEM): CSV, PNG, VTU"
 
@@ -27,9 +27,7 @@ HELP = "force-indentation sweep of the dome membrane (FEM): CSV, PNG, VTU"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
     p.add_argument("--out", type=Path, default=Path("results/indentation"), help="output folder")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--target-radius-mm", type=float, help="target sphere radius (default: the scene's [target])")
-    g.add_argument("--target-diameter-mm", type=float, help="target sphere diameter")
+    add_target_size_arguments(p, "the scene's [target]")
     p.add_argument("--x-mm", type=float, default=0.0, help="contact position x (default 0)")
     p.add_argument("--y-mm", type=float, default=0.0, help="contact position y (default 0)")
     p.add_argument("--depth-mm", type=float, default=3.0, help="final indentation past first contact (default 3)")
@@ -40,11 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     scene = scene_from_args(args)
-    radius = scene.target.radius * 1e3 if args.target_radius_mm is None and args.target_diameter_mm is None else (
-        args.target_radius_mm if args.target_radius_mm is not None else args.target_diameter_mm / 2
-    )
-    if not 0 < radius <= 100:
-        raise ValueError(f"target radius = {radius} mm: must be in (0, 100]")
+    radius = target_radius_mm(args, scene.target.radius * 1e3)
     if not 0 < args.step_mm <= args.depth_mm:
         raise ValueError(f"--step-mm = {args.step_mm}: must be in (0, --depth-mm = {args.depth_mm}]")
     if args.dome_rim is not None:

@@ -13,7 +13,7 @@ from tqdm import tqdm
 
 from ..studies.protocol_study import StudyConfig, run_protocol_study
 from ..studies.report import write_study
-from .common import add_scene_arguments, scene_from_args
+from .common import add_scene_arguments, add_target_size_arguments, scene_from_args, target_radius_mm
 
 HELP = "the paper's protocol study (Fig. 2 G-H): skip-0..8 metrics and images"
 
@@ -21,8 +21,7 @@ HELP = "the paper's protocol study (Fig. 2 G-H): skip-0..8 metrics and images"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
     p.add_argument("--out", type=Path, default=Path("results/protocol_study"), help="output folder")
-    p.add_argument("--target-radius-mm", type=float, default=7.5, help="target sphere radius (default 7.5)")
-    p.add_argument("--target-diameter-mm", type=float, help="target sphere diameter (instead of the radius)")
+    add_target_size_arguments(p, "7.5 mm")
     p.add_argument("--depth-mm", type=float, default=2.0, help="indentation beyond first contact (default 2)")
     p.add_argument("--snr-db", type=float, help="noise level (default: the scene's)")
     p.add_argument("--seed", type=int, default=0)
@@ -33,9 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     scene = scene_from_args(args)
-    radius = args.target_diameter_mm / 2 if args.target_diameter_mm is not None else args.target_radius_mm
-    if not 0 < radius <= 100:
-        raise ValueError(f"target radius = {radius} mm: must be in (0, 100]")
+    radius = target_radius_mm(args, 7.5)
     if not 0 < args.depth_mm < scene.chamber.dome_height * 1e3:
         raise ValueError(f"--depth-mm = {args.depth_mm}: must be in (0, {scene.chamber.dome_height * 1e3:g}) (the dome height)")
     if args.cells < 100:

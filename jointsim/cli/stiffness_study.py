@@ -13,7 +13,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..studies.stiffness_sensitivity import DEFAULT_DEPTHS_MM, DEFAULT_MODULI_KPA, run_study, write_report
-from .common import add_scene_arguments, scene_from_args
+from .common import add_scene_arguments, add_target_size_arguments, scene_from_args, target_radius_mm
 
 HELP = "stiffness identifiability: force sensitivity to target and membrane moduli"
 
@@ -21,8 +21,7 @@ HELP = "stiffness identifiability: force sensitivity to target and membrane modu
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
     p.add_argument("--out", type=Path, default=Path("results/stiffness_sensitivity"), help="output folder")
-    p.add_argument("--target-radius-mm", type=float, default=7.5, help="target sphere radius (default 7.5)")
-    p.add_argument("--target-diameter-mm", type=float, help="target sphere diameter (instead of the radius)")
+    add_target_size_arguments(p, "7.5 mm")
     p.add_argument("--moduli-kpa", type=float, nargs="+", default=list(DEFAULT_MODULI_KPA), help="soft target moduli (a rigid one is added)")
     p.add_argument("--depths-mm", type=float, nargs="+", default=list(DEFAULT_DEPTHS_MM), help="stage depths past first contact")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
@@ -30,9 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     scene = scene_from_args(args)
-    radius = args.target_diameter_mm / 2 if args.target_diameter_mm is not None else args.target_radius_mm
-    if not 0 < radius <= 100:
-        raise ValueError(f"target radius = {radius} mm: must be in (0, 100]")
+    radius = target_radius_mm(args, 7.5)
     if len(args.moduli_kpa) < 2 or min(args.moduli_kpa) <= 0:
         raise ValueError(f"--moduli-kpa = {args.moduli_kpa}: at least two moduli, each > 0 kPa")
     height = scene.chamber.dome_height * 1e3
