@@ -167,12 +167,12 @@ def _p2_element(
             F += wp.outer(un, wp.vec3d(G[n, 0], G[n, 1], G[n, 2]))
         jmin = wp.min(jmin, wp.determinant(F))
         E += w * strain_energy(F, c1, c2, c3, kappa)
-        P = first_piola(F, c1, c2, c3, kappa)
+        t = tangent_at(F, c1, c2, c3, kappa)
+        P = first_piola(t)
         for n in range(10):
             for i in range(3):
                 grad[e, 3 * n + i] += w * (P[i, 0] * G[n, 0] + P[i, 1] * G[n, 1] + P[i, 2] * G[n, 2])
         if mode != NO_HESSIAN:
-            t = tangent_at(F, c1, c2, c3, kappa)
             for j in range(3):
                 for m in range(3):
                     dP = piola_derivative(t, j, m)

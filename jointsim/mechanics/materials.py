@@ -88,22 +88,9 @@ def strain_energy(F: wp.mat33d, c1: wp.float64, c2: wp.float64, c3: wp.float64, 
     return c1 * d + c2 * d * d + c3 * d * d * d + wp.float64(0.5) * kappa * (J - wp.float64(1.0)) * (J - wp.float64(1.0))
 
 
-@wp.func
-def first_piola(F: wp.mat33d, c1: wp.float64, c2: wp.float64, c3: wp.float64, kappa: wp.float64) -> wp.mat33d:
-    """P = ∂W/∂F."""
-    J = wp.determinant(F)
-    Finv_t = wp.transpose(wp.inverse(F))
-    jm23 = wp.pow(J, wp.float64(-2.0 / 3.0))
-    I1 = wp.trace(wp.transpose(F) @ F)
-    d = I1 * jm23 - wp.float64(3.0)
-    w1 = c1 + wp.float64(2.0) * c2 * d + wp.float64(3.0) * c3 * d * d
-    return wp.float64(2.0) * w1 * jm23 * (F - I1 / wp.float64(3.0) * Finv_t) + kappa * (J - wp.float64(1.0)) * J * Finv_t
-
-
-
 @wp.struct
 class Tangent:
-    """What the tangent's columns ∂P/∂F_jm share at one F (module docstring's notation)."""
+    """What P and the tangent's columns ∂P/∂F_jm share at one F (module docstring's notation)."""
 
     F: wp.mat33d
     T: wp.mat33d  # F^{-T}
@@ -113,10 +100,12 @@ class Tangent:
     c_tt: wp.float64  # κ (2J − 1) J
     c_outer: wp.float64  # 2/3 W₁ J^{-2/3} I₁ − κ (J² − J)
     c_e: wp.float64  # 2 W₁ J^{-2/3}
+    c_vol: wp.float64  # κ (J − 1) J
 
 
 @wp.func
 def tangent_at(F: wp.mat33d, c1: wp.float64, c2: wp.float64, c3: wp.float64, kappa: wp.float64) -> Tangent:
+    """The invariants and coefficients at F that the stress and the tangent are built from."""
     t = Tangent()
     J = wp.determinant(F)
     T = wp.transpose(wp.inverse(F))
@@ -133,7 +122,14 @@ def tangent_at(F: wp.mat33d, c1: wp.float64, c2: wp.float64, c3: wp.float64, kap
     t.c_tt = kappa * (wp.float64(2.0) * J - wp.float64(1.0)) * J
     t.c_outer = wp.float64(2.0 / 3.0) * w1 * jm23 * I1 - kappa * (J * J - J)
     t.c_e = wp.float64(2.0) * w1 * jm23
+    t.c_vol = kappa * (J - wp.float64(1.0)) * J
     return t
+
+
+@wp.func
+def first_piola(t: Tangent) -> wp.mat33d:
+    """P = ∂W/∂F = 2 W₁ J^{-2/3} D + κ (J − 1) J F^{-T} (module docstring)."""
+    return t.c_e * t.D + t.c_vol * t.T
 
 
 @wp.func
