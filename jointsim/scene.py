@@ -100,6 +100,10 @@ class Membrane:
     chamber: str = "open"
     rim_vertices: int = 64
 
+    def scaled(self, factor: float) -> "Membrane":
+        """The same membrane with its moduli (either law's) multiplied by ``factor``."""
+        return replace(self, shear_modulus=self.shear_modulus * factor, yeoh_c=tuple(c * factor for c in self.yeoh_c))
+
 
 @dataclass(frozen=True)
 class Target:

@@ -277,10 +277,7 @@ class DatasetSetup:
         """The membrane of ``draw`` (moduli scaled, inflated by the reservoir, untouched) with
         its target: rigid, or a neo-Hookean sphere of ``draw.modulus`` and the scene's Poisson
         ratio solved together with the membrane."""
-        m = self.scene.membrane
-        s = draw.membrane_scale
-        scaled = replace(self.scene, membrane=replace(m, shear_modulus=m.shear_modulus * s,
-                                                      yeoh_c=tuple(c * s for c in m.yeoh_c)),
+        scaled = replace(self.scene, membrane=self.scene.membrane.scaled(draw.membrane_scale),
                          target=replace(self.scene.target, kind="rigid"))
         soft = math.isfinite(draw.modulus)
         return MembraneModel.from_scene(scaled, target_radius=draw.radius, target_modulus=draw.modulus if soft else None)

@@ -30,12 +30,13 @@ import concurrent.futures as cf
 import csv
 import json
 import math
-import os
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
+
+from ..io.export import atomic_path
 
 __all__ = ["PressCurve", "StudyResult", "press_curve", "run_study", "modulus_error", "joint_modulus_error", "write_report", "MEMBRANE_STEP"]
 
@@ -79,10 +80,7 @@ def press_curve(scene, radius: float, modulus: float, depths: np.ndarray, membra
     depths = np.asarray(depths, float)
     if depths.ndim != 1 or len(depths) == 0 or np.any(depths <= 0) or np.any(np.diff(depths) <= 0):
         raise ValueError("depths: a non-empty increasing sequence of positive stage depths (m)")
-    m = scene.membrane
-    scaled = replace(scene, membrane=replace(m, shear_modulus=m.shear_modulus * membrane_scale,
-                                             yeoh_c=tuple(c * membrane_scale for c in m.yeoh_c)),
-                     target=replace(scene.target, kind="rigid"))
+    scaled = replace(scene, membrane=scene.membrane.scaled(membrane_scale), target=replace(scene.target, kind="rigid"))
     soft = not math.isinf(modulus)
     model = MembraneModel.from_scene(scaled, target_radius=radius, target_modulus=modulus if soft else None,
                                      contact_slave=slave if soft else None)
@@ -206,7 +204,7 @@ def _label(e: float) -> str:
 
 def write_report(result: StudyResult, out: Path, command: str) -> list[Path]:
     """``stiffness_sensitivity.{csv,json,md,png}`` in ``out``, each written to a temporary name
-    and renamed."""
+    and renamed (:func:`~jointsim.io.export.atomic_path`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -234,11 +232,9 @@ def write_report(result: StudyResult, out: Path, command: str) -> list[Path]:
     written = []
 
     def put(name: str, write) -> None:
-        path = out / name
-        tmp = path.with_name(path.name + ".tmp")
-        write(tmp)
-        os.replace(tmp, path)
-        written.append(path)
+        with atomic_path(out / name) as tmp:
+            write(tmp)
+        written.append(out / name)
 
     def write_csv(p: Path) -> None:
         with open(p, "w", newline="") as f:
