@@ -90,10 +90,6 @@ def press_curve(scene, radius: float, modulus: float, depths: np.ndarray, membra
                       np.array([s.displaced_volume for s in states]), np.array([s.contact_area for s in states]))
 
 
-def _press(args) -> PressCurve:
-    return press_curve(*args)
-
-
 @dataclass(frozen=True)
 class StudyResult:
     """``curves[k]`` at ``moduli[k]`` (Pa, increasing, the last inf: rigid) and ``membrane[k]`` the
@@ -181,14 +177,14 @@ def run_study(scene, radius: float = 7.5e-3, moduli_kpa=DEFAULT_MODULI_KPA, dept
     if workers == 1:
         out = []
         for j in jobs:
-            out.append(_press(j))
+            out.append(press_curve(*j))
             if progress:
                 progress(len(out), len(jobs))
     else:
         import multiprocessing
 
         with cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-            futures = [pool.submit(_press, j) for j in jobs]
+            futures = [pool.submit(press_curve, *j) for j in jobs]
             for done, f in enumerate(cf.as_completed(futures), 1):
                 f.result()
                 if progress:
