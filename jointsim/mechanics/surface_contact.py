@@ -213,6 +213,8 @@ class SurfaceContact:
         g = np.einsum("ki,ki->k", x[self.slaves[idx]] - y, n)
         return idx, mt, lam, n, g
 
+    RELINEARISES = True  # Newton judges convergence on the gradient after a re-lag
+
     def evaluate(self, u: np.ndarray, hessian: bool):
         """(energy, gradient (3n,), Hessian (3n, 3n) or None, True); a Hessian evaluation
         re-lags the closest points first (once per Newton iteration)."""
