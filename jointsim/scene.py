@@ -89,7 +89,9 @@ class Membrane:
     (``yeoh_c``), ``bulk_ratio`` κ/μ, prism ``layers`` through the thickness, and the
     reservoir's hydrostatic ``reservoir_pressure`` on the inner surface (Pa); ``chamber``
     "open" (the reservoir takes the displaced saline) or "closed" (the saline volume is held by
-    the pressure); ``rim_vertices`` sets the membrane mesh (edge ≈ 2π·base radius / rim_vertices)."""
+    the pressure); ``rim_vertices`` sets the membrane mesh (edge ≈ 2π·base radius / rim_vertices);
+    ``volumetric``: how the P2 elements integrate the volumetric energy, "pointwise" or
+    "mean_dilatation" (jointsim/mechanics/fem.py)."""
 
     law: str = "neo-hookean"
     shear_modulus: float = 22e3
@@ -99,6 +101,7 @@ class Membrane:
     reservoir_pressure: float = 0.0
     chamber: str = "open"
     rim_vertices: int = 64
+    volumetric: str = "pointwise"
 
     def scaled(self, factor: float) -> "Membrane":
         """The same membrane with its moduli (either law's) multiplied by ``factor``."""
@@ -367,6 +370,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     p_res = t.number("reservoir_pressure_pa", 0.0, -1e4, 1e5)
     closed = t.choice("chamber", "open", ("open", "closed"))
     rim_vertices = t.integer("rim_vertices", 64, 16, 1024)
+    volumetric = t.choice("volumetric", "pointwise", ("pointwise", "mean_dilatation"))
     t.finish()
 
     target = _target(data.get("target", {}), base_r)
@@ -379,7 +383,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         drive=Drive(current * 1e-6, freqs, skip),
         noise=Noise(snr, seed, drift, rate),
         mesh=MeshSpec(preset, max_edge * MM, refine, zone * MM, grading, eps, stop_energy, max_opt_iter),
-        membrane=Membrane(law, mu * 1e3, tuple(c * 1e3 for c in yc), bulk_ratio, layers, p_res, closed, rim_vertices),
+        membrane=Membrane(law, mu * 1e3, tuple(c * 1e3 for c in yc), bulk_ratio, layers, p_res, closed, rim_vertices, volumetric),
         target=target,
         palpation=_palpation(data.get("palpation", {}), base_r, height, thick, zf is not None),
         dataset=_dataset(data.get("dataset", {}), base_r, height, ring, diam, count, zone),

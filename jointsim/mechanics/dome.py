@@ -147,6 +147,7 @@ class MembraneModel:
         force_tol: float | None = None,
         friction: float = 0.0,
         closed: bool = False,
+        volumetric: str = "pointwise",
     ):
         # converged when the out-of-balance nodal force is below force_tol (N): by default
         # 1e-6·μ·t², a millionth of the force that strains a membrane-thick cube by one
@@ -157,7 +158,7 @@ class MembraneModel:
         lin, self.n_surface = membrane_mesh(dome, thickness, layers)
         self.mesh = P2Mesh.from_linear(lin)
         X = self.mesh.nodes
-        self.elastic = ElasticTerm(self.mesh, material)
+        self.elastic = ElasticTerm(self.mesh, material, volumetric=volumetric)
         bf = self.mesh.boundary_faces
         n = self.n_surface
         on_inner = np.all(bf[:, :3] < n, axis=1)
@@ -238,6 +239,7 @@ class MembraneModel:
             t.radius if target_radius is None else target_radius,
             friction=t.friction,
             closed=m.chamber == "closed",
+            volumetric=m.volumetric,
             **kw,
         )
 

@@ -1,9 +1,18 @@
 """Quadratic (P2, 10-node) tetrahedra for finite-strain hyperelasticity, with the element
 energy, gradient and Hessian computed in a Warp kernel (CPU by default, CUDA when asked).
 
-Why P2: linear tetrahedra lock when the material is nearly incompressible (κ/μ = 1000 for the
-silicone); quadratic displacement fields can follow an isochoric deformation, and the closed-form
-checks in tests/test_mechanics.py show no locking at κ/μ = 1000.
+Locking: the silicone is nearly incompressible (κ/μ = 1000, ν = 0.4995). Linear tetrahedra lock
+outright; quadratic ones with the penalty U(J) = κ/2 (J − 1)² at every quadrature point
+("pointwise", the default) still lock in bending: a 2 mm cantilever with two elements through
+its thickness deflects 13 % too little (6 elements: 4 %). ``volumetric="mean_dilatation"`` is the
+mixed u–p form with an element-wise constant pressure (P2–P0), the pressure condensed out: the
+volumetric energy V·U(θ) of each element's volume ratio θ = v/V = Σ_q w_q J_q (Nagtegaal–Parks–
+Rice / Simo–Taylor–Pister), which adds U''(θ)/V · B Bᵀ (B = ∂v/∂u) to the element matrix; the
+isochoric part stays pointwise. The same cantilever is then within 1.5 % of beam theory at two
+elements (tests/test_mechanics.py), but a constant pressure per element converges only to first
+order and is too soft with one element through a thickness (the cantilever: +46 %) and at
+moderate compressibility (a ν = 0.49 sphere on a flat: 20 % under Hertz, pointwise within 2 %).
+Which form the dome should use is measured in results/mechanics_benchmark.md.
 
 The element Hessian uses the material tangent A = ∂P/∂F in closed form
 (:func:`materials.piola_derivative`). Each element's 30 × 30 matrix is accumulated in the kernel
@@ -24,7 +33,7 @@ import warp as wp
 from threadpoolctl import threadpool_limits
 
 from ..mesh.tetmesh import TetMesh, edge_midpoints
-from .materials import Material, first_piola, piola_derivative, strain_energy, tangent_at
+from .materials import Material, first_piola, piola_derivative, strain_energy, tangent_with_pressure
 
 __all__ = ["P2Mesh", "ElementState", "ElementKernel", "ElasticTerm", "project_psd", "assemble_hessian", "assemble_gradient"]
 
@@ -96,9 +105,53 @@ class P2Mesh:
 
 
 _Mat30 = wp.types.matrix(shape=(30, 30), dtype=wp.float64)
+_Vec30 = wp.types.vector(length=30, dtype=wp.float64)
+
+# how the volumetric energy U(J) = κ/2 (J − 1)² is integrated: at each quadrature point, or once
+# per element from the element's volume ratio θ = v/V (mean dilatation; module docstring)
+VOLUMETRIC = ("mean_dilatation", "pointwise")
 
 # what the element kernel computes besides the energy and gradient
 NO_HESSIAN, ASSEMBLED, WITH_ELEMENTS = 0, 1, 2
+
+
+@wp.func
+def _shape_gradients(l: wp.vec4d, g0: wp.vec3d, g1: wp.vec3d, g2: wp.vec3d, g3: wp.vec3d) -> _MatN:
+    """∇N (10, 3) of the P2 shape functions at barycentric point l, from the corners' ∇λ."""
+    one = wp.float64(1.0)
+    four = wp.float64(4.0)
+    G = _MatN()
+    # corner shape functions λ(2λ − 1) and edge functions 4 λa λb, differentiated
+    gc0 = (four * l[0] - one) * g0
+    gc1 = (four * l[1] - one) * g1
+    gc2 = (four * l[2] - one) * g2
+    gc3 = (four * l[3] - one) * g3
+    ge01 = four * (l[0] * g1 + l[1] * g0)
+    ge02 = four * (l[0] * g2 + l[2] * g0)
+    ge03 = four * (l[0] * g3 + l[3] * g0)
+    ge12 = four * (l[1] * g2 + l[2] * g1)
+    ge13 = four * (l[1] * g3 + l[3] * g1)
+    ge23 = four * (l[2] * g3 + l[3] * g2)
+    for k in range(3):
+        G[0, k] = gc0[k]
+        G[1, k] = gc1[k]
+        G[2, k] = gc2[k]
+        G[3, k] = gc3[k]
+        G[4, k] = ge01[k]
+        G[5, k] = ge02[k]
+        G[6, k] = ge03[k]
+        G[7, k] = ge12[k]
+        G[8, k] = ge13[k]
+        G[9, k] = ge23[k]
+    return G
+
+
+@wp.func
+def _deformation_gradient(u: wp.array(dtype=wp.vec3d), tets: wp.array2d(dtype=wp.int32), e: int, G: _MatN) -> wp.mat33d:
+    F = wp.identity(n=3, dtype=wp.float64)
+    for n in range(10):
+        F += wp.outer(u[tets[e, n]], wp.vec3d(G[n, 0], G[n, 1], G[n, 2]))
+    return F
 
 
 @wp.kernel
@@ -110,6 +163,7 @@ def _p2_element(
     qbary: wp.array(dtype=wp.vec4d),
     qw: wp.array(dtype=wp.float64),
     mode: int,
+    mean_dilatation: int,
     slot: wp.array2d(dtype=wp.int32),
     energy: wp.array(dtype=wp.float64),
     grad: wp.array2d(dtype=wp.float64),
@@ -131,47 +185,42 @@ def _p2_element(
     c3 = params[e, 2]
     kappa = params[e, 3]
     one = wp.float64(1.0)
-    four = wp.float64(4.0)
     E = wp.float64(0.0)
     jmin = wp.float64(1.0e30)
     K = _Mat30()
+    # mean dilatation: the element's pressure p = U'(θ) from its volume ratio θ = Σ_q w_q J_q
+    theta = one
+    if mean_dilatation != 0:
+        theta = wp.float64(0.0)
+        for q in range(4):
+            theta += qw[q] * wp.determinant(_deformation_gradient(u, tets, e, _shape_gradients(qbary[q], g0, g1, g2, g3)))
+    p_elem = kappa * (theta - one)
+    k_local = kappa
+    if mean_dilatation != 0:
+        k_local = wp.float64(0.0)
+    B = _Vec30()  # ∂v/∂u: the element volume's gradient, Σ_q w_q J_q F_q^{-T} ∇N
     for q in range(4):
         l = qbary[q]
         w = qw[q] * vol
-        G = _MatN()
-        # corner shape functions λ(2λ − 1) and edge functions 4 λa λb, differentiated
-        gc0 = (four * l[0] - one) * g0
-        gc1 = (four * l[1] - one) * g1
-        gc2 = (four * l[2] - one) * g2
-        gc3 = (four * l[3] - one) * g3
-        ge01 = four * (l[0] * g1 + l[1] * g0)
-        ge02 = four * (l[0] * g2 + l[2] * g0)
-        ge03 = four * (l[0] * g3 + l[3] * g0)
-        ge12 = four * (l[1] * g2 + l[2] * g1)
-        ge13 = four * (l[1] * g3 + l[3] * g1)
-        ge23 = four * (l[2] * g3 + l[3] * g2)
-        for k in range(3):
-            G[0, k] = gc0[k]
-            G[1, k] = gc1[k]
-            G[2, k] = gc2[k]
-            G[3, k] = gc3[k]
-            G[4, k] = ge01[k]
-            G[5, k] = ge02[k]
-            G[6, k] = ge03[k]
-            G[7, k] = ge12[k]
-            G[8, k] = ge13[k]
-            G[9, k] = ge23[k]
-        F = wp.identity(n=3, dtype=wp.float64)
-        for n in range(10):
-            un = u[tets[e, n]]
-            F += wp.outer(un, wp.vec3d(G[n, 0], G[n, 1], G[n, 2]))
-        jmin = wp.min(jmin, wp.determinant(F))
-        E += w * strain_energy(F, c1, c2, c3, kappa)
-        t = tangent_at(F, c1, c2, c3, kappa)
+        G = _shape_gradients(l, g0, g1, g2, g3)
+        F = _deformation_gradient(u, tets, e, G)
+        J = wp.determinant(F)
+        jmin = wp.min(jmin, J)
+        p = p_elem
+        if mean_dilatation == 0:
+            p = kappa * (J - one)
+            E += w * strain_energy(F, c1, c2, c3, kappa)
+        else:
+            E += w * strain_energy(F, c1, c2, c3, wp.float64(0.0))
+        t = tangent_with_pressure(F, c1, c2, c3, p, k_local)
         P = first_piola(t)
         for n in range(10):
             for i in range(3):
                 grad[e, 3 * n + i] += w * (P[i, 0] * G[n, 0] + P[i, 1] * G[n, 1] + P[i, 2] * G[n, 2])
+            if mean_dilatation != 0:
+                dv = w * J * (t.T @ wp.vec3d(G[n, 0], G[n, 1], G[n, 2]))
+                for i in range(3):
+                    B[3 * n + i] = B[3 * n + i] + dv[i]
         if mode != NO_HESSIAN:
             for j in range(3):
                 for m in range(3):
@@ -184,6 +233,16 @@ def _p2_element(
                             K[3 * a + 0, 3 * b + j] = K[3 * a + 0, 3 * b + j] + ta[0] * s
                             K[3 * a + 1, 3 * b + j] = K[3 * a + 1, 3 * b + j] + ta[1] * s
                             K[3 * a + 2, 3 * b + j] = K[3 * a + 2, 3 * b + j] + ta[2] * s
+    if mean_dilatation != 0:
+        # V·U(θ), and its stiffness U''(θ)/V · B Bᵀ (θ = v/V, ∂v/∂u = B)
+        E += vol * wp.float64(0.5) * kappa * (theta - one) * (theta - one)
+        if mode != NO_HESSIAN:
+            kv = kappa / vol
+            for a in range(10):
+                for b in range(a, 10):
+                    for i in range(3):
+                        for j in range(3):
+                            K[3 * a + i, 3 * b + j] = K[3 * a + i, 3 * b + j] + kv * B[3 * a + i] * B[3 * b + j]
     energy[e] = E
     min_det[e] = jmin
     if mode != NO_HESSIAN:
@@ -215,9 +274,19 @@ class ElementState:
 class ElementKernel:
     """Warp arrays for one P2 mesh and per-element material parameters, reused across calls."""
 
-    def __init__(self, mesh: P2Mesh, materials: Material | list[Material], material_of: np.ndarray | None = None, device: str = "cpu"):
+    def __init__(
+        self,
+        mesh: P2Mesh,
+        materials: Material | list[Material],
+        material_of: np.ndarray | None = None,
+        device: str = "cpu",
+        volumetric: str = "pointwise",
+    ):
+        if volumetric not in VOLUMETRIC:
+            raise ValueError(f"volumetric = {volumetric!r}: allowed values are {VOLUMETRIC}")
         self.mesh = mesh
         self.device = device
+        self.volumetric = volumetric
         mats = [materials] if isinstance(materials, Material) else list(materials)
         idx = np.zeros(mesh.n_tets, int) if material_of is None else np.asarray(material_of)
         params = np.array([[m.c1, m.c2, m.c3, m.bulk] for m in mats])[idx]
@@ -258,7 +327,7 @@ class ElementKernel:
         wp.launch(
             _p2_element,
             dim=self.mesh.n_tets,
-            inputs=[self._X, uw, self._tets, self._params, self._qb, self._qw, mode, self._slot],
+            inputs=[self._X, uw, self._tets, self._params, self._qb, self._qw, mode, int(self.volumetric == "mean_dilatation"), self._slot],
             outputs=[self._energy, self._grad, data, hess, self._mindet],
             device=self.device,
         )
@@ -302,9 +371,16 @@ def assemble_gradient(mesh: P2Mesh, g: np.ndarray) -> np.ndarray:
 class ElasticTerm:
     """The hyperelastic energy of a P2 mesh, as an energy term for the Newton solver."""
 
-    def __init__(self, mesh: P2Mesh, materials: Material | list[Material], material_of: np.ndarray | None = None, device: str = "cpu"):
+    def __init__(
+        self,
+        mesh: P2Mesh,
+        materials: Material | list[Material],
+        material_of: np.ndarray | None = None,
+        device: str = "cpu",
+        volumetric: str = "pointwise",
+    ):
         self.mesh = mesh
-        self.kernel = ElementKernel(mesh, materials, material_of, device)
+        self.kernel = ElementKernel(mesh, materials, material_of, device, volumetric)
 
     def evaluate(self, u: np.ndarray, hessian: bool):
         s = self.kernel(u, hessian)
