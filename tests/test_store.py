@@ -245,6 +245,20 @@ def test_reopening_resumes_the_same_run_and_refuses_another(tmp_path):
     assert _open(path, allow_version_change=True).done().tolist() == [0]
 
 
+def test_resuming_from_another_code_commit_warns_and_keeps_the_records(tmp_path, monkeypatch, capsys):
+    import jointsim.io.store as store
+
+    path = tmp_path / "run"
+    monkeypatch.setattr(store, "_git_commit", lambda: "a" * 40)
+    _open(path).put(0, _record(0))
+    _open(path)  # the same commit: silent
+    assert "warning" not in capsys.readouterr().err
+    monkeypatch.setattr(store, "_git_commit", lambda: "b" * 40)
+    assert _open(path).done().tolist() == [0]
+    err = capsys.readouterr().err
+    assert "b" * 40 in err and "earlier sessions ran " + "a" * 40 in err
+
+
 def test_a_finished_run_is_not_reopened_and_a_damaged_file_is_detected(tmp_path):
     store = _open(tmp_path / "run", n=2)
     store.put(0, _record(0))

@@ -234,6 +234,27 @@ def _git_commit() -> str | None:
         return None
 
 
+def _warn_if_code_changed(partial: Path, commit: str | None) -> None:
+    """Warn (stderr) when a run is resumed from another jointsim checkout commit than earlier
+    sessions: the package version check cannot see a development commit change, and records
+    written before and after may then differ (a solver change moves equilibria)."""
+    if commit is None:
+        return
+    earlier = set()
+    for f in (partial / "sessions").glob("*.json"):
+        try:
+            earlier.add(json.loads(f.read_text()).get("jointsim_git"))
+        except (OSError, ValueError):
+            continue  # a session file being written by a concurrent opener
+    earlier -= {None, commit}
+    if earlier:
+        print(
+            f"warning: resuming {partial} with jointsim commit {commit}; earlier sessions ran "
+            f"{', '.join(sorted(earlier))} (records from each are kept; see its sessions/ files)",
+            file=sys.stderr,
+        )
+
+
 def _now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
 
@@ -721,9 +742,11 @@ def open_store(
         )
     if not allow_version_change:
         _check_versions(stored["versions"], versions, partial)
+    commit = _git_commit()
+    _warn_if_code_changed(partial, commit)
     session = {
         "started": _now(), "host": socket.gethostname(), "pid": os.getpid(), "platform": platform.platform(),
-        "command": list(sys.argv if command is None else command), "versions": versions, "jointsim_git": _git_commit(),
+        "command": list(sys.argv if command is None else command), "versions": versions, "jointsim_git": commit,
     }
     name = f"{session['started'].replace(':', '')}-{os.getpid()}-{secrets.token_hex(4)}.json"  # sorts by time
     with atomic_path(partial / "sessions" / name) as tmp:
