@@ -234,19 +234,20 @@ def _git_commit() -> str | None:
         return None
 
 
+def _sessions(partial: Path) -> list[dict]:
+    """The run's session records, oldest first; not the hidden temporary file of an opener that
+    is writing its own (atomic_path's ``.name.*.json``, which the glob would match)."""
+    files = sorted(p for p in (partial / "sessions").glob("*.json") if not p.name.startswith("."))
+    return [json.loads(p.read_text()) for p in files]
+
+
 def _warn_if_code_changed(partial: Path, commit: str | None) -> None:
     """Warn (stderr) when a run is resumed from another jointsim checkout commit than earlier
     sessions: the package version check cannot see a development commit change, and records
     written before and after may then differ (a solver change moves equilibria)."""
     if commit is None:
         return
-    earlier = set()
-    for f in (partial / "sessions").glob("*.json"):
-        try:
-            earlier.add(json.loads(f.read_text()).get("jointsim_git"))
-        except (OSError, ValueError):
-            continue  # a session file being written by a concurrent opener
-    earlier -= {None, commit}
+    earlier = {s.get("jointsim_git") for s in _sessions(partial)} - {None, commit}
     if earlier:
         print(
             f"warning: resuming {partial} with jointsim commit {commit}; earlier sessions ran "
@@ -603,8 +604,7 @@ class RecordStore:
 
         ident = dict(self.identity, n_records=n)
         meta = json.loads((self.partial / "meta.json").read_text())
-        sessions = [json.loads(p.read_text()) for p in sorted((self.partial / "sessions").glob("*.json"))]
-        run = {"created": meta["created"], "finalised": _now(), "finalised_on": socket.gethostname(), "sessions": sessions}
+        run = {"created": meta["created"], "finalised": _now(), "finalised_on": socket.gethostname(), "sessions": _sessions(self.partial)}
         text = h5py.string_dtype()
         with atomic_path(self.path) as tmp:
             with h5py.File(tmp, "w", rdcc_nbytes=8 << 20) as h5:
