@@ -33,7 +33,7 @@ import warp as wp
 # Warp's start-up banner and per-module load lines are noise on a command line
 wp.config.log_level = max(getattr(wp.config, "log_level", logging.WARNING), logging.WARNING)
 
-__all__ = ["Material", "Tangent", "first_piola", "piola_derivative", "strain_energy", "tangent_at", "tangent_with_pressure"]
+__all__ = ["Material", "Tangent", "first_piola", "piola_derivative", "strain_energy", "tangent_with_pressure"]
 
 
 @dataclass(frozen=True)
@@ -99,25 +99,19 @@ class Tangent:
     D: wp.mat33d  # F − I₁/3 F^{-T}
     c_dd: wp.float64  # 4 W₂ J^{-4/3}
     c_dt: wp.float64  # 4/3 W₁ J^{-2/3}
-    c_tt: wp.float64  # κ (2J − 1) J  (p J + k_local J² in tangent_with_pressure)
-    c_outer: wp.float64  # 2/3 W₁ J^{-2/3} I₁ − κ (J² − J)  (− p J)
+    c_tt: wp.float64  # p J + k_local J² (penalty law: κ (2J − 1) J)
+    c_outer: wp.float64  # 2/3 W₁ J^{-2/3} I₁ − p J
     c_e: wp.float64  # 2 W₁ J^{-2/3}
-    c_vol: wp.float64  # κ (J − 1) J  (p J)
-
-
-@wp.func
-def tangent_at(F: wp.mat33d, c1: wp.float64, c2: wp.float64, c3: wp.float64, kappa: wp.float64) -> Tangent:
-    """The invariants and coefficients at F that the stress and the tangent are built from."""
-    J = wp.determinant(F)
-    return tangent_with_pressure(F, c1, c2, c3, kappa * (J - wp.float64(1.0)), kappa)
+    c_vol: wp.float64  # p J
 
 
 @wp.func
 def tangent_with_pressure(F: wp.mat33d, c1: wp.float64, c2: wp.float64, c3: wp.float64, p: wp.float64, k_local: wp.float64) -> Tangent:
-    """As :func:`tangent_at` with the volumetric stress p·J·F^{-T} for a given pressure p, and
-    the volumetric stiffness k_local·J²·F^{-T}⊗F^{-T} of a pointwise U(J) (κ for the penalty
-    law, p = κ(J − 1); 0 where p is an element's constant pressure, whose stiffness is added
-    per element: the mean-dilatation form in fem.py)."""
+    """The invariants and coefficients at F that the stress and the tangent are built from, with
+    the volumetric stress p·J·F^{-T} for a given pressure p and the volumetric stiffness
+    k_local·J²·F^{-T}⊗F^{-T} of a pointwise U(J): p = κ(J − 1), k_local = κ for the penalty law
+    (the module docstring's P and ∂P/∂F); k_local = 0 where p is an element's constant
+    pressure, whose stiffness is added per element (the mean-dilatation form in fem.py)."""
     t = Tangent()
     J = wp.determinant(F)
     T = wp.transpose(wp.inverse(F))
