@@ -153,7 +153,10 @@ def write(rows: list[dict], meta: dict) -> None:
         lines += ["", f"No mesh but the reference is within {CONVERGED:.0%} of it at 1, 2 and 3 mm."]
     # the two uniform mean-dilatation meshes with the reference's element shape (edge / layer
     # thickness): a first-order (P2–P0) extrapolation along that refinement path
-    shape = lambda r: 2 * np.pi * 20.0 / r["n_rim"] / (2.0 / r["layers"])
+    from jointsim.scene import load_scene
+
+    c = load_scene(ROOT / "scenes" / "paper_sensor.toml").chamber  # the scene run() presses
+    shape = lambda r: 2 * np.pi * c.base_radius / r["n_rim"] / (c.membrane_thickness / r["layers"])
     path = sorted((r for r in rows if r["volumetric"] == ref["volumetric"] and not r["apex_mm"] and abs(shape(r) / shape(ref) - 1) < 0.02),
                   key=lambda r: r["n_rim"])
     if len(path) >= 2:
@@ -168,7 +171,8 @@ def write(rows: list[dict], meta: dict) -> None:
     lines += ["", f"Force at 3 mm against the element shape (in-plane edge / layer thickness) of the uniform {ref['volumetric'].replace('_', ' ')} meshes: "
               + ", ".join(f"{shape(r):.2f} ({r['n_rim']}/{r['layers']}): {_force(r, 3.0):.2f} mN" for r in uniform)
               + ". The force follows the elements' shape more than their size (stiffer on flatter elements; a straight cantilever "
-              "with mean dilatation does not do this, 0.996–1.020 of beam theory for shapes 4 to 0.5, so the suspect is the curved "
+              "with mean dilatation does not do this, 0.996–1.020 of beam theory for shapes 4 to 0.5 in results/locking_cantilever.md, "
+              "so the suspect is the curved "
               "dome's straight-sided, faceted elements), so "
               "agreement with the reference along its own shape does not show convergence: the spread over these shapes, "
               f"{min(_force(r, 3.0) for r in uniform):.1f}–{max(_force(r, 3.0) for r in uniform):.1f} mN, is the uncertainty left."]

@@ -4,14 +4,15 @@ energy, gradient and Hessian computed in a Warp kernel (CPU by default, CUDA whe
 Locking: the silicone is nearly incompressible (κ/μ = 1000, ν = 0.4995). Linear tetrahedra lock
 outright; quadratic ones with the penalty U(J) = κ/2 (J − 1)² at every quadrature point
 ("pointwise", the default) still lock in bending: a 2 mm cantilever with two elements through
-its thickness deflects 13 % too little (6 elements: 4 %). ``volumetric="mean_dilatation"`` is the
+its thickness deflects 13 % too little (six elements: 3 %; results/locking_cantilever.md). ``volumetric="mean_dilatation"`` is the
 mixed u–p form with an element-wise constant pressure (P2–P0), the pressure condensed out: the
 volumetric energy V·U(θ) of each element's volume ratio θ = v/V = Σ_q w_q J_q (Nagtegaal–Parks–
 Rice / Simo–Taylor–Pister), which adds U''(θ)/V · B Bᵀ (B = ∂v/∂u) to the element matrix; the
 isochoric part stays pointwise. The same cantilever is then within 1.5 % of beam theory at two
 elements (tests/test_mechanics.py), but a constant pressure per element converges only to first
 order and is too soft with one element through a thickness (the cantilever: +46 %) and at
-moderate compressibility (a ν = 0.49 sphere on a flat: 20 % under Hertz, pointwise within 2 %).
+moderate compressibility (the ν = 0.49 sphere of tests/test_soft_target.py's Hertz check, run
+once with it: 20 % under Hertz, pointwise within 2 %).
 Which form the dome should use is measured in results/mechanics_benchmark.md.
 
 The element Hessian uses the material tangent A = ∂P/∂F in closed form

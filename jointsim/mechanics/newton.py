@@ -17,7 +17,7 @@ import scipy.sparse as sp
 
 from ..eit.solver import PatternSolver, available_backends, factorize
 
-__all__ = ["EnergyTerm", "NewtonResult", "NewtonError", "NewtonSystem", "minimize_energy", "step_to"]
+__all__ = ["EnergyTerm", "NodalForce", "NewtonResult", "NewtonError", "NewtonSystem", "minimize_energy", "step_to"]
 
 
 class NewtonError(RuntimeError):
@@ -27,6 +27,17 @@ class NewtonError(RuntimeError):
 class EnergyTerm(Protocol):
     def evaluate(self, u: np.ndarray, hessian: bool) -> tuple[float, np.ndarray, sp.spmatrix | None, bool]:
         """(energy, gradient (3n,), Hessian (3n, 3n) or None, admissible)."""
+
+
+class NodalForce:
+    """Dead loads ``f`` (n, 3) N on the nodes, as the energy term −f·u."""
+
+    def __init__(self, f: np.ndarray):
+        self.f = np.asarray(f, float).ravel()
+
+    def evaluate(self, u: np.ndarray, hessian: bool):
+        n = self.f.size
+        return -float(self.f @ u.ravel()), -self.f, (sp.csr_matrix((n, n)) if hessian else None), True
 
 
 @dataclass
