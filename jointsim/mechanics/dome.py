@@ -9,6 +9,7 @@ remesh), with the contact force, contact area, displaced saline volume and solve
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -55,16 +56,50 @@ def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     return vn / np.linalg.norm(vn, axis=1, keepdims=True)
 
 
-def membrane_mesh(dome: DomeSurface, thickness: float, layers: int = 2) -> tuple[TetMesh, int]:
+def sphere_centre(dome: DomeSurface, rtol: float = 1e-6) -> np.ndarray | None:
+    """The centre of the sphere the dome's vertices lie on (to ``rtol`` of its radius), or None
+    when they do not (an inflated or otherwise deformed surface)."""
+    v = np.asarray(dome.vertices, float)
+    # |v|² = 2 c·v + (R² − |c|²): linear in c and the constant
+    A = np.column_stack([2 * v, np.ones(len(v))])
+    sol = np.linalg.lstsq(A, (v**2).sum(axis=1), rcond=None)[0]
+    c = sol[:3]
+    r = np.linalg.norm(v - c, axis=1)
+    return c if np.ptp(r) <= rtol * r.mean() else None
+
+
+def on_spheres(centre: np.ndarray, base_tol: float) -> Callable[[np.ndarray], np.ndarray]:
+    """Midside-node placement for a membrane on a spherical dome (for ``P2Mesh.from_linear``):
+    each edge's node on the sphere about ``centre`` through the mean distance of its ends — the
+    concentric inner, layer and outer surfaces, and straight through the thickness — except edges
+    in the base plane (|z| ≤ ``base_tol``), whose nodes follow the rim's circles in that plane."""
+    c = np.asarray(centre, float)
+
+    def place(ends: np.ndarray) -> np.ndarray:
+        mid = ends.mean(axis=1)
+        d = mid - c
+        r = np.linalg.norm(ends - c, axis=2).mean(axis=1)
+        out = c + r[:, None] * d / np.linalg.norm(d, axis=1, keepdims=True)
+        flat = np.all(np.abs(ends[:, :, 2]) <= base_tol, axis=1)
+        rho = np.linalg.norm(ends[flat, :, :2], axis=2).mean(axis=1)
+        xy = mid[flat, :2]
+        out[flat] = np.column_stack([rho[:, None] * xy / np.linalg.norm(xy, axis=1, keepdims=True), mid[flat, 2]])
+        return out
+
+    return place
+
+
+def membrane_mesh(dome: DomeSurface, thickness: float, layers: int = 2, centre: np.ndarray | None = None) -> tuple[TetMesh, int]:
     """Tetrahedra of the membrane: ``layers`` prism layers from the inner surface ``dome``
-    outward by ``thickness`` along the vertex normals (kept horizontal at the rim so the bonded
-    edge stays on the base plane). Layer l's copy of dome vertex i is node l·n + i.
-    Returns the mesh and n (the number of dome vertices)."""
+    outward by ``thickness`` along the vertex normals — radial from ``centre`` when the dome is a
+    sphere about it — kept horizontal at the rim so the bonded edge stays on the base plane.
+    Layer l's copy of dome vertex i is node l·n + i. Returns the mesh and n (the number of dome
+    vertices)."""
     if thickness <= 0:
         raise ValueError(f"thickness = {thickness}: must be > 0 m")
     v, f = np.asarray(dome.vertices, float), np.asarray(dome.faces)
     n = len(v)
-    normal = _vertex_normals(v, f)
+    normal = _vertex_normals(v, f) if centre is None else (v - centre) / np.linalg.norm(v - centre, axis=1, keepdims=True)
     normal[dome.rim, 2] = 0.0  # the rim grows outward in the base plane
     normal[dome.rim] /= np.linalg.norm(normal[dome.rim], axis=1, keepdims=True)
     nodes = np.vstack([v + (l / layers) * thickness * normal for l in range(layers + 1)])
@@ -79,7 +114,11 @@ def membrane_mesh(dome: DomeSurface, thickness: float, layers: int = 2) -> tuple
 
 
 def _split_prisms(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Prisms (a0 a1 a2 / b0 b1 b2), ai below bi, into 3 tetrahedra each, conforming."""
+    """Prisms (a0 a1 a2 / b0 b1 b2), ai below bi and every b index above every a index, into 3
+    tetrahedra each, conforming: each quad side face is cut along the diagonal from its smaller
+    bottom index to the other corner's top copy, a rule that depends on the face alone, so two
+    prisms sharing the face cut it alike (a cut that depended on the prism would leave the two
+    sides' triangles, and their P2 midside nodes, unshared: a mesh cracked along every face)."""
     # rotate each triangle so its smallest global index comes first
     r = np.argmin(a, axis=1)
     idx = (r[:, None] + np.arange(3)) % 3
@@ -87,11 +126,12 @@ def _split_prisms(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     b = np.take_along_axis(b, idx, 1)
     a0, a1, a2 = a.T
     b0, b1, b2 = b.T
-    # the quad (a1 a2 b2 b1) is cut along the diagonal from its smallest index
-    use1 = np.minimum(a1, b2) < np.minimum(a2, b1)
-    t1 = np.column_stack([a0, a1, a2, b0])
-    t2 = np.where(use1[:, None], np.column_stack([a1, a2, b2, b0]), np.column_stack([a1, a2, b1, b0]))
-    t3 = np.where(use1[:, None], np.column_stack([a1, b2, b1, b0]), np.column_stack([a2, b2, b1, b0]))
+    # a0 is the smallest: the two faces through it are cut a0–b1 and a0–b2, which leaves the
+    # tetrahedron (a0 b0 b1 b2) and the pyramid a0 over the quad (a1 a2 b2 b1), cut by the rule
+    use1 = (a1 < a2)[:, None]  # the quad's cut: a1–b2, else a2–b1
+    t1 = np.column_stack([a0, b0, b1, b2])
+    t2 = np.where(use1, np.column_stack([a0, a1, a2, b2]), np.column_stack([a0, a1, a2, b1]))
+    t3 = np.where(use1, np.column_stack([a0, a1, b2, b1]), np.column_stack([a0, a2, b2, b1]))
     return np.vstack([t1, t2, t3])
 
 
@@ -148,6 +188,7 @@ class MembraneModel:
         friction: float = 0.0,
         closed: bool = False,
         volumetric: str = "pointwise",
+        isoparametric: bool = True,
     ):
         # converged when the out-of-balance nodal force is below force_tol (N): by default
         # 1e-6·μ·t², a millionth of the force that strains a membrane-thick cube by one
@@ -155,8 +196,12 @@ class MembraneModel:
         self._step_tol = self.force_tol  # the current step's (see FORCE_RTOL)
         self.dome = dome
         self.thickness = thickness
-        lin, self.n_surface = membrane_mesh(dome, thickness, layers)
-        self.mesh = P2Mesh.from_linear(lin)
+        # on a spherical dome the elements are curved onto the true inner, layer and outer
+        # spheres (isoparametric P2) instead of faceted chords
+        centre = sphere_centre(dome) if isoparametric else None
+        lin, self.n_surface = membrane_mesh(dome, thickness, layers, centre)
+        place = None if centre is None else on_spheres(centre, 1e-9 * np.ptp(lin.nodes))
+        self.mesh = P2Mesh.from_linear(lin, place)
         X = self.mesh.nodes
         self.elastic = ElasticTerm(self.mesh, material, volumetric=volumetric)
         bf = self.mesh.boundary_faces

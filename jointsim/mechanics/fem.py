@@ -13,7 +13,9 @@ elements (tests/test_mechanics.py), but a constant pressure per element converge
 order and is too soft with one element through a thickness (the cantilever: +46 %) and at
 moderate compressibility (the ν = 0.49 sphere of tests/test_soft_target.py's Hertz check, run
 once with it: 20 % under Hertz, pointwise within 2 %).
-Which form the dome should use is measured in results/mechanics_benchmark.md.
+On the dome (a thick shell under an apex load) the pointwise form is within ~2 % of an
+independent axisymmetric Taylor–Hood reference and mean dilatation ~8 % soft at two layers
+(benchmarks/bench_dome_apex_load.py); results/mechanics_benchmark.md predates that check.
 
 The element Hessian uses the material tangent A = ∂P/∂F in closed form
 (:func:`materials.piola_derivative`). Each element's 30 × 30 matrix is accumulated in the kernel
@@ -25,6 +27,7 @@ Newton solver's fallback when the shifted Hessian fails.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -33,7 +36,7 @@ import scipy.sparse as sp
 import warp as wp
 from threadpoolctl import threadpool_limits
 
-from ..mesh.tetmesh import TetMesh, edge_midpoints
+from ..mesh.tetmesh import TetMesh, unique_edges
 from .materials import Material, first_piola, piola_derivative, strain_energy, tangent_with_pressure
 
 __all__ = ["P2Mesh", "ElementState", "ElementKernel", "ElasticTerm", "project_psd", "assemble_hessian", "assemble_gradient"]
@@ -52,18 +55,37 @@ QUAD_W = np.full(4, 0.25)
 
 @dataclass(frozen=True, eq=False)
 class P2Mesh:
-    """``nodes`` (n, 3) reference positions in m; ``tets`` (m, 10): corners 0–3 then the edge
-    midpoints of edges 01, 02, 03, 12, 13, 23; straight-sided (affine) geometry."""
+    """``nodes`` (n, 3) reference positions in m; ``tets`` (m, 10): corners 0–3 then the midside
+    nodes of edges 01, 02, 03, 12, 13, 23. Isoparametric: a midside node off its edge's midpoint
+    curves the element (the kernel takes the geometry's Jacobian at each quadrature point)."""
 
     nodes: np.ndarray
     tets: np.ndarray
 
     @classmethod
-    def from_linear(cls, mesh: TetMesh) -> "P2Mesh":
-        points, index = edge_midpoints(mesh)
+    def from_linear(cls, mesh: TetMesh, place: Callable[[np.ndarray], np.ndarray] | None = None) -> "P2Mesh":
+        """The P2 mesh on ``mesh``'s corners; ``place`` maps the ends (k, 2, 3) of its k edges to
+        their midside nodes (k, 3) (None: the midpoints, straight-sided elements)."""
+        edges, index = unique_edges(mesh)
+        ends = mesh.nodes[edges]
+        points = ends.mean(axis=1) if place is None else np.asarray(place(ends), float)
         nodes = np.vstack([mesh.nodes, points])
         tets = np.hstack([mesh.tets, mesh.n_nodes + index])
         return cls(nodes, tets.astype(np.int32))
+
+    @cached_property
+    def jacobians(self) -> np.ndarray:
+        """det ∂X/∂ξ (m, 4) at the quadrature points: six times the local volume scale, > 0 in a
+        valid (curved) element."""
+        l = QUAD_BARY
+        # ∂N/∂ξ (4 points, 10 nodes, 3) with ξ = (λ1, λ2, λ3), λ0 = 1 − Σξ
+        dl = np.array([[-1.0, -1, -1], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+        corner = (4 * l[:, :, None] - 1) * dl[None]
+        pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+        edge = 4 * (l[:, pairs[:, 0], None] * dl[pairs[:, 1]] + l[:, pairs[:, 1], None] * dl[pairs[:, 0]])
+        Gr = np.concatenate([corner, edge], axis=1)
+        J = np.einsum("mni,qnk->mqik", self.nodes[self.tets], Gr)
+        return np.linalg.det(J)
 
     @property
     def n_nodes(self) -> int:
@@ -148,6 +170,25 @@ def _shape_gradients(l: wp.vec4d, g0: wp.vec3d, g1: wp.vec3d, g2: wp.vec3d, g3: 
 
 
 @wp.func
+def _geometry_jacobian(X: wp.array(dtype=wp.vec3d), tets: wp.array2d(dtype=wp.int32), e: int, Gr: _MatN) -> wp.mat33d:
+    """∂X/∂ξ of the element's (possibly curved) reference map at a point, from ∂N/∂ξ (10, 3)."""
+    Jx = wp.mat33d()
+    for n in range(10):
+        Jx += wp.outer(X[tets[e, n]], wp.vec3d(Gr[n, 0], Gr[n, 1], Gr[n, 2]))
+    return Jx
+
+
+@wp.func
+def _physical_gradients(Gr: _MatN, Jinv: wp.mat33d) -> _MatN:
+    """∇_X N = ∂N/∂ξ · (∂X/∂ξ)⁻¹."""
+    G = _MatN()
+    for n in range(10):
+        for k in range(3):
+            G[n, k] = Gr[n, 0] * Jinv[0, k] + Gr[n, 1] * Jinv[1, k] + Gr[n, 2] * Jinv[2, k]
+    return G
+
+
+@wp.func
 def _deformation_gradient(u: wp.array(dtype=wp.vec3d), tets: wp.array2d(dtype=wp.int32), e: int, G: _MatN) -> wp.mat33d:
     F = wp.identity(n=3, dtype=wp.float64)
     for n in range(10):
@@ -173,37 +214,45 @@ def _p2_element(
     min_det: wp.array(dtype=wp.float64),
 ):
     e = wp.tid()
-    x0 = X[tets[e, 0]]
-    Dm = wp.matrix_from_cols(X[tets[e, 1]] - x0, X[tets[e, 2]] - x0, X[tets[e, 3]] - x0)
-    vol = wp.determinant(Dm) / wp.float64(6.0)
-    Dinv = wp.inverse(Dm)
-    g1 = wp.vec3d(Dinv[0, 0], Dinv[0, 1], Dinv[0, 2])
-    g2 = wp.vec3d(Dinv[1, 0], Dinv[1, 1], Dinv[1, 2])
-    g3 = wp.vec3d(Dinv[2, 0], Dinv[2, 1], Dinv[2, 2])
-    g0 = -(g1 + g2 + g3)
+    # isoparametric: the geometry is interpolated by the same P2 functions, so curved (midside
+    # nodes off the chord) elements get their Jacobian at each quadrature point. ξ = (λ1, λ2, λ3)
+    one = wp.float64(1.0)
+    zero = wp.float64(0.0)
+    gx0 = wp.vec3d(-one, -one, -one)
+    gx1 = wp.vec3d(one, zero, zero)
+    gx2 = wp.vec3d(zero, one, zero)
+    gx3 = wp.vec3d(zero, zero, one)
+    sixth = one / wp.float64(6.0)
     c1 = params[e, 0]
     c2 = params[e, 1]
     c3 = params[e, 2]
     kappa = params[e, 3]
-    one = wp.float64(1.0)
     E = wp.float64(0.0)
     jmin = wp.float64(1.0e30)
     K = _Mat30()
     # mean dilatation: the element's pressure p = U'(θ) from its volume ratio θ = Σ_q w_q J_q
+    vol = wp.float64(0.0)
+    v = wp.float64(0.0)
+    for q in range(4):
+        Gr = _shape_gradients(qbary[q], gx0, gx1, gx2, gx3)
+        Jx = _geometry_jacobian(X, tets, e, Gr)
+        dV = qw[q] * wp.determinant(Jx) * sixth
+        vol += dV
+        if mean_dilatation != 0:
+            v += dV * wp.determinant(_deformation_gradient(u, tets, e, _physical_gradients(Gr, wp.inverse(Jx))))
     theta = one
     if mean_dilatation != 0:
-        theta = wp.float64(0.0)
-        for q in range(4):
-            theta += qw[q] * wp.determinant(_deformation_gradient(u, tets, e, _shape_gradients(qbary[q], g0, g1, g2, g3)))
+        theta = v / vol
     p_elem = kappa * (theta - one)
     k_local = kappa
     if mean_dilatation != 0:
         k_local = wp.float64(0.0)
     B = _Vec30()  # ∂v/∂u: the element volume's gradient, Σ_q w_q J_q F_q^{-T} ∇N
     for q in range(4):
-        l = qbary[q]
-        w = qw[q] * vol
-        G = _shape_gradients(l, g0, g1, g2, g3)
+        Gr = _shape_gradients(qbary[q], gx0, gx1, gx2, gx3)
+        Jx = _geometry_jacobian(X, tets, e, Gr)
+        w = qw[q] * wp.determinant(Jx) * sixth
+        G = _physical_gradients(Gr, wp.inverse(Jx))
         F = _deformation_gradient(u, tets, e, G)
         J = wp.determinant(F)
         jmin = wp.min(jmin, J)
@@ -291,8 +340,8 @@ class ElementKernel:
         mats = [materials] if isinstance(materials, Material) else list(materials)
         idx = np.zeros(mesh.n_tets, int) if material_of is None else np.asarray(material_of)
         params = np.array([[m.c1, m.c2, m.c3, m.bulk] for m in mats])[idx]
-        if np.any(mesh.volumes <= 0):
-            raise ValueError("mesh: elements must be positively oriented (call TetMesh.oriented())")
+        if np.any(mesh.jacobians <= 0):
+            raise ValueError("mesh: elements must be positively oriented (call TetMesh.oriented()) and curved midside nodes must not fold them")
         self._X = wp.array(mesh.nodes, dtype=wp.vec3d, device=device)
         self._tets = wp.array(mesh.tets, dtype=wp.int32, device=device)
         self._params = wp.array(params, dtype=wp.float64, device=device)

@@ -8,7 +8,7 @@ from functools import cached_property
 
 import numpy as np
 
-__all__ = ["TetMesh", "MeshQuality", "mesh_quality", "refine_uniform", "edge_midpoints"]
+__all__ = ["TetMesh", "MeshQuality", "mesh_quality", "refine_uniform", "edge_midpoints", "unique_edges"]
 
 # the six edges of a tetrahedron, in the order P2 midpoint nodes follow
 _EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
@@ -141,12 +141,19 @@ def _circumradius(p: np.ndarray) -> np.ndarray:
     return np.linalg.norm(c, axis=1)
 
 
+def unique_edges(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh's k unique edges (k, 2) (node pairs, sorted), and for each element the index
+    (m, 6) of each of its edges, in the order of ``_EDGES``."""
+    key = np.sort(mesh.tets[:, _EDGES].reshape(-1, 2), axis=1)
+    uniq, inv = np.unique(key, axis=0, return_inverse=True)
+    return uniq, inv.reshape(-1, 6)
+
+
 def edge_midpoints(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
     """The midpoints (k, 3) of the mesh's k unique edges, and for each element the index (m, 6)
     of the midpoint of each of its edges, in the order of ``_EDGES``."""
-    key = np.sort(mesh.tets[:, _EDGES].reshape(-1, 2), axis=1)
-    uniq, inv = np.unique(key, axis=0, return_inverse=True)
-    return mesh.nodes[uniq].mean(axis=1), inv.reshape(-1, 6)
+    uniq, index = unique_edges(mesh)
+    return mesh.nodes[uniq].mean(axis=1), index
 
 
 def refine_uniform(mesh: TetMesh) -> TetMesh:
