@@ -39,8 +39,8 @@ def deflection(nz: int, nx: int, volumetric: str) -> float:
     f = np.zeros_like(X)
     f[tip, 2] = P / tip.sum()
     elastic = ElasticTerm(m, Material.neo_hookean(MU), volumetric=volumetric)
-    # atol: the gradient's round-off floor is ~1e-13 N
-    u = minimize_energy([elastic, NodalForce(f)], np.zeros_like(X), fixed, rtol=0.0, atol=1e-10).u
+    # atol: 5e-9 N of a 1e-5 N load moves the tip by < 0.05 %; the one-element-thick pointwise beam stalls at 3e-9 N since the isoparametric kernel
+    u = minimize_energy([elastic, NodalForce(f)], np.zeros_like(X), fixed, rtol=0.0, atol=5e-9).u
     timoshenko = P * L**3 / (3 * 3 * MU * T**4 / 12) + P * L / (5 / 6 * MU * T * T)
     return float(u[tip, 2].mean() / timoshenko)
 
