@@ -36,7 +36,7 @@ import scipy.sparse as sp
 import warp as wp
 from threadpoolctl import threadpool_limits
 
-from ..mesh.tetmesh import TetMesh, unique_edges
+from ..mesh.tetmesh import _EDGES, TetMesh, unique_edges
 from .materials import Material, first_piola, piola_derivative, strain_energy, tangent_with_pressure
 
 __all__ = ["P2Mesh", "ElementState", "ElementKernel", "ElasticTerm", "project_psd", "assemble_hessian", "assemble_gradient"]
@@ -78,11 +78,12 @@ class P2Mesh:
         """det ∂X/∂ξ (m, 4) at the quadrature points: six times the local volume scale, > 0 in a
         valid (curved) element."""
         l = QUAD_BARY
-        # ∂N/∂ξ (4 points, 10 nodes, 3) with ξ = (λ1, λ2, λ3), λ0 = 1 − Σξ
+        # ∂N/∂ξ (4 points, 10 nodes, 3) with ξ = (λ1, λ2, λ3), λ0 = 1 − Σξ; the kernel's
+        # _shape_gradients at the same points
         dl = np.array([[-1.0, -1, -1], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
         corner = (4 * l[:, :, None] - 1) * dl[None]
-        pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
-        edge = 4 * (l[:, pairs[:, 0], None] * dl[pairs[:, 1]] + l[:, pairs[:, 1], None] * dl[pairs[:, 0]])
+        a, b = _EDGES.T
+        edge = 4 * (l[:, a, None] * dl[b] + l[:, b, None] * dl[a])
         Gr = np.concatenate([corner, edge], axis=1)
         J = np.einsum("mni,qnk->mqik", self.nodes[self.tets], Gr)
         return np.linalg.det(J)
@@ -94,11 +95,6 @@ class P2Mesh:
     @property
     def n_tets(self) -> int:
         return len(self.tets)
-
-    @cached_property
-    def volumes(self) -> np.ndarray:
-        p = self.nodes[self.tets[:, :4]]
-        return np.linalg.det(p[:, 1:] - p[:, :1]) / 6
 
     @cached_property
     def boundary_faces(self) -> np.ndarray:
@@ -230,18 +226,18 @@ def _p2_element(
     E = wp.float64(0.0)
     jmin = wp.float64(1.0e30)
     K = _Mat30()
-    # mean dilatation: the element's pressure p = U'(θ) from its volume ratio θ = Σ_q w_q J_q
+    # mean dilatation: the element's pressure p = U'(θ) from its volume ratio θ = v/V, a pass
+    # over the quadrature points before the main one (the pointwise form needs neither)
     vol = wp.float64(0.0)
-    v = wp.float64(0.0)
-    for q in range(4):
-        Gr = _shape_gradients(qbary[q], gx0, gx1, gx2, gx3)
-        Jx = _geometry_jacobian(X, tets, e, Gr)
-        dV = qw[q] * wp.determinant(Jx) * sixth
-        vol += dV
-        if mean_dilatation != 0:
-            v += dV * wp.determinant(_deformation_gradient(u, tets, e, _physical_gradients(Gr, wp.inverse(Jx))))
     theta = one
     if mean_dilatation != 0:
+        v = wp.float64(0.0)
+        for q in range(4):
+            Gr = _shape_gradients(qbary[q], gx0, gx1, gx2, gx3)
+            Jx = _geometry_jacobian(X, tets, e, Gr)
+            dV = qw[q] * wp.determinant(Jx) * sixth
+            vol += dV
+            v += dV * wp.determinant(_deformation_gradient(u, tets, e, _physical_gradients(Gr, wp.inverse(Jx))))
         theta = v / vol
     p_elem = kappa * (theta - one)
     k_local = kappa
