@@ -10,12 +10,12 @@ volumetric energy V·U(θ) of each element's volume ratio θ = v/V = Σ_q w_q J_
 Rice / Simo–Taylor–Pister), which adds U''(θ)/V · B Bᵀ (B = ∂v/∂u) to the element matrix; the
 isochoric part stays pointwise. The same cantilever is then within 1.5 % of beam theory at two
 elements (tests/test_mechanics.py), but a constant pressure per element converges only to first
-order and is too soft with one element through a thickness (the cantilever: +46 %) and at
-moderate compressibility (the ν = 0.49 sphere of tests/test_soft_target.py's Hertz check, run
-once with it: 20 % under Hertz, pointwise within 2 %).
-On the dome (a thick shell under an apex load) the pointwise form is within ~2 % of an
-independent axisymmetric Taylor–Hood reference and mean dilatation ~8 % soft at two layers
-(benchmarks/bench_dome_apex_load.py); results/mechanics_benchmark.md predates that check.
+order and is too soft with one element through a thickness (the cantilever: +46 %).
+On the dome (a thick shell under an apex load; results/dome_apex_load.md) against an
+independent axisymmetric Taylor–Hood reference, the pointwise form with two or three layers is
+within 0.5 % at κ = 10 μ and 1–3 % stiff at 1000 μ, mean dilatation 5–7 % soft (21 % on one
+layer): there the pointwise form is the right one. results/mechanics_benchmark.md predates
+that check and the conforming membrane mesh.
 
 The element Hessian uses the material tangent A = ∂P/∂F in closed form
 (:func:`materials.piola_derivative`). Each element's 30 × 30 matrix is accumulated in the kernel
