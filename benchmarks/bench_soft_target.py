@@ -6,8 +6,9 @@ process, same dome), and a soft sphere on a rigid flat against Hertz over d/R = 
 Dome: isotropic cap 20 mm base radius, 10 mm height, 32 rim vertices, one layer, 50 Pa
 reservoir; r = 7.5 mm sphere on the axis in 0.5 mm steps, rigid and soft with E = 100× the
 membrane's Young's modulus (6.6 MPa). Hertz: a neo-Hookean sphere R = 10 mm, E = 66 kPa,
-ν = 0.49, 0.5 mm cells at its lowest point, pressed onto a rigid frictionless plate (the set-up
-of tests/test_soft_target.py), F = 4/3·E/(1 − ν²)·√R·d^1.5.
+ν = 0.49, 0.5 mm cells at its lowest point, its cut face bonded as in the model (the test,
+tests/test_soft_target.py, lets it slide instead), pressed onto a rigid frictionless plate,
+F = 4/3·E/(1 − ν²)·√R·d^1.5.
 """
 
 from __future__ import annotations
