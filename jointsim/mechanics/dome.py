@@ -92,7 +92,8 @@ def on_spheres(centre: np.ndarray, base_tol: float) -> Callable[[np.ndarray], np
 def membrane_mesh(dome: DomeSurface, thickness: float, layers: int = 2, centre: np.ndarray | None = None) -> tuple[TetMesh, int]:
     """Tetrahedra of the membrane: ``layers`` prism layers from the inner surface ``dome``
     outward by ``thickness`` along the vertex normals — radial from ``centre`` when the dome is a
-    sphere about it — kept horizontal at the rim so the bonded edge stays on the base plane.
+    sphere about it — kept horizontal at the rim so the bonded edge stays on the base plane (on
+    a sphere, out to where each concentric layer sphere meets that plane).
     Layer l's copy of dome vertex i is node l·n + i. Returns the mesh and n (the number of dome
     vertices)."""
     if thickness <= 0:
@@ -102,7 +103,17 @@ def membrane_mesh(dome: DomeSurface, thickness: float, layers: int = 2, centre: 
     normal = _vertex_normals(v, f) if centre is None else (v - centre) / np.linalg.norm(v - centre, axis=1, keepdims=True)
     normal[dome.rim, 2] = 0.0  # the rim grows outward in the base plane
     normal[dome.rim] /= np.linalg.norm(normal[dome.rim], axis=1, keepdims=True)
-    nodes = np.vstack([v + (l / layers) * thickness * normal for l in range(layers + 1)])
+    offsets = (np.arange(layers + 1) / layers * thickness)[:, None] * np.ones(n)  # (layer, vertex)
+    if centre is not None:
+        # a shell of concentric spheres cut by the base plane: the rim's layer l sits where the
+        # sphere of radius R + s_l meets that plane, so the membrane keeps its full thickness to
+        # the bond (grown by s_l in the plane it would thin to s_l·ρ/R there)
+        rim = v[dome.rim]
+        R = np.linalg.norm(rim - centre, axis=1)
+        rho = np.linalg.norm(rim[:, :2] - centre[:2], axis=1)
+        h2 = R**2 - rho**2  # the centre's squared height off the plane, each rim vertex
+        offsets[:, dome.rim] = np.sqrt((R + offsets[:, dome.rim]) ** 2 - h2) - rho
+    nodes = np.vstack([v + offsets[l, :, None] * normal for l in range(layers + 1)])
     tets = []
     for l in range(layers):
         a, b = l * n + f, (l + 1) * n + f  # bottom and top triangles of each prism
@@ -408,12 +419,13 @@ class MembraneModel:
             res = self._hold_volume(res)
         return res
 
-    def _newton(self, guess: np.ndarray, predicted: bool = False):
+    def _newton(self, guess: np.ndarray, predicted: bool = False, atol: float | None = None):
+        atol = self._step_tol if atol is None else atol
         try:
-            return minimize_energy(self.terms, guess, self.fixed, rtol=0.0, atol=self._step_tol, system=self.system, regularise_first=predicted)
+            return minimize_energy(self.terms, guess, self.fixed, rtol=0.0, atol=atol, system=self.system, regularise_first=predicted)
         except NewtonError:
             # the extrapolation may have overshot: start from the last equilibrium
-            return minimize_energy(self.terms, self.u, self.fixed, rtol=0.0, atol=self._step_tol, system=self.system)
+            return minimize_energy(self.terms, self.u, self.fixed, rtol=0.0, atol=atol, system=self.system)
 
     def _hold_volume(self, res, rtol: float = 1e-6, max_iter: int = 20):
         """Closed chamber: the saline pressure p is the multiplier of the constraint V = V0, found
@@ -424,12 +436,18 @@ class MembraneModel:
             probe = self._newton(res.u)
             self._compliance = max((self.pressure.volume(probe.u) - V) / 1.0, 1e-300)
             self.pressure.pressure = p0
+        # a pressure change Δp adds Δp·∂V/∂u to the residual; below the step's force tolerance
+        # Newton would not move, so the volume could not be resolved to rtol·V0: solve to a tenth
+        # of the residual of the pressure change that moves the volume by that much
+        free = ~self.fixed.ravel()
+        dV = np.linalg.norm(self.pressure.volume_gradient(res.u)[free])
+        atol = min(self._step_tol, 0.1 * rtol * self.V0 / self._compliance * dV)
         for _ in range(max_iter):
             if abs(V - self.V0) <= rtol * self.V0:
                 return res
             p_prev, V_prev = self.pressure.pressure, V
             self.pressure.pressure = p_prev + (self.V0 - V) / self._compliance
-            res = self._newton(res.u)
+            res = self._newton(res.u, atol=atol)
             V = self.pressure.volume(res.u)
             if V != V_prev:
                 self._compliance = max((V - V_prev) / (self.pressure.pressure - p_prev), 1e-300)

@@ -47,13 +47,18 @@ class PressureTerm:
     def volume(self, u: np.ndarray) -> float:
         return enclosed_volume(self.X + u, self.tris, self.sign)
 
+    def volume_gradient(self, u: np.ndarray) -> np.ndarray:
+        """∂V/∂u, flat (3n,)."""
+        p = (self.X + u)[self.tris]
+        dV = self.sign / 6 * np.stack([np.cross(p[:, 1], p[:, 2]), np.cross(p[:, 2], p[:, 0]), np.cross(p[:, 0], p[:, 1])], 1)
+        return np.bincount((3 * self.tris[:, :, None] + np.arange(3)).ravel(), weights=dV.ravel(), minlength=self._n)
+
     def evaluate(self, u: np.ndarray, hessian: bool):
         x = self.X + u
         p = x[self.tris]
         s = self.sign / 6
         V = s * float(np.einsum("ti,ti->t", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum())
-        dV = s * np.stack([np.cross(p[:, 1], p[:, 2]), np.cross(p[:, 2], p[:, 0]), np.cross(p[:, 0], p[:, 1])], 1)
-        g = np.bincount((3 * self.tris[:, :, None] + np.arange(3)).ravel(), weights=dV.ravel(), minlength=self._n)
+        g = self.volume_gradient(u)
         H = None
         if hessian:
             Ka, Kb, Kc = _skew(p[:, 0]), _skew(p[:, 1]), _skew(p[:, 2])
