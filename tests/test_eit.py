@@ -5,6 +5,7 @@ import os
 import sys
 
 import numpy as np
+import scipy.sparse as sp
 import pytest
 
 from jointsim.eit.forward import ForwardModel
@@ -241,3 +242,38 @@ def test_repeated_solves_do_not_leak_the_factor():
     # one factor of this 69 k-node matrix is ~36 MB in PARDISO: five leaked factors would be
     # 180 MB; allow 20 MB of allocator noise
     assert grown < 20e6, f"{default_backend()} grew {grown / 1e6:.0f} MB over 5 solves"
+
+
+@pytest.mark.parametrize("single", [False, True])
+def test_pattern_solver_reports_the_inertia_and_solves_to_its_precision(single):
+    """PatternSolver on a shifted 3-D grid Laplacian L − σI (20³ = 8000 unknowns, on PARDISO's
+    path), whose eigenvalues are known in closed form: the LDLᵀ factor's negative pivots are
+    the count of eigenvalues below σ (Sylvester's law of inertia), in double and in single
+    precision; a solve is backward stable: ‖Ax − b‖ ≤ 100·ε·‖A‖₂·‖x‖ with ε the precision's
+    unit round-off (float32 6e-8, float64 1.1e-16) and ‖A‖₂ = max |λ − σ| in closed form."""
+    from jointsim.eit.solver import PatternSolver, available_backends
+
+    if "pardiso" not in available_backends():
+        pytest.skip("needs PARDISO (single precision, inertia)")
+    m = 20
+    lam1 = 2 - 2 * np.cos(np.arange(1, m + 1) * np.pi / (m + 1))
+    eig = (lam1[:, None, None] + lam1[None, :, None] + lam1[None, None, :]).ravel()
+    levels = np.unique(np.round(eig, 10))  # the grid's symmetry repeats eigenvalues
+    sigma = 0.5 * (levels[9] + levels[10])  # between two distinct ones, far from both
+    assert levels[10] - levels[9] > 1e-2
+    T = sp.diags([-np.ones(m - 1), 2 * np.ones(m), -np.ones(m - 1)], [-1, 0, 1])
+    eye = sp.identity(m)
+    L = sp.kron(sp.kron(T, eye), eye) + sp.kron(sp.kron(eye, T), eye) + sp.kron(sp.kron(eye, eye), T)
+    A = sp.csr_matrix(L - sigma * sp.identity(m**3))
+    upper = sp.triu(A, format="csr")
+    upper.sort_indices()
+    solver = PatternSolver(upper.indptr, upper.indices, spd=False, refinement=0, single=single)
+    assert solver.backend == "pardiso"
+    solver.factor(upper.data)
+    assert solver.negative_eigenvalues == int((eig < sigma).sum()) > 10
+    b = np.random.default_rng(0).standard_normal(m**3)
+    x = solver.solve(b)
+    assert x.dtype == np.float64
+    eps = np.finfo(np.float32 if single else np.float64).eps / 2
+    assert np.linalg.norm(A @ x - b) <= 100 * eps * np.abs(eig - sigma).max() * np.linalg.norm(x)
+    solver.free()

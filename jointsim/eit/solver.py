@@ -142,11 +142,12 @@ def factorize(A: sp.spmatrix, backend: str = "auto", spd: bool = True) -> Factor
     raise ValueError(f"backend = {backend!r}: allowed values are {available_backends()}")
 
 
-def _set_iparm(solver, refinement: int) -> None:
+def _set_iparm(solver, refinement: int, single: bool = False) -> None:
     """MKL's defaults for a symmetric matrix, made explicit (iparm(1) = 1) so that the
     iterative refinement steps set here are honoured: with iparm(1) = 0 MKL overwrites every
     entry with its defaults on the first call, refinement included (2 steps: a Newton solve of
-    the 48-rim, 3-layer membrane then costs 32 ms instead of 12)."""
+    the 48-rim, 3-layer membrane then costs 32 ms instead of 12). ``single``: factor and solve
+    in single precision (iparm(28) = 1; the matrix and right-hand sides then float32)."""
     ip = solver.iparm
     ip[:] = 0
     ip[0] = 1  # user-supplied values
@@ -155,6 +156,7 @@ def _set_iparm(solver, refinement: int) -> None:
     ip[9] = 8  # pivot perturbation 1e-8 (symmetric)
     ip[17] = -1  # report the factor's non-zeros
     ip[20] = 1  # Bunch–Kaufman 1×1 and 2×2 pivoting (symmetric indefinite)
+    ip[27] = 1 if single else 0
 
 
 class PatternSolver:
@@ -163,10 +165,16 @@ class PatternSolver:
     sorted); PARDISO's ordering and symbolic analysis are done once and each :meth:`factor`
     is numerical only, which at 30 k unknowns of P2 elasticity saves ~40 % of a factorisation.
     Without PARDISO every factor call is a fresh SuperLU. ``mtype``: 2 SPD, −2 indefinite.
-    ``negative_eigenvalues`` (PARDISO, indefinite) is the inertia of the last factor."""
+    ``negative_eigenvalues`` (PARDISO, indefinite) is the inertia of the last factor.
 
-    def __init__(self, indptr: np.ndarray, indices: np.ndarray, spd: bool, backend: str = "auto", refinement: int = PARDISO_REFINEMENT):
+    ``single``: PARDISO factors and solves in single precision (results returned in double):
+    ~1.6× faster factorisations of P2 elasticity, and a solve's relative residual ~1e-7 — for
+    Newton directions, which need far less (measured on the 96-rim, 2-layer membrane's
+    Hessian, 56 k unknowns: 0.235 against 0.372 s, residual 1.6e-7; same inertia)."""
+
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray, spd: bool, backend: str = "auto", refinement: int = PARDISO_REFINEMENT, single: bool = False):
         self.refinement = int(refinement)
+        self.single = bool(single)
         self.indptr = np.asarray(indptr, np.int64)
         self.indices = np.asarray(indices, np.int64)
         self.n = len(self.indptr) - 1
@@ -192,8 +200,11 @@ class PatternSolver:
             return
         if self._solver is None:
             self._solver = _pardiso_solver(2 if self.spd else -2)
-            _set_iparm(self._solver, self.refinement)
-        b = np.zeros(self.n)
+            _set_iparm(self._solver, self.refinement, self.single)
+        if self.single:  # PARDISO reads the values as float32 when iparm(28) = 1
+            A = sp.csr_matrix((A.data.astype(np.float32), A.indices, A.indptr), shape=A.shape)
+            self._A = A
+        b = np.zeros(self.n, np.float32 if self.single else float)
         if not self._analysed:
             self._solver.set_phase(11)
             self._solver._call_pardiso(A, b)
@@ -209,8 +220,8 @@ class PatternSolver:
         if self.backend != "pardiso":
             return self._lu(b)
         self._solver.set_phase(33)
-        x = self._solver._call_pardiso(self._A, np.asfortranarray(b, dtype=float))
-        return x.reshape(np.shape(b))
+        x = self._solver._call_pardiso(self._A, np.asfortranarray(b, dtype=np.float32 if self.single else float))
+        return x.astype(float, copy=False).reshape(np.shape(b))
 
     def free(self) -> None:
         if self._solver is not None:
