@@ -13,9 +13,9 @@ elements (tests/test_mechanics.py), but a constant pressure per element converge
 order and is too soft with one element through a thickness (the cantilever: +46 %).
 On the dome (a thick shell under an apex load; results/dome_apex_load.md) against an
 independent axisymmetric Taylor–Hood reference, the pointwise form with two or three layers is
-within 0.5 % at κ = 10 μ and 1–3 % stiff at 1000 μ, mean dilatation 5–7 % soft (21 % on one
-layer): there the pointwise form is the right one. results/mechanics_benchmark.md predates
-that check and the conforming membrane mesh.
+within 0.5 % at κ = 10 μ and 2–3.5 % stiff at 1000 μ, mean dilatation 4–6.5 % soft (20 % on one
+layer): there the pointwise form is the right one. results/mechanics_benchmark.md: its contact
+force under mesh refinement (2 % at 92 rim vertices, two layers).
 
 The element Hessian uses the material tangent A = ∂P/∂F in closed form
 (:func:`materials.piola_derivative`). Each element's 30 × 30 matrix is accumulated in the kernel
