@@ -173,7 +173,7 @@ def test_a_stiff_soft_target_tends_to_the_rigid_one(dome_presses):
     rigid = dome_presses[None][1]
     stiff = dome_presses[6.6e6][1]
     for r, s in zip(rigid, stiff):
-        # E = 100 × the membrane's: measured −1.0 % and −0.8 %
+        # E = 100 × the membrane's: measured −1.1 % and −0.9 %
         assert s.force[2] == pytest.approx(r.force[2], rel=0.03)
         assert s.displaced_volume == pytest.approx(r.displaced_volume, rel=0.03)
         assert s.penetration < 0.01 * 0.5e-3
@@ -191,7 +191,8 @@ def test_a_softer_target_gives_less_force_and_deforms_more(dome_presses):
 
 
 @pytest.mark.xfail(reason="known: on this coarse dome (32-rim, one layer) the 3x target's fine surface nodes "
-                   "press on the membrane's coarse facets and over-constrain them: at 1 mm it measures +3 % over rigid", strict=False)
+                   "press on the membrane's coarse facets and over-constrain them: at 1 mm it measures +11 % over rigid "
+                   "(the 1x target +2.5 %; 100x -0.9 %)", strict=False)
 def test_a_softer_target_gives_less_force_at_depth(dome_presses):
     f = [dome_presses[E][1][1].force[2] for E in (None, 6.6e6, 200e3, 66e3)]
     assert f[0] > f[1] > f[2] > f[3]
