@@ -192,7 +192,9 @@ class PatternSolver:
         self._lu = None
 
     def factor(self, data: np.ndarray) -> None:
-        A = sp.csr_matrix((np.asarray(data, float), self.indices, self.indptr), shape=(self.n, self.n))
+        # PARDISO reads the values as float32 when iparm(28) = 1 (single)
+        dtype = np.float32 if self.single and self.backend == "pardiso" else float
+        A = sp.csr_matrix((np.asarray(data, dtype), self.indices, self.indptr), shape=(self.n, self.n))
         self._A = A
         if self.backend != "pardiso":
             full = A + sp.triu(A, k=1).T
@@ -201,10 +203,7 @@ class PatternSolver:
         if self._solver is None:
             self._solver = _pardiso_solver(2 if self.spd else -2)
             _set_iparm(self._solver, self.refinement, self.single)
-        if self.single:  # PARDISO reads the values as float32 when iparm(28) = 1
-            A = sp.csr_matrix((A.data.astype(np.float32), A.indices, A.indptr), shape=A.shape)
-            self._A = A
-        b = np.zeros(self.n, np.float32 if self.single else float)
+        b = np.zeros(self.n, dtype)
         if not self._analysed:
             self._solver.set_phase(11)
             self._solver._call_pardiso(A, b)

@@ -49,7 +49,10 @@ class PressureTerm:
 
     def volume_gradient(self, u: np.ndarray) -> np.ndarray:
         """∂V/∂u, flat (3n,)."""
-        p = (self.X + u)[self.tris]
+        return self._volume_gradient((self.X + u)[self.tris])
+
+    def _volume_gradient(self, p: np.ndarray) -> np.ndarray:
+        """∂V/∂u from the triangles' corner positions ``p`` (k, 3, 3)."""
         dV = self.sign / 6 * np.stack([np.cross(p[:, 1], p[:, 2]), np.cross(p[:, 2], p[:, 0]), np.cross(p[:, 0], p[:, 1])], 1)
         return np.bincount((3 * self.tris[:, :, None] + np.arange(3)).ravel(), weights=dV.ravel(), minlength=self._n)
 
@@ -58,7 +61,7 @@ class PressureTerm:
         p = x[self.tris]
         s = self.sign / 6
         V = s * float(np.einsum("ti,ti->t", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum())
-        g = self.volume_gradient(u)
+        g = self._volume_gradient(p)
         H = None
         if hessian:
             Ka, Kb, Kc = _skew(p[:, 0]), _skew(p[:, 1]), _skew(p[:, 2])
