@@ -170,7 +170,7 @@ class PatternSolver:
     ``single``: PARDISO factors and solves in single precision (results returned in double):
     ~1.6× faster factorisations of P2 elasticity, and a solve's relative residual ~1e-7 — for
     Newton directions, which need far less (measured on the 96-rim, 2-layer membrane's
-    Hessian, 56 k unknowns: 0.235 against 0.372 s, residual 1.6e-7; same inertia)."""
+    Hessian, 56 k unknowns, one-off: 0.235 against 0.372 s, residual 1.6e-7; same inertia)."""
 
     def __init__(self, indptr: np.ndarray, indices: np.ndarray, spd: bool, backend: str = "auto", refinement: int = PARDISO_REFINEMENT, single: bool = False):
         self.refinement = int(refinement)
