@@ -155,6 +155,12 @@ class CoupledTerms:
         self._set_pattern(self._base)
         self.rebuilds = 0
 
+    @property
+    def RELINEARISES(self) -> bool:
+        """Whether a Hessian evaluation re-lags a contact (then Newton must take the energy and
+        gradient from that same evaluation, not from the line search's before it)."""
+        return any(getattr(c, "RELINEARISES", False) for c in self.contacts)
+
     def _pattern(self, rows, cols) -> sp.csr_matrix:
         """The pattern of (rows, cols), every entry 1. Duplicates are summed and then reset:
         a small integer type would wrap (256 contact couplings of one diagonal entry summed
