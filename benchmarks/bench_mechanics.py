@@ -9,6 +9,8 @@ and the rest.
 
     python benchmarks/bench_mechanics.py            # writes results/mechanics_benchmark.{md,json}
     python benchmarks/bench_mechanics.py --report   # rewrites the .md from the .json
+    python benchmarks/bench_mechanics.py --solvers  # the linear-solver settings on one mesh:
+                                                    # results/mechanics_solvers.{md,json}
 
 Each mesh runs in its own process; finished rows are kept in results/mechanics_benchmark.partial.json,
 so an interrupted run resumes where it stopped (delete that file to start over).
@@ -35,13 +37,21 @@ ROOT = Path(__file__).resolve().parents[1]
 RESOLUTIONS = [(48, 2, 0.0, "pointwise"), (64, 2, 0.0, "pointwise"), (72, 2, 0.0, "pointwise"), (80, 2, 0.0, "pointwise"),
                (88, 2, 0.0, "pointwise"), (92, 2, 0.0, "pointwise"), (96, 2, 0.0, "pointwise"), (64, 3, 0.0, "pointwise"), (96, 3, 0.0, "pointwise"),
                (128, 3, 0.0, "pointwise"), (128, 2, 0.0, "pointwise"), (160, 2, 0.0, "pointwise")]
+# `--solvers`: the Newton solves' linear-solver settings compared on one mesh, each run REPEATS
+# times interleaved (load drift falls on all alike): (single precision, 2×2 pivots); the first is
+# the package default, every RESOLUTIONS row's
+SOLVERS = {"single": (True, True), "double": (False, True), "single, 1×1 pivots": (True, False)}
+SOLVER_MESH, REPEATS = (92, 2, 0.0, "pointwise"), 2
 GOAL_S, CONVERGED = 1.0, 0.02  # the issue's goal: ≤ 1 s per step at a mesh within 2 % in force
 DEPTHS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 
 
-def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatation") -> dict:
+def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatation", linear: str = "single") -> dict:
     import jointsim.eit.solver as solver
     import jointsim.mechanics.fem as fem
+    import jointsim.mechanics.newton as newton
+
+    newton.SINGLE_PRECISION, newton.PIVOT_2X2 = SOLVERS[linear]
     from jointsim.geometry import isotropic_cap
     from jointsim.mechanics.dome import MembraneModel
     from jointsim.scene import load_scene
@@ -80,7 +90,7 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
         wall = time.perf_counter() - t0
         steps.append({"depth_mm": d * 1e3, "wall_s": wall, "iterations": st.iterations, **{f"{k}_s": v for k, v in timers.items()},
                       "force_mN": st.force[2] * 1e3, "displaced_mm3": st.displaced_volume * 1e9, "penetration_um": st.penetration * 1e6})
-    return {"n_rim": n_rim, "layers": layers, "apex_mm": apex_mm, "volumetric": volumetric, "p2_nodes": model.mesh.n_nodes, "tets": model.mesh.n_tets,
+    return {"n_rim": n_rim, "layers": layers, "apex_mm": apex_mm, "volumetric": volumetric, "linear": linear, "p2_nodes": model.mesh.n_nodes, "tets": model.mesh.n_tets,
             "setup_s": setup, "steps": steps}
 
 
@@ -118,8 +128,10 @@ def main() -> int:
         write(saved["rows"], saved["meta"])
         return 0
     if len(sys.argv) > 1 and sys.argv[1] == "--one":
-        print(json.dumps(run(int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]), sys.argv[5])))
+        print(json.dumps(run(int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]), sys.argv[5], *sys.argv[6:7])))
         return 0
+    if len(sys.argv) > 1 and sys.argv[1] == "--solvers":
+        return solvers()
     import subprocess
 
     partial = OUT.with_suffix(".partial.json")
@@ -149,6 +161,50 @@ def main() -> int:
 
 
 OUT = ROOT / "results" / "mechanics_benchmark"
+SOLVERS_OUT = ROOT / "results" / "mechanics_solvers"
+
+
+def solvers() -> int:
+    """The linear-solver comparison on SOLVER_MESH (``--solvers``): results/mechanics_solvers.{md,json},
+    finished runs kept in its .partial.json (an interrupted run resumes)."""
+    import subprocess
+
+    partial = SOLVERS_OUT.with_suffix(".partial.json")
+    saved = json.loads(partial.read_text()) if partial.exists() else {"runs": [], "meta": {}}
+    meta = saved["meta"] or {"command": "python benchmarks/bench_mechanics.py --solvers", "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+                             "date": time.strftime("%Y-%m-%d"), "load_average_start_end": [os.getloadavg()[0], None]}
+    runs = saved["runs"]
+    for i in range(REPEATS * len(SOLVERS)):
+        if i < len(runs):
+            continue
+        linear = list(SOLVERS)[i % len(SOLVERS)]
+        r = subprocess.run([sys.executable, __file__, "--one", *map(str, SOLVER_MESH), linear], capture_output=True, text=True)
+        if r.returncode:
+            print(r.stderr[-2000:], file=sys.stderr)
+            return 1
+        runs.append(json.loads(r.stdout.strip().splitlines()[-1]))
+        _atomic(partial, json.dumps({"meta": meta, "runs": runs}, indent=2))
+        print(f"{linear}: {np.mean([x['wall_s'] for x in runs[-1]['steps'][1:]]):.2f} s/step", flush=True)
+    meta["load_average_start_end"][1] = os.getloadavg()[0]
+    mean = lambda rs, key: float(np.mean([x[key] for r in rs for x in r["steps"][1:]]))
+    by = {k: [r for r in runs if r["linear"] == k] for k in SOLVERS}
+    base = by["single"]
+    lines = ["# Mechanics: the Newton solves' linear-solver settings", "", f"Command: `{meta['command']}`  ",
+             f"Machine: {meta['machine']}; run {meta['date']}; 1-min load average {meta['load_average_start_end'][0]:.1f} at the start, "
+             f"{meta['load_average_start_end'][1]:.1f} at the end.  ",
+             f"The press of results/mechanics_benchmark.md (rigid 15 mm target, 0.5 mm steps to 3 mm) on the {_label(runs[0])} membrane, "
+             f"each setting run {REPEATS} times interleaved; per-step means over the steps after the first. PARDISO LDLᵀ, the ordering and "
+             "symbolic analysis once per model. Ratios against the package default (single precision, Bunch–Kaufman 1×1 and 2×2 pivots).", "",
+             "| LDLᵀ | s / step | ratio | factorise+solve s / step | ratio | Newton its / step | F 1 / 2 / 3 mm, mN |", "|---|---|---|---|---|---|---|"]
+    for k, rs in by.items():
+        lines.append(f"| {k} | {mean(rs, 'wall_s'):.2f} | {mean(rs, 'wall_s') / mean(base, 'wall_s'):.2f} | {mean(rs, 'factorise+solve_s'):.2f} | "
+                     f"{mean(rs, 'factorise+solve_s') / mean(base, 'factorise+solve_s'):.2f} | {mean(rs, 'iterations'):.1f} | "
+                     + " / ".join(f"{_at(rs[0], d):.2f}" for d in (1.0, 2.0, 3.0)) + " |")
+    _atomic(SOLVERS_OUT.with_suffix(".json"), json.dumps({"meta": meta, "runs": runs}, indent=2))
+    _atomic(SOLVERS_OUT.with_suffix(".md"), "\n".join(lines) + "\n")
+    partial.unlink()
+    print("\n".join(lines))
+    return 0
 
 
 def _atomic(path: Path, text: str) -> None:

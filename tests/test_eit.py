@@ -244,12 +244,12 @@ def test_repeated_solves_do_not_leak_the_factor():
     assert grown < 20e6, f"{default_backend()} grew {grown / 1e6:.0f} MB over 5 solves"
 
 
-@pytest.mark.parametrize("single", [False, True])
-def test_pattern_solver_reports_the_inertia_and_solves_to_its_precision(single):
+@pytest.mark.parametrize("single, two_by_two", [(False, True), (True, True), (True, False)])
+def test_pattern_solver_reports_the_inertia_and_solves_to_its_precision(single, two_by_two):
     """PatternSolver on a shifted 3-D grid Laplacian L − σI (20³ = 8000 unknowns, on PARDISO's
     path), whose eigenvalues are known in closed form: the LDLᵀ factor's negative pivots are
     the count of eigenvalues below σ (Sylvester's law of inertia), in double and in single
-    precision; a solve is backward stable: ‖Ax − b‖ ≤ 100·ε·‖A‖₂·‖x‖ with ε the precision's
+    precision, with 2×2 pivots or 1×1 only; a solve is backward stable: ‖Ax − b‖ ≤ 100·ε·‖A‖₂·‖x‖ with ε the precision's
     unit round-off (float32 6e-8, float64 1.1e-16) and ‖A‖₂ = max |λ − σ| in closed form."""
     from jointsim.eit.solver import PatternSolver, available_backends
 
@@ -267,7 +267,7 @@ def test_pattern_solver_reports_the_inertia_and_solves_to_its_precision(single):
     A = sp.csr_matrix(L - sigma * sp.identity(m**3))
     upper = sp.triu(A, format="csr")
     upper.sort_indices()
-    solver = PatternSolver(upper.indptr, upper.indices, spd=False, refinement=0, single=single)
+    solver = PatternSolver(upper.indptr, upper.indices, spd=False, refinement=0, single=single, two_by_two=two_by_two)
     assert solver.backend == "pardiso"
     solver.factor(upper.data)
     assert solver.negative_eigenvalues == int((eig < sigma).sum()) > 10

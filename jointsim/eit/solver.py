@@ -142,12 +142,15 @@ def factorize(A: sp.spmatrix, backend: str = "auto", spd: bool = True) -> Factor
     raise ValueError(f"backend = {backend!r}: allowed values are {available_backends()}")
 
 
-def _set_iparm(solver, refinement: int, single: bool = False) -> None:
+def _set_iparm(solver, refinement: int, single: bool = False, two_by_two: bool = True) -> None:
     """MKL's defaults for a symmetric matrix, made explicit (iparm(1) = 1) so that the
     iterative refinement steps set here are honoured: with iparm(1) = 0 MKL overwrites every
     entry with its defaults on the first call, refinement included (2 steps: a Newton solve of
     the 48-rim, 3-layer membrane then costs 32 ms instead of 12). ``single``: factor and solve
-    in single precision (iparm(28) = 1; the matrix and right-hand sides then float32)."""
+    in single precision (iparm(28) = 1; the matrix and right-hand sides then float32).
+    ``two_by_two``: Bunch–Kaufman 1×1 and 2×2 pivots for a symmetric indefinite matrix; without,
+    1×1 pivots only, tiny ones perturbed (iparm(21) = 0: faster, and the inertia is the
+    perturbed matrix's, which for Newton's Hessians differs only by pivots ~1e-8·‖A‖)."""
     ip = solver.iparm
     ip[:] = 0
     ip[0] = 1  # user-supplied values
@@ -155,7 +158,7 @@ def _set_iparm(solver, refinement: int, single: bool = False) -> None:
     ip[7] = refinement  # iterative refinement steps
     ip[9] = 8  # pivot perturbation 1e-8 (symmetric)
     ip[17] = -1  # report the factor's non-zeros
-    ip[20] = 1  # Bunch–Kaufman 1×1 and 2×2 pivoting (symmetric indefinite)
+    ip[20] = 1 if two_by_two else 0
     ip[27] = 1 if single else 0
 
 
@@ -172,9 +175,12 @@ class PatternSolver:
     Newton directions, which need far less (measured on the 96-rim, 2-layer membrane's
     Hessian, 56 k unknowns, one-off: 0.235 against 0.372 s, residual 1.6e-7; same inertia)."""
 
-    def __init__(self, indptr: np.ndarray, indices: np.ndarray, spd: bool, backend: str = "auto", refinement: int = PARDISO_REFINEMENT, single: bool = False):
+    def __init__(
+        self, indptr: np.ndarray, indices: np.ndarray, spd: bool, backend: str = "auto", refinement: int = PARDISO_REFINEMENT, single: bool = False, two_by_two: bool = True
+    ):
         self.refinement = int(refinement)
         self.single = bool(single)
+        self.two_by_two = bool(two_by_two)
         self.indptr = np.asarray(indptr, np.int64)
         self.indices = np.asarray(indices, np.int64)
         self.n = len(self.indptr) - 1
@@ -202,7 +208,7 @@ class PatternSolver:
             return
         if self._solver is None:
             self._solver = _pardiso_solver(2 if self.spd else -2)
-            _set_iparm(self._solver, self.refinement, self.single)
+            _set_iparm(self._solver, self.refinement, self.single, self.two_by_two)
         b = np.zeros(self.n, dtype)
         if not self._analysed:
             self._solver.set_phase(11)

@@ -58,6 +58,7 @@ _BACKEND = "pardiso" if "pardiso" in available_backends() else "superlu"
 # Newton's linear systems factored in single precision (PARDISO only): their relative residual
 # is ~1e-7, far below what an inexact Newton step needs to keep its quadratic convergence
 SINGLE_PRECISION = True
+PIVOT_2X2 = True
 
 
 def csr_rows(indptr: np.ndarray) -> np.ndarray:
@@ -100,7 +101,7 @@ class NewtonSystem:
         # no iterative refinement, and single precision: a Newton step needs no 1e-13 accuracy
         # (the residual test is on g, in double). Without refinement the solve is ~5× faster (6
         # against 32 ms on the 64-rim membrane), in single precision the factorisation ~1.6×
-        self.full = PatternSolver(indptr_f, cols_f, spd=False, refinement=0, single=SINGLE_PRECISION)
+        self.full = PatternSolver(indptr_f, cols_f, spd=False, refinement=0, single=SINGLE_PRECISION, two_by_two=PIVOT_2X2)
         self.projected = PatternSolver(indptr_f, cols_f, spd=True, refinement=0, single=SINGLE_PRECISION)
         # upper triangle, columns sorted: each row's diagonal is its first entry (None: a
         # pattern without every diagonal entry, which cannot be shifted)
