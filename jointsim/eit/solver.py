@@ -171,9 +171,10 @@ class PatternSolver:
     ``negative_eigenvalues`` (PARDISO, indefinite) is the inertia of the last factor.
 
     ``single``: PARDISO factors and solves in single precision (results returned in double):
-    ~1.6× faster factorisations of P2 elasticity, and a solve's relative residual ~1e-7 — for
-    Newton directions, which need far less (measured on the 96-rim, 2-layer membrane's
-    Hessian, 56 k unknowns, one-off: 0.235 against 0.372 s, residual 1.6e-7; same inertia)."""
+    1.6× faster factorisations of P2 elasticity (the 92-rim, 2-layer membrane's press:
+    results/mechanics_solvers.md), and a solve's relative residual ~1e-7 — for Newton
+    directions, which need far less (the press's forces agree with double to four digits).
+    ``two_by_two=False``: 1×1 pivots only; measured no faster there (0.97)."""
 
     def __init__(
         self, indptr: np.ndarray, indices: np.ndarray, spd: bool, backend: str = "auto", refinement: int = PARDISO_REFINEMENT, single: bool = False, two_by_two: bool = True
