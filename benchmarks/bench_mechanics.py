@@ -50,11 +50,11 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
     import jointsim.eit.solver as solver
     import jointsim.mechanics.fem as fem
     import jointsim.mechanics.newton as newton
-
-    newton.SINGLE_PRECISION, newton.PIVOT_2X2 = SOLVERS[linear]
     from jointsim.geometry import isotropic_cap
     from jointsim.mechanics.dome import MembraneModel
     from jointsim.scene import load_scene
+
+    newton.SINGLE_PRECISION, newton.PIVOT_2X2 = SOLVERS[linear]
 
     timers = {"kernel": 0.0, "factorise+solve": 0.0}
 

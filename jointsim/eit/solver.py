@@ -149,8 +149,8 @@ def _set_iparm(solver, refinement: int, single: bool = False, two_by_two: bool =
     the 48-rim, 3-layer membrane then costs 32 ms instead of 12). ``single``: factor and solve
     in single precision (iparm(28) = 1; the matrix and right-hand sides then float32).
     ``two_by_two``: Bunch–Kaufman 1×1 and 2×2 pivots for a symmetric indefinite matrix; without,
-    1×1 pivots only, tiny ones perturbed (iparm(21) = 0: faster, and the inertia is the
-    perturbed matrix's, which for Newton's Hessians differs only by pivots ~1e-8·‖A‖)."""
+    1×1 pivots only, tiny ones perturbed (iparm(21) = 0; the inertia is then the perturbed
+    matrix's, which differs only by pivots ~1e-8·‖A‖)."""
     ip = solver.iparm
     ip[:] = 0
     ip[0] = 1  # user-supplied values
