@@ -250,7 +250,8 @@ def test_pattern_solver_reports_the_inertia_and_solves_to_its_precision(single, 
     path), whose eigenvalues are known in closed form: the LDLᵀ factor's negative pivots are
     the count of eigenvalues below σ (Sylvester's law of inertia), in double and in single
     precision, with 2×2 pivots or 1×1 only; a solve is backward stable:
-    ‖Ax − b‖ ≤ 100·ε·‖A‖₂·‖x‖ with ε the precision's unit round-off (float32 6e-8, float64 1.1e-16) and ‖A‖₂ = max |λ − σ| in closed form."""
+    ‖Ax − b‖ ≤ 100·ε·‖A‖₂·‖x‖ with ε the precision's unit round-off (float32 6e-8, float64
+    1.1e-16) and ‖A‖₂ = max |λ − σ| in closed form."""
     from jointsim.eit.solver import PatternSolver, available_backends
 
     if "pardiso" not in available_backends():
