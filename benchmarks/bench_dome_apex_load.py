@@ -288,29 +288,18 @@ def dome_3d(n_rim: int, layers: int, form: str, k: float, load: float = F3D) -> 
     """The package's membrane on the paper's dome under ``load`` N spread over the patch as nodal
     forces in proportion to the outer-surface nodes' areas; displacements scaled to FTOT."""
     from jointsim.geometry import isotropic_cap
-    from jointsim.mechanics.contact import nodal_areas
-    from jointsim.mechanics.dome import membrane_mesh, on_spheres, sphere_centre
-    from jointsim.mechanics.fem import ElasticTerm, P2Mesh
+    from jointsim.mechanics.dome import MembraneModel
     from jointsim.mechanics.materials import Material
     from jointsim.mechanics.newton import NodalForce, minimize_energy
-    from jointsim.mechanics.pressure import linear_subtriangles
 
-    dome = isotropic_cap(0.02, 0.01, n_rim)
-    c = sphere_centre(dome)
-    lin, n = membrane_mesh(dome, RO - RI, layers, c)
-    tol = 1e-9 * np.ptp(lin.nodes)
-    mesh = P2Mesh.from_linear(lin, on_spheres(c, tol))
-    X = mesh.nodes
-    fixed = np.zeros_like(X, bool)
-    fixed[np.abs(X[:, 2]) < tol] = True  # the bonded base
-    bf = mesh.boundary_faces
-    outer = np.all((bf[:, :3] >= layers * n) & (bf[:, :3] < (layers + 1) * n), axis=1)  # corners all on the outermost layer
-    nodes, w = nodal_areas(X, linear_subtriangles(bf[outer]))
+    # the package's own membrane (mesh, bonded rim, outer-surface nodes and their areas), unpressurised
+    model = MembraneModel(isotropic_cap(0.02, 0.01, n_rim), RO - RI, Material.neo_hookean(MU, bulk_ratio=k), layers, volumetric=form)
+    mesh, X, n, fixed, elastic = model.mesh, model.mesh.nodes, model.n_surface, model.fixed, model.elastic
+    nodes, w = model.contact.nodes, model.contact.weights
     r = np.hypot(X[nodes, 0], X[nodes, 1])
     patch = r <= RPATCH + 1e-12
     f = np.zeros_like(X)
     f[nodes[patch], 2] = -load * w[patch] / w[patch].sum()
-    elastic = ElasticTerm(mesh, Material.neo_hookean(MU, bulk_ratio=k), volumetric=form)
     t0 = time.perf_counter()
     # atol 1e-4 × the largest nodal force (1.6e-10 … 1e-9 N): at κ = 1000 μ the gradient can stall at
     # ~5e-11 N (96/2, mean dilatation: the line search then fails below it); where a tighter solve

@@ -219,10 +219,11 @@ class MembraneModel:
         n = self.n_surface
         on_inner = np.all(bf[:, :3] < n, axis=1)
         on_outer = np.all(bf[:, :3] >= layers * n, axis=1) & np.all(bf[:, :3] < (layers + 1) * n, axis=1)
+        self.outer_faces = bf[on_outer]  # 6-node faces with every corner on the outermost layer
         # the inner faces point into the chamber (out of the solid): the chamber volume has sign −1
         self.inner_tris = linear_subtriangles(bf[on_inner])
         self.pressure = PressureTerm(X, self.inner_tris, pressure, sign=-1.0)
-        nodes, w = nodal_areas(X, linear_subtriangles(bf[on_outer]))
+        nodes, w = nodal_areas(X, linear_subtriangles(self.outer_faces))
         h = thickness / layers
         k = penalty if penalty is not None else 100 * 3 * material.mu / h
         # the contact Hessian's curvature term is exact up to 1 % of a layer's thickness of

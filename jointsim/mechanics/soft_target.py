@@ -378,9 +378,6 @@ class SoftTargetModel(MembraneModel):
         nm = self.mesh.n_nodes
         self.n_membrane = nm
         rigid = self.contact
-        bf = self.mesh.boundary_faces
-        n = self.n_surface
-        outer = np.all(bf[:, :3] >= layers * n, axis=1) & np.all(bf[:, :3] < (layers + 1) * n, axis=1)
         if contact_slave is None:
             # the softer body's nodes are the slaves: a stiff master's facets stay flat, while a
             # soft master dents around each slave node and its closest facet flips between the
@@ -389,7 +386,7 @@ class SoftTargetModel(MembraneModel):
             # target 100× stiffer; both converge with the rule below)
             contact_slave = default_contact_slave(self.target.material, material)
         self.contact = _TargetContact(
-            self.mesh.nodes, rigid.nodes, rigid.weights, linear_subtriangles(bf[outer]), rigid.stiffness, self.target, contact_margin, contact_slave
+            self.mesh.nodes, rigid.nodes, rigid.weights, linear_subtriangles(self.outer_faces), rigid.stiffness, self.target, contact_margin, contact_slave
         )
         self.contact.centre = rigid.centre
         self._membrane_pressure = self.pressure
