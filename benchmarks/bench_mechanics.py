@@ -136,9 +136,7 @@ def main() -> int:
 
     partial = OUT.with_suffix(".partial.json")
     saved = json.loads(partial.read_text()) if partial.exists() else {"rows": [], "meta": {}}
-    meta = saved["meta"] or {"command": "python benchmarks/bench_mechanics.py", "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
-                             "date": time.strftime("%Y-%m-%d"), "load_average_start_end": [os.getloadavg()[0], None],
-                             "speed_reference_s_start_end": [speed_reference(), None]}
+    meta = saved["meta"] or {**_new_meta("python benchmarks/bench_mechanics.py"), "speed_reference_s_start_end": [speed_reference(), None]}
     rows = saved["rows"]
     for n_rim, layers, apex, volumetric in RESOLUTIONS:
         if any((r["n_rim"], r["layers"], r["apex_mm"], r["volumetric"]) == (n_rim, layers, apex, volumetric) for r in rows):
@@ -171,8 +169,7 @@ def solvers() -> int:
 
     partial = SOLVERS_OUT.with_suffix(".partial.json")
     saved = json.loads(partial.read_text()) if partial.exists() else {"runs": [], "meta": {}}
-    meta = saved["meta"] or {"command": "python benchmarks/bench_mechanics.py --solvers", "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
-                             "date": time.strftime("%Y-%m-%d"), "load_average_start_end": [os.getloadavg()[0], None]}
+    meta = saved["meta"] or _new_meta("python benchmarks/bench_mechanics.py --solvers")
     runs = saved["runs"]
     for i in range(REPEATS * len(SOLVERS)):
         if i < len(runs):
@@ -205,6 +202,12 @@ def solvers() -> int:
     partial.unlink()
     print("\n".join(lines))
     return 0
+
+
+def _new_meta(command: str) -> dict:
+    """A run's provenance: command, machine, date, the load average at the start."""
+    return {"command": command, "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+            "date": time.strftime("%Y-%m-%d"), "load_average_start_end": [os.getloadavg()[0], None]}
 
 
 def _atomic(path: Path, text: str) -> None:

@@ -192,6 +192,8 @@ class PatternSolver:
             big = self.n >= 5_000 and "pardiso" in available_backends()
             backend = "pardiso" if big else "superlu"
         self.backend = backend
+        # PARDISO reads the values and right-hand sides as float32 when iparm(28) = 1 (single)
+        self._dtype = np.float32 if self.single and backend == "pardiso" else np.float64
         self.negative_eigenvalues: int | None = None
         self._solver = None
         self._analysed = False
@@ -199,9 +201,7 @@ class PatternSolver:
         self._lu = None
 
     def factor(self, data: np.ndarray) -> None:
-        # PARDISO reads the values as float32 when iparm(28) = 1 (single)
-        dtype = np.float32 if self.single and self.backend == "pardiso" else float
-        A = sp.csr_matrix((np.asarray(data, dtype), self.indices, self.indptr), shape=(self.n, self.n))
+        A = sp.csr_matrix((np.asarray(data, self._dtype), self.indices, self.indptr), shape=(self.n, self.n))
         self._A = A
         if self.backend != "pardiso":
             full = A + sp.triu(A, k=1).T
@@ -210,7 +210,7 @@ class PatternSolver:
         if self._solver is None:
             self._solver = _pardiso_solver(2 if self.spd else -2)
             _set_iparm(self._solver, self.refinement, self.single, self.two_by_two)
-        b = np.zeros(self.n, dtype)
+        b = np.zeros(self.n, self._dtype)
         if not self._analysed:
             self._solver.set_phase(11)
             self._solver._call_pardiso(A, b)
@@ -226,7 +226,7 @@ class PatternSolver:
         if self.backend != "pardiso":
             return self._lu(b)
         self._solver.set_phase(33)
-        x = self._solver._call_pardiso(self._A, np.asfortranarray(b, dtype=np.float32 if self.single else float))
+        x = self._solver._call_pardiso(self._A, np.asfortranarray(b, dtype=self._dtype))
         return x.astype(float, copy=False).reshape(np.shape(b))
 
     def free(self) -> None:
