@@ -41,6 +41,7 @@ __all__ = [
     "deform_chamber",
     "morph_chamber",
     "dome_nodes",
+    "closest_on_surface",
     "MODES",
 ]
 
@@ -110,6 +111,23 @@ def element_quality(nodes: np.ndarray, tets: np.ndarray) -> ElementQuality:
     )
 
 
+def closest_on_surface(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(triangle (k,), barycentric coordinates (k, 3), distance (k,)) of each point's closest
+    point on the triangle surface (``vertices``, ``faces``).
+
+    The query runs on the surface scaled to unit size: trimesh's degeneracy tolerances are
+    absolute, and in metres the dome's triangles near the apex (areas ~1e-7 m²) fall under them
+    and are skipped — 776 of the 1186 dome nodes of the dataset chamber got a closest point up
+    to 1.3 mm away."""
+    v = np.asarray(vertices, float)
+    origin = v.min(axis=0)
+    scale = float(np.ptp(v, axis=0).max()) or 1.0
+    surf = trimesh.Trimesh((v - origin) / scale, faces, process=False)
+    closest, dist, tri = trimesh.proximity.closest_point(surf, (np.asarray(points, float) - origin) / scale)
+    bary = trimesh.triangles.points_to_barycentric(surf.triangles[tri], closest)
+    return tri, bary, dist * scale
+
+
 def _check_dihedral(min_dihedral_deg: float) -> float:
     v = float(min_dihedral_deg)
     if not 0.0 <= v < REGULAR_DIHEDRAL_DEG:
@@ -141,9 +159,7 @@ class ChamberMorpher:
         self.min_dihedral_deg = _check_dihedral(min_dihedral_deg)
         mesh = chamber.mesh
         self.top = dome_nodes(mesh)
-        surf = trimesh.Trimesh(dome.vertices, dome.faces, process=False)
-        closest, _, tri = trimesh.proximity.closest_point(surf, mesh.nodes[self.top])
-        self._bary = trimesh.triangles.points_to_barycentric(surf.triangles[tri], closest)
+        tri, self._bary, _ = closest_on_surface(dome.vertices, dome.faces, mesh.nodes[self.top])
         self._corners = np.asarray(dome.faces)[tri]  # (n_top, 3) dome vertex indices
         self._free = np.ones(mesh.n_nodes, bool)
         self._free[np.unique(mesh.boundary_faces)] = False
