@@ -1,5 +1,7 @@
 """The prepared chamber morpher, its quality check and the automatic fallback to a remesh."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -148,12 +150,39 @@ def test_an_inverting_deformation_remeshes_in_auto_and_raises_in_morph(test_cham
     r = deform_chamber(morpher, fold, scene)  # the one real remesh of these tests
     assert r.path == "remesh" and "inverted" in r.reason
     assert r.quality.n_inverted == 0
+    # mirrored back, every element would invert: no pull-back, the reason says the floor applies
+    assert r.pulled_back is None and "remeshing floor" in r.reason
     # fTetWild keeps the surface within its envelope, not on it: ~0.1 % of the volume here
     assert r.chamber.mesh.volumes.sum() == pytest.approx(chamber_surface(fold).volume, rel=5e-3)
     # electrodes are clipped exactly on the new base: the same areas as on the reference mesh
     np.testing.assert_allclose(
         [e.total_area for e in r.chamber.electrodes], [e.total_area for e in ch.electrodes], rtol=1e-12
     )
+
+
+def test_pull_back_undoes_an_affine_squash_exactly(test_chamber, morpher):
+    """A chamber mesh squashed by z → 0.8 z (the base plane stays: an affine deformation of the
+    chamber) is pulled back onto the reference dome exactly: barycentric coordinates are affine
+    invariant and the P1 harmonic extension reproduces affine maps. Zero deformation gives the
+    nodes back bit for bit, so the remesh path's change is exactly zero there."""
+    scene, ch = test_chamber
+    dome = morpher.dome
+    # the test mesh's dome nodes sit up to ~5 µm off the dome (chords); put them on it, where the
+    # closest-point map is exact
+    nodes = ch.mesh.nodes.copy()
+    nodes[morpher.top] = np.einsum("na,nai->ni", morpher._bary, dome.vertices[morpher._corners])
+    on = replace(ch, mesh=TetMesh(nodes, ch.mesh.tets))
+    assert element_quality(nodes, ch.mesh.tets).n_inverted == 0
+    same = morph.pull_back(on, dome, dome)
+    assert same.dropped == 0 and same.reference is same.deformed is on
+    A = np.diag([1.0, 1.0, 0.8])
+    squashed = replace(on, mesh=TetMesh(nodes @ A, ch.mesh.tets))
+    pb = morph.pull_back(squashed, DomeSurface(dome.vertices @ A, dome.faces, dome.rim), dome)
+    assert pb.dropped == 0 and pb.deformed is squashed
+    np.testing.assert_array_equal(pb.reference.mesh.tets, ch.mesh.tets)
+    np.testing.assert_allclose(pb.reference.mesh.nodes, nodes, rtol=0, atol=1e-12)  # m; round-off of ~1e-2 m
+    # the electrodes are the remesh's own: the base does not move
+    assert pb.reference.electrodes is squashed.electrodes
 
 
 def test_auto_remeshes_when_the_quality_drops_below_the_threshold(test_chamber, morpher, monkeypatch):

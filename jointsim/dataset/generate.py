@@ -224,7 +224,8 @@ class DatasetSetup:
         t: dict[str, float] = {}
         with timed(t, "group_setup"):
             model = self._membrane(draw)
-            ref_chamber = pal.deform(pal.inner_surface(model.state())).chamber
+            ref_dome = pal.inner_surface(model.state())
+            ref_chamber = pal.deform(ref_dome).chamber
             patches = self._patches(ref_chamber.mesh, draw.jitter)
             z = np.full(len(patches), draw.contact_impedance)
             v_ref = self._voltages(ref_chamber, patches, z, draw.conductivity)
@@ -251,10 +252,10 @@ class DatasetSetup:
                         st = model.press(np.array([draw.xy[0], draw.xy[1], contact_z - dz]))
                 depth_done = d
             with timed(t, "mesh"):
-                dc = pal.deform(pal.inner_surface(st))
+                dc = pal.deform(pal.inner_surface(st), ref_dome)
                 p = patches if dc.path == "morph" else self._patches(dc.chamber.mesh, draw.jitter)
             with timed(t, "forward"):
-                clean = self._voltages(dc.chamber, p, z, draw.conductivity)
+                clean = dc.change(lambda c: self._voltages(c, p, z, draw.conductivity), v_ref)
                 v = clean + rng.normal(0.0, std, clean.shape)
             dv = v - v_ref_measured
             with timed(t, "reconstruction"):

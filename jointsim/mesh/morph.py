@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass, replace
+from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -38,6 +39,9 @@ __all__ = [
     "element_quality",
     "ChamberMorpher",
     "DeformedChamber",
+    "PulledBack",
+    "pull_back",
+    "remeshed",
     "deform_chamber",
     "morph_chamber",
     "dome_nodes",
@@ -230,14 +234,87 @@ def morph_chamber(
 
 
 @dataclass(frozen=True, eq=False)
+class PulledBack:
+    """A remeshed chamber's tetrahedra in two configurations: ``deformed`` (the frame's) and
+    ``reference`` (moved back onto the reference chamber by :func:`pull_back`). A voltage
+    change taken between the two carries no remeshing noise: both are the same mesh.
+    ``dropped``: surface slivers left out of both (all four nodes on the dome, inverted by the
+    pull-back), ``dropped_volume`` their volume in the deformed configuration, m³."""
+
+    deformed: ChamberMesh
+    reference: ChamberMesh
+    dropped: int
+    dropped_volume: float
+
+
+def pull_back(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurface) -> PulledBack:
+    """The tetrahedra of ``chamber``, a mesh of the chamber under the dome ``deformed`` (e.g. a
+    remesh), moved onto the chamber under ``reference`` (same vertices and faces): each dome
+    node to the point of ``reference`` with the barycentric coordinates of its closest point on
+    ``deformed``, base nodes fixed (the electrodes do not move), interior nodes by harmonic
+    extension, as the morph does in the other direction.
+
+    Where the dome's curvature changes sign (the rim of a dent), a tetrahedron with all four
+    nodes on the dome can invert going back; such surface slivers are dropped from both meshes
+    (they carry a negligible volume, reported). Raises :class:`MeshInversionError` when any
+    other element inverts, or a node would be left without elements."""
+    if np.array_equal(deformed.vertices, reference.vertices) and np.array_equal(deformed.faces, reference.faces):
+        return PulledBack(chamber, chamber, 0, 0.0)  # no deformation: the change is exactly zero
+    mesh = chamber.mesh
+    top = dome_nodes(mesh)
+    tri, bary, _ = closest_on_surface(deformed.vertices, deformed.faces, mesh.nodes[top])
+    u = np.zeros_like(mesh.nodes)
+    u[top] = np.einsum("na,nai->ni", bary, np.asarray(reference.vertices, float)[np.asarray(reference.faces)[tri]]) - mesh.nodes[top]
+    free = np.ones(mesh.n_nodes, bool)
+    free[np.unique(mesh.boundary_faces)] = False
+    if free.any() and np.abs(u).max() > 0:
+        K = _stiffness(mesh)[free]
+        with factorize(K[:, free]) as solve:
+            u[free] = solve(-(K[:, top] @ u[top]))
+    back = TetMesh(mesh.nodes + u, mesh.tets)
+    inverted = back.signed_volumes <= 0
+    on_dome = np.zeros(mesh.n_nodes, bool)
+    on_dome[top] = True
+    sliver = inverted & on_dome[mesh.tets].all(axis=1)
+    if (inverted & ~sliver).any():
+        raise MeshInversionError(f"pull-back: {int((inverted & ~sliver).sum())} elements with interior or base nodes invert")
+    keep = ~sliver
+    if not sliver.any():
+        return PulledBack(chamber, replace(chamber, mesh=back, key=f"{chamber.key}-pulled-back"), 0, 0.0)
+    if len(np.unique(mesh.tets[keep])) < mesh.n_nodes:
+        raise MeshInversionError(f"pull-back: dropping {int(sliver.sum())} inverted surface slivers would orphan nodes")
+    kept = TetMesh(mesh.nodes, mesh.tets[keep])
+    return PulledBack(
+        replace(chamber, mesh=kept, key=f"{chamber.key}-without-slivers"),
+        replace(chamber, mesh=TetMesh(back.nodes, mesh.tets[keep]), key=f"{chamber.key}-pulled-back"),
+        int(sliver.sum()),
+        float(mesh.volumes[sliver].sum()),
+    )
+
+
+@dataclass(frozen=True, eq=False)
 class DeformedChamber:
     """What :func:`deform_chamber` returns: the deformed ``chamber``, the ``path`` taken
-    ("morph" or "remesh"), the ``reason`` (provenance, one line) and the mesh's ``quality``."""
+    ("morph" or "remesh"), the ``reason`` (provenance, one line) and the mesh's ``quality``.
+    ``pulled_back``: on the remesh path, the remesh and its :func:`pull_back` onto the
+    reference chamber, the pair to take the frame's voltage change on (None on the morph path,
+    whose change is against the reference mesh itself, or when the pull-back failed: the change
+    then carries the remeshing floor, and ``reason`` says why)."""
 
     chamber: ChamberMesh
     path: str
     reason: str
     quality: ElementQuality
+    pulled_back: PulledBack | None = None
+
+    def change(self, voltages: Callable[[ChamberMesh], np.ndarray], v_ref: np.ndarray) -> np.ndarray:
+        """The frame's voltages as the reference's ``v_ref`` plus the change: V(chamber) on the
+        morph path (the same tetrahedra as the reference), else V_ref + V(deformed) − V(pulled
+        back) of the remesh, which cancels the remeshing noise (``voltages``: chamber → V)."""
+        if self.pulled_back is None:
+            return voltages(self.chamber)
+        pb = self.pulled_back
+        return v_ref + (voltages(pb.deformed) - voltages(pb.reference))
 
 
 def deform_chamber(
@@ -273,12 +350,13 @@ def deform_chamber(
         raise ValueError(f"mode = {mode!r}: allowed values are {list(MODES)}")
     if not 0.0 <= min_quality_ratio <= 1.0:
         raise ValueError(f"min_quality_ratio = {min_quality_ratio}: must be in [0, 1]")
+    reference = source.dome if isinstance(source, ChamberMorpher) else (dome_from_scene(scene) if dome is None else dome)
     if mode == "remesh":
-        return _remeshed(deformed, scene, use_cache, "mode = 'remesh'")
+        return _remeshed(deformed, reference, scene, use_cache, "mode = 'remesh'")
     if isinstance(source, ChamberMorpher):
         morpher, own = source, False
     else:
-        morpher, own = ChamberMorpher(source, dome_from_scene(scene) if dome is None else dome), True
+        morpher, own = ChamberMorpher(source, reference), True
     try:
         ref = morpher.reference_quality
         try:
@@ -286,12 +364,12 @@ def deform_chamber(
         except MeshInversionError as err:
             if mode == "morph":
                 raise
-            return _remeshed(deformed, scene, use_cache, f"morph failed: {err}")
+            return _remeshed(deformed, reference, scene, use_cache, f"morph failed: {err}")
         limit = min_quality_ratio * ref.min_shape
         summary = f"min shape {q.min_shape:.3g} (reference {ref.min_shape:.3g}), min dihedral {q.min_dihedral_deg:.1f} deg"
         if mode == "auto" and q.min_shape < limit:
             return _remeshed(
-                deformed, scene, use_cache,
+                deformed, reference, scene, use_cache,
                 f"morph quality too low: {summary}, below min_quality_ratio = {min_quality_ratio} x reference",
             )
         return DeformedChamber(chamber, "morph", f"morphed: {summary}", q)
@@ -300,10 +378,20 @@ def deform_chamber(
             morpher.free()
 
 
-def _remeshed(deformed: DomeSurface, scene: Scene, use_cache: bool, why: str) -> DeformedChamber:
-    chamber = _remesh(deformed, scene, use_cache)
+def remeshed(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurface, why: str) -> DeformedChamber:
+    """The remesh path's result for ``chamber``, a fresh mesh of the chamber under ``deformed``:
+    with its :func:`pull_back` onto ``reference`` when that succeeds."""
     m = chamber.mesh
-    return DeformedChamber(chamber, "remesh", f"remeshed ({why})", element_quality(m.nodes, m.tets))
+    try:
+        pb = pull_back(chamber, deformed, reference)
+        note = f"; pulled back to the reference, {pb.dropped} surface slivers dropped ({pb.dropped_volume * 1e9:.2g} mm³)"
+    except MeshInversionError as e:
+        pb, note = None, f"; {e}: the change carries the remeshing floor"
+    return DeformedChamber(chamber, "remesh", f"remeshed ({why}){note}", element_quality(m.nodes, m.tets), pb)
+
+
+def _remeshed(deformed: DomeSurface, reference: DomeSurface, scene: Scene, use_cache: bool, why: str) -> DeformedChamber:
+    return remeshed(_remesh(deformed, scene, use_cache), deformed, reference, why)
 
 
 def _remesh(deformed: DomeSurface, scene: Scene, use_cache: bool) -> ChamberMesh:

@@ -23,9 +23,10 @@ The reference is the **inflated, untouched** membrane: the reservoir pressure in
 dome when the membrane model is built, so the reference chamber is the chamber mesh morphed to
 that state, and the Jacobian, the voxel grid and the reconstruction matrix are built on it. A
 frame at zero indentation therefore gives the reference mesh bit for bit and δV = 0 exactly on
-the morph path (its mesh-noise floor is zero); a remeshed frame carries the remeshing floor
-(~40 dB re the standing voltage at the dataset resolution, results/mesh_step_benchmark.md),
-and its record says so (``mesh_path``).
+the morph path (its mesh-noise floor is zero). A remeshed frame (``mesh_path``) takes its change
+between the remesh and the same tetrahedra pulled back onto the reference chamber
+(:func:`~jointsim.mesh.morph.pull_back`), which cancels the remeshing floor (~40 dB re the
+standing voltage at the dataset resolution against the reference mesh; results/mesh_step_benchmark.md).
 
 Resuming: every record is stored with a checkpoint of the rig (MuJoCo's integration state,
 frame counter, recent heights) and of the membrane (displacement, warm-start history, target
@@ -56,7 +57,7 @@ from ..mechanics.dome import MembraneModel, MembraneState, UnreachablePose
 from ..mechanics.geometric import indent_dome
 from ..mesh.chamber import ChamberMesh, chamber_mesh, mesh_chamber
 from ..mesh.tetmesh import TetMesh
-from ..mesh.morph import ChamberMorpher, DeformedChamber, MeshInversionError, element_quality
+from ..mesh.morph import ChamberMorpher, DeformedChamber, MeshInversionError, element_quality, remeshed
 from ..metrics import ImageMetrics, image_metrics, rms
 from ..reconstruction.grid import ChamberGrid
 from ..reconstruction.tikhonov import SVD, Reconstructor, choose_lambda
@@ -364,14 +365,16 @@ class Palpation:
         """The membrane's deformed inner (chamber) surface at the resolution of its P2 nodes."""
         return self._surface.dome(state.u)
 
-    def deform(self, dome: DomeSurface) -> DeformedChamber:
+    def deform(self, dome: DomeSurface, reference: DomeSurface | None = None) -> DeformedChamber:
         """The chamber whose dome is ``dome`` (from :meth:`inner_surface`), by
         ``spec.mesh_update``: "morph" the reference mesh (raises
         :class:`~jointsim.mesh.morph.MeshInversionError`), "remesh", or "auto": morph, and
         remesh when the morph inverts an element or its smallest shape measure falls below
         ``MIN_QUALITY_RATIO`` × the reference mesh's. A remesh tetrahedralises the morphed
         chamber's boundary (the same geometry, new tetrahedra; cached by its hash, so a rerun
-        gets the same mesh) and carries the remeshing noise floor."""
+        gets the same mesh) and is pulled back onto the chamber under ``reference`` (default:
+        the untouched :attr:`reference_dome`), so that the frame's voltage change is taken on
+        one mesh (:meth:`DeformedChamber.change`) without the remeshing noise floor."""
         free = np.ones(len(dome.vertices), bool)
         free[dome.rim] = False
         gap = float(dome.vertices[free, 2].min())
@@ -397,8 +400,7 @@ class Palpation:
         surface = trimesh.Trimesh(mesh.nodes + self.morpher.displacement(dome), faces, process=True, validate=False)
         surface.fix_normals()
         chamber = mesh_chamber(surface, self.chamber.layout, self.scene.mesh)
-        m = chamber.mesh
-        return DeformedChamber(chamber, "remesh", f"remeshed ({why})", element_quality(m.nodes, m.tets))
+        return remeshed(chamber, dome, self.reference_dome if reference is None else reference, why)
 
     def rig(self, segment: Segment, contact_z: float) -> Rig:
         """The bench for ``segment``, its program offset from the membrane's first contact
@@ -444,7 +446,7 @@ class Palpation:
                 F("penetration", (), "float64", "m", "largest target penetration of the membrane"),
                 F("newton_iterations", (), "int32", "", "Newton iterations of the mechanics step"),
                 F("min_jacobian", (), "float64", "", "smallest det F in the membrane"),
-                F("mesh_path", (), "int8", "", "0: reference mesh morphed (no mesh noise); 1: remeshed (mesh-noise floor applies)"),
+                F("mesh_path", (), "int8", "", "0: reference mesh morphed (no mesh noise); 1: remeshed (change taken between the remesh and its pull-back to the reference)"),
                 F("mesh_min_shape", (), "float64", "", "smallest tet shape measure of the chamber mesh"),
                 F("voltages", (m,), "float64", "V", "measured voltages: clean, drift gain, noise at the scene SNR"),
                 F("voltages_clean", (m,), "float64", "V", "noise-free voltages"),
@@ -619,7 +621,7 @@ def _frame(pal: Palpation, seg: Segment, k: int, model: MembraneModel, rig: Rig,
         dc = pal.deform(pal.inner_surface(st))
     index = seg.start + k
     with timed(t, "forward"):
-        clean = pal.voltages(dc.chamber)
+        clean = dc.change(pal.voltages, pal.v_ref)
         gain = pal.gains[index] if pal.gains is not None else 1.0
         v = clean * gain + pal._rng("frame", index).normal(0.0, pal.noise_std, pal.n_meas)
     dv, dv_clean = v - pal.v_ref_measured, clean - pal.v_ref
