@@ -3,7 +3,8 @@ by the prepared fixed-topology morph (ChamberMorpher / deform_chamber), by the o
 morph_chamber (before and after this change), and by a full remesh; with the mesh-noise floor
 of each path and a 2 mm press imaged through both.
 
-    python benchmarks/bench_mesh_step.py       # writes results/mesh_step_benchmark.{md,json}
+    python benchmarks/bench_mesh_step.py                  # writes results/mesh_step_benchmark.{md,json}
+    python benchmarks/bench_mesh_step.py --preset paper   # results/mesh_step_benchmark_paper.{md,json}
 
 Frames: a rigid 15 mm target pressed on the dome's axis, 0.5 → 3 mm in 0.25 mm steps (11
 frames, geometric indentation). Remeshes go to a fresh cache folder (JOINTSIM_CACHE), so fTetWild
@@ -58,7 +59,7 @@ def _timed(f, *a, **k):
 
 
 
-def run() -> dict:
+def run(preset: str | None = None) -> dict:
     from jointsim.eit.forward import ForwardModel
     from jointsim.eit.protocol import skip_protocol
     from jointsim.geometry import dome_from_scene
@@ -68,6 +69,8 @@ def run() -> dict:
     from jointsim.scene import load_scene
 
     scene = load_scene(ROOT / "scenes" / "paper_sensor.toml")
+    if preset is not None:
+        scene = scene.with_mesh_preset(preset)
     ch, t_ref_mesh = _timed(chamber_mesh, scene)  # the user's cache: the reference mesh of every run
     # every later mesh (a remesh, or an "auto" fallback) is built afresh in a throw-away cache
     os.environ["JOINTSIM_CACHE"] = tempfile.mkdtemp(prefix="jointsim-bench-mesh-")
@@ -138,11 +141,21 @@ def run() -> dict:
     remesh_s.append(t)
     dv_w_morph = volts(w_morph.chamber) - v_ref
     dv_w_remesh = volts(w_remesh.chamber) - v_ref
+    # the remesh path as frames take it: the change between the remesh and its pull-back
+    pulled = {}
+    for key, r, dv_m in (("zero", again, 0.0 * v_ref), ("press", r2, dv_morph), ("worst", w_remesh, dv_w_morph)):
+        pb = r.pulled_back
+        dv = r.change(volts, v_ref) - v_ref
+        pulled[key] = {"pulled_back": pb is not None, "dropped_slivers": pb.dropped if pb else None,
+                       "dropped_volume_mm3": pb.dropped_volume * 1e9 if pb else None, "reason": r.reason,
+                       "dv_uV": rms(dv) * 1e6, "difference_uV": rms(dv_m - dv) * 1e6, "difference_db": db(rms(dv_m - dv))}
     morpher.free()
 
     instrument_db = scene.noise.snr_db
     out.update(
         remesh_s=remesh_s,
+        preset=scene.mesh.preset,
+        pulled_back=pulled,
         remesh_tets=[again.chamber.mesh.n_tets, r2.chamber.mesh.n_tets, w_remesh.chamber.mesh.n_tets],
         mean_standing_uV=mean_v * 1e6,
         instrument_snr_db=instrument_db,
@@ -186,7 +199,7 @@ def _markdown(meta: dict, r: dict) -> str:
         f"Command: `{meta['command']}`  ",
         f"Machine: {meta['machine']}; run {meta['date']}; the cores are shared with other jobs, so",
         "times are noisy: read medians and ratios.  ",
-        f"Chamber of `scenes/paper_sensor.toml` at the dataset preset: {r['tets']:,} tets, {r['nodes']:,} nodes.",
+        f"Chamber of `scenes/paper_sensor.toml` at the {r.get('preset', 'dataset')} preset: {r['tets']:,} tets, {r['nodes']:,} nodes.",
         f"Frames: rigid 15 mm target on the axis, geometric indentation 0.5 → 3 mm in 0.25 mm steps ({len(r['morph_frame_s'])} frames).",
         f"Preparing the morpher (closest points, Laplacian factorisation, reference quality) once: {r['prepare_s']:.3f} s.",
         "",
@@ -227,6 +240,25 @@ def _markdown(meta: dict, r: dict) -> str:
             f"| {p['depth_mm']:g} mm at ({p['xy_mm'][0]:g}, {p['xy_mm'][1]:g}) mm | {p['dv_morph_uV']:.1f} | {p['dv_remesh_uV']:.1f} | "
             f"{p['difference_uV']:.2f} | {_db(p['difference_db'])} | {r['floor_remesh_uV']:.2f} | {ratio:.3f} |"
         )
+    pb = r.get("pulled_back")
+    if pb is not None:
+        lines += [
+            "",
+            "## The remesh path as frames take it: the change on the remesh and its pull-back",
+            "",
+            "A remeshed frame's voltages are V_ref + V(remesh) − V(the same tetrahedra pulled back onto the reference",
+            "chamber) (`pull_back`, `DeformedChamber.change`): one mesh on both sides of the difference.",
+            "",
+            "| case | pulled back | slivers dropped (mm³) | RMS δV remesh, µV | RMS(δV morph − δV remesh), µV | dB | vs instrument |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        names = {"zero": "undeformed (the floor)", "press": f"{r['press']['depth_mm']:g} mm at (0, 0) mm",
+                 "worst": f"{r['worst']['depth_mm']:g} mm at ({r['worst']['xy_mm'][0]:g}, {r['worst']['xy_mm'][1]:g}) mm"}
+        for key in ("zero", "press", "worst"):
+            q = pb[key]
+            sl = f"{q['dropped_slivers']} ({q['dropped_volume_mm3']:.2g})" if q["pulled_back"] else "—"
+            lines.append(f"| {names[key]} | {'yes' if q['pulled_back'] else 'no: ' + q['reason']} | {sl} | {q['dv_uV']:.1f} | "
+                         f"{q['difference_uV']:.2f} | {_db(q['difference_db'])} | {q['difference_uV'] / r['instrument_noise_uV']:.1f}× |")
     lines += [
         "",
         "## Morph quality along the sequence",
@@ -262,11 +294,12 @@ def _markdown(meta: dict, r: dict) -> str:
 
 
 def main() -> int:
-    r = run()
-    meta = {"command": "python benchmarks/bench_mesh_step.py",
+    preset = sys.argv[sys.argv.index("--preset") + 1] if "--preset" in sys.argv else None
+    r = run(preset)
+    meta = {"command": "python benchmarks/bench_mesh_step.py" + (f" --preset {preset}" if preset else ""),
             "machine": f"{platform.machine()} {cpu_name()}, {os.cpu_count()} cores, Python {platform.python_version()}",
             "date": time.strftime("%Y-%m-%d")}
-    out = ROOT / "results" / "mesh_step_benchmark"
+    out = ROOT / "results" / ("mesh_step_benchmark" + (f"_{preset}" if preset else ""))
     text = _markdown(meta, r)
     for suffix, content in ((".json", json.dumps({"meta": meta, "result": r}, indent=2)), (".md", text)):
         tmp = out.with_suffix(suffix + ".tmp")

@@ -37,6 +37,7 @@ __all__ = [
     "MeshInversionError",
     "ElementQuality",
     "element_quality",
+    "shape_measure",
     "ChamberMorpher",
     "DeformedChamber",
     "PulledBack",
@@ -83,6 +84,18 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
+def shape_measure(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """η = 6√2·V / l_rms³ of each element (m,): 1 for a regular tetrahedron, 0 for a flat one,
+    negative when inverted."""
+    p0, p1, p2, p3 = (nodes[tets[:, a]] for a in range(4))
+    e01, e02, e03, e12, e13, e23 = p1 - p0, p2 - p0, p3 - p0, p2 - p1, p3 - p1, p3 - p2
+    vol6 = np.einsum("mi,mi->m", e01, _cross(e02, e03))
+    l2 = sum(np.einsum("mi,mi->m", e, e) for e in (e01, e02, e03, e12, e13, e23)) / 6.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        eta = np.sqrt(2.0) * vol6 / l2**1.5
+    return np.nan_to_num(eta, nan=0.0)
+
+
 def element_quality(nodes: np.ndarray, tets: np.ndarray) -> ElementQuality:
     """:class:`ElementQuality` of nodes (n, 3), tets (m, 4): signed volumes by triple
     products, dihedral angles from the outward face normals, η from the six edge lengths.
@@ -103,10 +116,7 @@ def element_quality(nodes: np.ndarray, tets: np.ndarray) -> ElementQuality:
         with np.errstate(invalid="ignore", divide="ignore"):
             cos[k] = -np.einsum("mi,mi->m", n[i], n[j]) / np.sqrt(nn[i] * nn[j])
     cos = np.nan_to_num(cos, nan=1.0)  # a collapsed face: call its angles 0°
-    l2 = sum(np.einsum("mi,mi->m", e, e) for e in (e01, e02, e03, e12, e13, e23)) / 6.0
-    with np.errstate(invalid="ignore", divide="ignore"):
-        eta = np.sqrt(2.0) * vol6 / l2**1.5
-    eta = np.nan_to_num(eta, nan=0.0)
+    eta = shape_measure(nodes, tets)
     return ElementQuality(
         n_inverted=int((vol6 <= 0).sum()),
         min_dihedral_deg=float(np.degrees(np.arccos(np.clip(cos.max(), -1, 1)))),
@@ -238,8 +248,8 @@ class PulledBack:
     """A remeshed chamber's tetrahedra in two configurations: ``deformed`` (the frame's) and
     ``reference`` (moved back onto the reference chamber by :func:`pull_back`). A voltage
     change taken between the two carries no remeshing noise: both are the same mesh.
-    ``dropped``: surface slivers left out of both (all four nodes on the dome, inverted by the
-    pull-back), ``dropped_volume`` their volume in the deformed configuration, m³."""
+    ``dropped``: surface slivers left out of both (all four nodes on the dome, flattened or
+    inverted by the pull-back), ``dropped_volume`` their volume in the deformed configuration, m³."""
 
     deformed: ChamberMesh
     reference: ChamberMesh
@@ -247,7 +257,7 @@ class PulledBack:
     dropped_volume: float
 
 
-def pull_back(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurface) -> PulledBack:
+def pull_back(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurface, min_quality_ratio: float = 0.05) -> PulledBack:
     """The tetrahedra of ``chamber``, a mesh of the chamber under the dome ``deformed`` (e.g. a
     remesh), moved onto the chamber under ``reference`` (same vertices and faces): each dome
     node to the point of ``reference`` with the barycentric coordinates of its closest point on
@@ -255,9 +265,12 @@ def pull_back(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurfac
     extension, as the morph does in the other direction.
 
     Where the dome's curvature changes sign (the rim of a dent), a tetrahedron with all four
-    nodes on the dome can invert going back; such surface slivers are dropped from both meshes
-    (they carry a negligible volume, reported). Raises :class:`MeshInversionError` when any
-    other element inverts, or a node would be left without elements."""
+    nodes on the dome flattens or inverts going back, and a near-flat element ruins a solve
+    (one at η ~ 1e-17 moved a 3 mm press's δV by ~1 mV); elements whose shape measure η falls
+    below ``min_quality_ratio`` × the remesh's smallest are dropped from both meshes when they
+    are such surface slivers (a negligible volume, reported). Raises
+    :class:`MeshInversionError` when any other element does, or a node would be left
+    without elements."""
     if np.array_equal(deformed.vertices, reference.vertices) and np.array_equal(deformed.faces, reference.faces):
         return PulledBack(chamber, chamber, 0, 0.0)  # no deformation: the change is exactly zero
     mesh = chamber.mesh
@@ -272,24 +285,36 @@ def pull_back(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurfac
         with factorize(K[:, free]) as solve:
             u[free] = solve(-(K[:, top] @ u[top]))
     back = TetMesh(mesh.nodes + u, mesh.tets)
-    inverted = back.signed_volumes <= 0
+    bad = shape_measure(back.nodes, mesh.tets) < min_quality_ratio * shape_measure(mesh.nodes, mesh.tets).min()
     on_dome = np.zeros(mesh.n_nodes, bool)
     on_dome[top] = True
-    sliver = inverted & on_dome[mesh.tets].all(axis=1)
-    if (inverted & ~sliver).any():
-        raise MeshInversionError(f"pull-back: {int((inverted & ~sliver).sum())} elements with interior or base nodes invert")
-    keep = ~sliver
+    sliver = bad & on_dome[mesh.tets].all(axis=1)
+    if (bad & ~sliver).any():
+        raise MeshInversionError(
+            f"pull-back: {int((bad & ~sliver).sum())} elements with interior or base nodes invert or fall below "
+            f"min_quality_ratio = {min_quality_ratio} x the remesh's smallest shape measure"
+        )
     if not sliver.any():
         return PulledBack(chamber, replace(chamber, mesh=back, key=f"{chamber.key}-pulled-back"), 0, 0.0)
-    if len(np.unique(mesh.tets[keep])) < mesh.n_nodes:
-        raise MeshInversionError(f"pull-back: dropping {int(sliver.sum())} inverted surface slivers would orphan nodes")
-    kept = TetMesh(mesh.nodes, mesh.tets[keep])
     return PulledBack(
-        replace(chamber, mesh=kept, key=f"{chamber.key}-without-slivers"),
-        replace(chamber, mesh=TetMesh(back.nodes, mesh.tets[keep]), key=f"{chamber.key}-pulled-back"),
+        _without(chamber, mesh.nodes, ~sliver, "without-slivers"),
+        _without(chamber, back.nodes, ~sliver, "pulled-back"),
         int(sliver.sum()),
         float(mesh.volumes[sliver].sum()),
     )
+
+
+def _without(chamber: ChamberMesh, nodes: np.ndarray, keep: np.ndarray, tag: str) -> ChamberMesh:
+    """``chamber`` at ``nodes`` with only the elements ``keep``; nodes no element uses any more
+    (dome nodes of dropped slivers) are removed and the electrodes renumbered."""
+    tets = chamber.mesh.tets[keep]
+    used = np.zeros(len(nodes), bool)
+    used[tets] = True
+    new = np.cumsum(used) - 1
+    electrodes = [replace(e, faces=new[e.faces]) for e in chamber.electrodes]
+    if any(not used[e.faces].all() for e in chamber.electrodes):
+        raise MeshInversionError("pull-back: a dropped surface sliver touches an electrode")
+    return replace(chamber, mesh=TetMesh(nodes[used], new[tets]), electrodes=electrodes, key=f"{chamber.key}-{tag}")
 
 
 @dataclass(frozen=True, eq=False)
