@@ -185,6 +185,26 @@ def test_pull_back_undoes_an_affine_squash_exactly(test_chamber, morpher):
     assert pb.reference.electrodes is squashed.electrodes
 
 
+def test_dropping_elements_renumbers_nodes_and_electrodes(test_chamber, morpher):
+    """Elements dropped from a chamber (pull_back's surface slivers) take the nodes only they
+    used with them; the electrodes
+    are renumbered onto the remaining nodes and keep their areas, and the mesh still solves."""
+    scene, ch = test_chamber
+    mesh = ch.mesh
+    # every element around the dome's highest node: that node is left without elements
+    apex = morpher.top[np.argmax(mesh.nodes[morpher.top, 2])]
+    lone = (mesh.tets == apex).any(axis=1)
+    out = morph._without(ch, mesh.nodes, ~lone, "test")
+    orphans = np.setdiff1d(np.arange(mesh.n_nodes), mesh.tets[~lone])
+    assert out.mesh.n_tets == mesh.n_tets - lone.sum() and out.mesh.n_nodes == mesh.n_nodes - len(orphans)
+    assert np.array_equal(np.unique(out.mesh.tets), np.arange(out.mesh.n_nodes))
+    for a, b in zip(out.electrodes, ch.electrodes):
+        np.testing.assert_array_equal(out.mesh.nodes[a.faces], mesh.nodes[b.faces])
+    protocol = skip_protocol(scene.electrodes.count, scene.drive.skip, scene.drive.current)
+    v = ForwardModel.from_chamber(out, scene).solve(scene.saline.conductivity).voltages(protocol)
+    assert np.all(np.isfinite(v))
+
+
 def test_auto_remeshes_when_the_quality_drops_below_the_threshold(test_chamber, morpher, monkeypatch):
     scene, ch = test_chamber
     calls = []
