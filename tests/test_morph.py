@@ -187,8 +187,8 @@ def test_pull_back_undoes_an_affine_squash_exactly(test_chamber, morpher):
 
 def test_dropping_elements_renumbers_nodes_and_electrodes(test_chamber, morpher):
     """Elements dropped from a chamber (pull_back's surface slivers) take the nodes only they
-    used with them; the electrodes
-    are renumbered onto the remaining nodes and keep their areas, and the mesh still solves."""
+    used with them; the electrodes are renumbered onto the remaining nodes and keep their
+    areas, and the mesh still solves."""
     scene, ch = test_chamber
     mesh = ch.mesh
     # every element around the dome's highest node: that node is left without elements
