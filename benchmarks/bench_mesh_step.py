@@ -213,8 +213,9 @@ def _markdown(meta: dict, r: dict) -> str:
     lines += [
         "",
         f"The prepared morph takes {prep * 1e3:.1f} ms per frame (budget 300 ms): {one / prep:.0f}× faster than the one-off",
-        f"morph and {remesh / prep:,.0f}× faster than a remesh. The prepared morpher reproduces the pre-change morph to",
-        f"{r.get('max_node_difference_m', float('nan')):.1e} m (largest node difference over the frames).",
+        f"morph and {remesh / prep:,.0f}× faster than a remesh. Largest node difference from the pre-change morph over the",
+        f"frames: {r.get('max_node_difference_m', float('nan')):.1e} m (the pre-change code took some dome nodes' displacement from the wrong",
+        "point of the dome: trimesh's closest-point query in metres skipped the apex's small triangles; fixed in 32f8d05).",
         "",
         "## Mesh-noise floor of each path (skip-8, 256 voltages against ground)",
         "",
@@ -286,6 +287,18 @@ def _markdown(meta: dict, r: dict) -> str:
         f"  smallest dihedral {w['morph_min_dihedral_deg']:.1f}°), differs by {w['difference_uV']:.0f} µV RMS, {w['difference_uV'] / fl:.2f}× the floor. The two",
         "  paths agree as far as one remesh's own noise lets a comparison tell (one remesh per row; the floor itself",
         "  varies from remesh to remesh); the morph's degraded elements do not show above that noise.",
+    ]
+    if pb is not None:
+        pp, pw, noise = pb["press"], pb["worst"], r["instrument_noise_uV"]
+        lines += [
+            "- Frames take a remesh's change on one mesh: the remesh against its own tetrahedra pulled back onto the",
+            "  reference chamber. Undeformed, the pull-back is the identity and the floor is exactly zero; the 2 mm press",
+            f"  then agrees with the morph to {pp['difference_uV']:.1f} µV RMS ({pp['difference_uV'] / noise:.1f}× the instrument noise), the 3 mm press over",
+            f"  the ring to {pw['difference_uV']:.1f} µV ({pw['difference_uV'] / noise:.1f}×), against {p['difference_uV']:.0f} and {w['difference_uV']:.0f} µV taken against the reference mesh. What",
+            "  remains is the two discretisations' difference of the same change (it shrinks with the mesh: compare",
+            "  mesh_step_benchmark.md, dataset preset, with mesh_step_benchmark_paper.md), not meshing noise.",
+        ]
+    lines += [
         f"- `deform_chamber`'s default `min_quality_ratio` = {r['default_min_quality_ratio']} falls back to a remesh only below the worst",
         f"  quality measured here; {n_morph} of {len(r['frame_quality'])} frames of the sequence stayed on the morph path in \"auto\".",
         "  At 5 mm (not in this sequence) the harmonic extension inverts elements, and \"auto\" remeshes.",
