@@ -258,7 +258,8 @@ def _markdown(path: Path, meta: dict[str, Any]) -> Path:
         f"Noise: {meta['params']['noise']['snr_db']:g} dB re the mean standing |V| = {s['mean_standing_V'] * 1e3:.2f} mV, "
         f"i.e. {s['noise_std_V'] * 1e6:.2f} µV per frame; the reference is the mean of {p['reference_frames']} frames. "
         "Mesh-noise floor: zero on the morph path (no deformation gives the reference mesh bit for bit); "
-        "a remeshed frame carries the remeshing floor (results/mesh_step_benchmark.md).",
+        "a remeshed frame takes its change between the remesh and its pull-back onto the reference chamber, "
+        "which cancels the remeshing floor (results/mesh_step_benchmark.md).",
         "",
         "## Per target",
         "",
