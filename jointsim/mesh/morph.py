@@ -268,9 +268,8 @@ def pull_back(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurfac
     nodes on the dome flattens or inverts going back, and a near-flat element ruins a solve
     (one at η ~ 1e-17 moved a 3 mm press's δV by ~1 mV); elements whose shape measure η falls
     below ``min_quality_ratio`` × the remesh's smallest are dropped from both meshes when they
-    are such surface slivers (a negligible volume, reported). Raises
-    :class:`MeshInversionError` when any other element does, or a node would be left
-    without elements."""
+    are such surface slivers (a negligible volume, reported; nodes only they used go with
+    them). Raises :class:`MeshInversionError` when any other element does."""
     if np.array_equal(deformed.vertices, reference.vertices) and np.array_equal(deformed.faces, reference.faces):
         return PulledBack(chamber, chamber, 0, 0.0)  # no deformation: the change is exactly zero
     mesh = chamber.mesh
@@ -310,10 +309,10 @@ def _without(chamber: ChamberMesh, nodes: np.ndarray, keep: np.ndarray, tag: str
     tets = chamber.mesh.tets[keep]
     used = np.zeros(len(nodes), bool)
     used[tets] = True
-    new = np.cumsum(used) - 1
-    electrodes = [replace(e, faces=new[e.faces]) for e in chamber.electrodes]
     if any(not used[e.faces].all() for e in chamber.electrodes):
         raise MeshInversionError("pull-back: a dropped surface sliver touches an electrode")
+    new = np.cumsum(used) - 1
+    electrodes = [replace(e, faces=new[e.faces]) for e in chamber.electrodes]
     return replace(chamber, mesh=TetMesh(nodes[used], new[tets]), electrodes=electrodes, key=f"{chamber.key}-{tag}")
 
 
