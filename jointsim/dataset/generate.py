@@ -253,7 +253,10 @@ class DatasetSetup:
                 depth_done = d
             with timed(t, "mesh"):
                 dc = pal.deform(pal.inner_surface(st), ref_dome)
-                p = patches if dc.path == "morph" else self._patches(dc.chamber.mesh, draw.jitter)
+                # a remesh's change is solved on its pull-back pair, whose node numbering may
+                # differ from the remesh's (dropped slivers): its own patches
+                solved = dc.chamber if dc.pulled_back is None else dc.pulled_back.deformed
+                p = patches if dc.path == "morph" else self._patches(solved.mesh, draw.jitter)
             with timed(t, "forward"):
                 clean = dc.change(lambda c: self._voltages(c, p, z, draw.conductivity), v_ref)
                 v = clean + rng.normal(0.0, std, clean.shape)

@@ -260,9 +260,9 @@ class PulledBack:
 def pull_back(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurface, min_quality_ratio: float = 0.05) -> PulledBack:
     """The tetrahedra of ``chamber``, a mesh of the chamber under the dome ``deformed`` (e.g. a
     remesh), moved onto the chamber under ``reference`` (same vertices and faces): each dome
-    node to the point of ``reference`` with the barycentric coordinates of its closest point on
-    ``deformed``, base nodes fixed (the electrodes do not move), interior nodes by harmonic
-    extension, as the morph does in the other direction.
+    node by the displacement ``reference − deformed`` at its closest point on ``deformed``
+    (barycentric), base nodes fixed (the electrodes do not move), interior nodes by harmonic
+    extension: the morph's rule, in the other direction.
 
     Where the dome's curvature changes sign (the rim of a dent), a tetrahedron with all four
     nodes on the dome flattens or inverts going back, and a near-flat element ruins a solve
@@ -270,13 +270,19 @@ def pull_back(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurfac
     below ``min_quality_ratio`` × the remesh's smallest are dropped from both meshes when they
     are such surface slivers (a negligible volume, reported; nodes only they used go with
     them). Raises :class:`MeshInversionError` when any other element does."""
-    if np.array_equal(deformed.vertices, reference.vertices) and np.array_equal(deformed.faces, reference.faces):
+    if not np.array_equal(deformed.faces, reference.faces) or np.shape(deformed.vertices) != np.shape(reference.vertices):
+        raise ValueError("pull_back: deformed and reference must have the same vertices and faces")
+    if np.array_equal(deformed.vertices, reference.vertices):
         return PulledBack(chamber, chamber, 0, 0.0)  # no deformation: the change is exactly zero
     mesh = chamber.mesh
     top = dome_nodes(mesh)
     tri, bary, _ = closest_on_surface(deformed.vertices, deformed.faces, mesh.nodes[top])
+    # each dome node moves with the surface displacement at its closest point, as the morph moves
+    # it the other way: a node off the surface (a chord of a coarser one, fTetWild's envelope)
+    # keeps its offset instead of being snapped onto the reference surface
+    back = np.asarray(reference.vertices, float) - np.asarray(deformed.vertices, float)
     u = np.zeros_like(mesh.nodes)
-    u[top] = np.einsum("na,nai->ni", bary, np.asarray(reference.vertices, float)[np.asarray(reference.faces)[tri]]) - mesh.nodes[top]
+    u[top] = np.einsum("na,nai->ni", bary, back[np.asarray(deformed.faces)[tri]])
     free = np.ones(mesh.n_nodes, bool)
     free[np.unique(mesh.boundary_faces)] = False
     if free.any() and np.abs(u).max() > 0:
