@@ -253,12 +253,14 @@ class DatasetSetup:
                 depth_done = d
             with timed(t, "mesh"):
                 dc = pal.deform(pal.inner_surface(st), ref_dome)
-                # a remesh's change is solved on its pull-back pair, whose node numbering may
-                # differ from the remesh's (dropped slivers): its own patches
-                solved = dc.chamber if dc.pulled_back is None else dc.pulled_back.deformed
-                p = patches if dc.path == "morph" else self._patches(solved.mesh, draw.jitter)
             with timed(t, "forward"):
-                clean = dc.change(lambda c: self._voltages(c, p, z, draw.conductivity), v_ref)
+                def volts(c: ChamberMesh) -> np.ndarray:
+                    # a remesh (or its pull-back pair, renumbered where slivers were dropped)
+                    # gets the patches of the mesh solved
+                    p = patches if dc.path == "morph" else self._patches(c.mesh, draw.jitter)
+                    return self._voltages(c, p, z, draw.conductivity)
+
+                clean = dc.change(volts, v_ref)
                 v = clean + rng.normal(0.0, std, clean.shape)
             dv = v - v_ref_measured
             with timed(t, "reconstruction"):

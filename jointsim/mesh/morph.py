@@ -275,22 +275,12 @@ def pull_back(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurfac
     if np.array_equal(deformed.vertices, reference.vertices):
         return PulledBack(chamber, chamber, 0, 0.0)  # no deformation: the change is exactly zero
     mesh = chamber.mesh
-    top = dome_nodes(mesh)
-    tri, bary, _ = closest_on_surface(deformed.vertices, deformed.faces, mesh.nodes[top])
-    # each dome node moves with the surface displacement at its closest point, as the morph moves
-    # it the other way: a node off the surface (a chord of a coarser one, fTetWild's envelope)
-    # keeps its offset instead of being snapped onto the reference surface
-    back = np.asarray(reference.vertices, float) - np.asarray(deformed.vertices, float)
-    u = np.zeros_like(mesh.nodes)
-    u[top] = np.einsum("na,nai->ni", bary, back[np.asarray(deformed.faces)[tri]])
-    free = np.ones(mesh.n_nodes, bool)
-    free[np.unique(mesh.boundary_faces)] = False
-    if free.any() and np.abs(u).max() > 0:
-        K = _stiffness(mesh)[free]
-        with factorize(K[:, free]) as solve:
-            u[free] = solve(-(K[:, top] @ u[top]))
-    back = TetMesh(mesh.nodes + u, mesh.tets)
-    bad = shape_measure(back.nodes, mesh.tets) < min_quality_ratio * shape_measure(mesh.nodes, mesh.tets).min()
+    # the morph from ``deformed`` to ``reference``: a dome node off the surface (a chord of a
+    # coarser one, fTetWild's envelope) keeps its offset instead of being snapped onto it
+    with ChamberMorpher(chamber, deformed, min_dihedral_deg=0.0) as morpher:
+        back = TetMesh(mesh.nodes + morpher.displacement(reference), mesh.tets)
+        top, smallest = morpher.top, morpher.reference_quality.min_shape
+    bad = shape_measure(back.nodes, mesh.tets) < min_quality_ratio * smallest
     on_dome = np.zeros(mesh.n_nodes, bool)
     on_dome[top] = True
     sliver = bad & on_dome[mesh.tets].all(axis=1)
