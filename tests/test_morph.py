@@ -189,7 +189,7 @@ def test_a_remeshed_press_gives_the_morphs_voltage_change(test_chamber, morpher)
     """The same 2 mm press through both paths. Taken against the reference mesh, the remesh's
     δV carries the remeshing floor (~35 % of this δV at the dataset resolution); taken on the
     remesh and its pull-back it is the same change up to the two discretisations' difference
-    (1.3 % at the dataset resolution, 1.1 % at the paper's: results/mesh_step_benchmark*.md),
+    (1.3 % at the dataset resolution, 1.0 % at the paper's: results/mesh_step_benchmark*.md),
     so 5 % at this coarse test resolution."""
     scene, ch = test_chamber
     deformed = _press(scene, (0.0, 0.0), 2e-3)
