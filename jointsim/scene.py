@@ -134,6 +134,8 @@ MESH_PRESETS: dict[str, dict[str, float]] = {
     "test": {"max_edge_mm": 3.0, "electrode_refinement": 4.0},
     "dataset": {"max_edge_mm": 2.2, "electrode_refinement": 6.0},
     "paper": {"max_edge_mm": 1.1, "electrode_refinement": 10.0},
+    # convergence checks only (~1 M tets; minutes per mesh and per solve on 2 cores)
+    "fine": {"max_edge_mm": 0.75, "electrode_refinement": 10.0},
 }
 
 

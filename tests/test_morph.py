@@ -204,6 +204,37 @@ def test_a_remeshed_press_gives_the_morphs_voltage_change(test_chamber, morpher)
     assert rms(dv_remesh - dv_morph) <= 0.05 * rms(dv_morph)
 
 
+def test_untangle_moves_interior_nodes_until_no_element_is_below_the_floor(test_chamber):
+    """Interior nodes pushed through a neighbour (inverting a few dozen elements, as a
+    harmonic pull-back can near a dent's rim) are moved until every element's shape measure
+    is above the floor. Only interior nodes move, and only near the tangle: a node moves in a
+    sweep only when an element of its star is still low, so within ``rounds`` (4) rings of
+    the tangled elements."""
+    _, ch = test_chamber
+    mesh = ch.mesh
+    interior = np.ones(mesh.n_nodes, bool)
+    interior[np.unique(mesh.boundary_faces)] = False
+    nodes = mesh.nodes.copy()
+    picked = np.random.default_rng(3).choice(np.flatnonzero(interior), 5, replace=False)
+    for i in picked:  # onto the far side of one of its neighbours
+        t = mesh.tets[(mesh.tets == i).any(axis=1)][0]
+        other = t[t != i][0]
+        nodes[i] = nodes[other] + 0.5 * (nodes[other] - nodes[i])
+    tangled = morph.shape_measure(nodes, mesh.tets)
+    assert (tangled < 0).sum() >= 5
+    floor = 0.1 * morph.shape_measure(mesh.nodes, mesh.tets).min()
+    out = morph.untangle(nodes, mesh.tets, interior, floor)
+    assert morph.shape_measure(out, mesh.tets).min() >= floor
+    moved = np.any(out != nodes, axis=1)
+    assert interior[moved].all() and moved[picked].all()
+    near = np.zeros(mesh.n_nodes, bool)
+    near[mesh.tets[tangled < floor]] = True
+    for _ in range(4):
+        near[mesh.tets[near[mesh.tets].any(axis=1)]] = True
+    assert near[moved].all()
+    np.testing.assert_array_equal(morph.untangle(nodes, mesh.tets, interior, -1.0), nodes)  # none below: unchanged
+
+
 def test_dropping_elements_renumbers_nodes_and_electrodes(test_chamber, morpher):
     """Elements dropped from a chamber (pull_back's surface slivers) take the nodes only they
     used with them; the electrodes are renumbered onto the remaining nodes and keep their

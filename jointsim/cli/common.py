@@ -8,14 +8,14 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-from ..scene import Scene, load_scene
+from ..scene import MESH_PRESETS, Scene, load_scene
 
 DEFAULT_SCENE = Path(__file__).resolve().parents[2] / "scenes" / "paper_sensor.toml"
 
 
 def add_scene_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", nargs="?", default=str(DEFAULT_SCENE), help="scene TOML file (default: the paper's sensor)")
-    p.add_argument("--mesh", dest="mesh_preset", choices=["test", "dataset", "paper"], help="override the scene's mesh preset")
+    p.add_argument("--mesh", dest="mesh_preset", choices=sorted(MESH_PRESETS), help="override the scene's mesh preset")
 
 
 def add_target_size_arguments(p: argparse.ArgumentParser, default: str) -> None:

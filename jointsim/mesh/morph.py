@@ -47,6 +47,7 @@ __all__ = [
     "morph_chamber",
     "dome_nodes",
     "closest_on_surface",
+    "untangle",
     "MODES",
 ]
 
@@ -280,10 +281,21 @@ def pull_back(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurfac
     with ChamberMorpher(chamber, deformed, min_dihedral_deg=0.0) as morpher:
         back = TetMesh(mesh.nodes + morpher.displacement(reference), mesh.tets)
         top, smallest = morpher.top, morpher.reference_quality.min_shape
-    bad = shape_measure(back.nodes, mesh.tets) < min_quality_ratio * smallest
+    floor = min_quality_ratio * smallest
+    eta = shape_measure(back.nodes, mesh.tets)
     on_dome = np.zeros(mesh.n_nodes, bool)
     on_dome[top] = True
-    sliver = bad & on_dome[mesh.tets].all(axis=1)
+    all_dome = on_dome[mesh.tets].all(axis=1)
+    if ((eta < floor) & ~all_dome).any():
+        # the harmonic extension tangled a few elements near the dent's rim: the pulled-back
+        # mesh only has to be a valid mesh of the reference chamber, so its interior nodes may
+        # move (the remesh's own stay where they are)
+        interior = np.ones(mesh.n_nodes, bool)
+        interior[np.unique(mesh.boundary_faces)] = False
+        back = TetMesh(untangle(back.nodes, mesh.tets, interior, floor), mesh.tets)
+        eta = shape_measure(back.nodes, mesh.tets)
+    bad = eta < floor
+    sliver = bad & all_dome
     if (bad & ~sliver).any():
         raise MeshInversionError(
             f"pull-back: {int((bad & ~sliver).sum())} elements with interior or base nodes invert or fall below "
@@ -297,6 +309,53 @@ def pull_back(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurfac
         int(sliver.sum()),
         float(mesh.volumes[sliver].sum()),
     )
+
+
+def untangle(nodes: np.ndarray, tets: np.ndarray, movable: np.ndarray, floor: float, rounds: int = 4) -> np.ndarray:
+    """``nodes`` (n, 3) with the ``movable`` (n,) bool nodes of the elements ``tets`` (m, 4)
+    whose shape measure η is below ``floor`` moved, one node at a time, to where the worst
+    element around it is best (a derivative-free search over the node's position: η is not
+    smooth at the minimum), for at most ``rounds`` sweeps or until none is below ``floor``.
+    Only the elements around a moved node change, and the worst of them never gets worse, so
+    the mesh's smallest η does not fall. A copy; ``nodes`` is not modified."""
+    from scipy.optimize import minimize
+
+    nodes = np.array(nodes, dtype=float)
+    star = sp.csr_matrix((np.ones(tets.size), (tets.ravel(), np.repeat(np.arange(len(tets)), 4))), shape=(len(nodes), len(tets)))
+    eta = shape_measure(nodes, tets)
+    for _ in range(rounds):
+        low = np.flatnonzero(eta < floor)
+        todo = np.unique(tets[low])
+        todo = todo[movable[todo]]
+        if not len(todo):
+            break
+        for i in todo:
+            els = star.indices[star.indptr[i]:star.indptr[i + 1]]
+            local = tets[els]
+            at_i = local == i
+            flat = np.arange(local.size).reshape(local.shape)
+
+            def worst(x: np.ndarray) -> float:
+                p = nodes[local]
+                p[at_i] = x
+                return -float(shape_measure(p.reshape(-1, 3), flat).min())
+
+            # start from the better of where it is and the centroid of its neighbours (inside
+            # the star for any reasonable one, where a node pushed through it is not)
+            ring = nodes[local][~at_i]
+            x0 = min((nodes[i].copy(), ring.mean(axis=0)), key=worst)
+            h = float(np.sqrt(np.mean(np.sum((ring - ring.mean(axis=0)) ** 2, axis=1))))
+            best = worst(x0)
+            for _ in range(2):  # a restart from where the first search stopped, with a fresh simplex
+                simplex = x0 + np.vstack([np.zeros(3), 0.25 * h * np.eye(3)])
+                res = minimize(worst, x0, method="Nelder-Mead",
+                               options={"initial_simplex": simplex, "xatol": 1e-4 * h, "fatol": 1e-6, "maxiter": 400})
+                if res.fun < best:
+                    x0, best = res.x, float(res.fun)
+            if best < worst(nodes[i]):
+                nodes[i] = x0
+                eta[els] = shape_measure(nodes, local)
+    return nodes
 
 
 def _without(chamber: ChamberMesh, nodes: np.ndarray, keep: np.ndarray, tag: str) -> ChamberMesh:
