@@ -158,6 +158,53 @@ def test_direct_regression_learns_and_evaluates_as_sklearn_does(stores):
     np.testing.assert_allclose(m.predict(Z) * reg.y_scale + reg.y_mean, reg(X[te]), rtol=1e-12, atol=1e-15)
 
 
+def test_noisy_features_draw_the_datasets_noise():
+    """Fresh draws of one clean sample: δV/V has the clean value as its mean and, per channel,
+    the standard deviation σ·√(1 + 1/n_ref)/|V_ref| of the sample's noise plus the averaged
+    reference's (σ from the SNR re the mean standing |V|). 4000 draws: the standard
+    deviation is estimated to ~1.1 % (1/√(2N)) per channel, so 6 % bounds all 256 channels."""
+    from jointsim.calibration.data import voltage_features
+    from jointsim.calibration.regression import noisy_features
+
+    rng = np.random.default_rng(5)
+    ref = 0.02 * (1.0 + 0.5 * rng.uniform(size=(1, 256)))
+    clean = ref * (1.0 - 1e-3 * rng.uniform(size=(1, 256)))
+    X = noisy_features(clean, ref, (60.0, 60.0), 50, 4000, np.random.default_rng(0))
+    assert X.shape == (4000, 256)
+    sigma = np.abs(ref).mean() / 10 ** (60.0 / 20)
+    want = sigma * np.sqrt(1 + 1 / 50) / ref[0]
+    np.testing.assert_allclose(X.std(axis=0), want, rtol=0.06)
+    np.testing.assert_allclose(X.mean(axis=0), voltage_features(clean, clean - ref)[0], atol=5 * want.max() / np.sqrt(4000))
+    # a reference of one frame is as noisy as the sample: √2
+    X1 = noisy_features(clean, ref, (60.0, 60.0), 1, 4000, np.random.default_rng(2))
+    np.testing.assert_allclose(X1.std(axis=0), sigma * np.sqrt(2) / ref[0], rtol=0.06)
+    # SNRs drawn over the range: more spread than at its quiet end alone
+    Y = noisy_features(clean, ref, (40.0, 60.0), 50, 200, np.random.default_rng(1))
+    assert np.all(Y.std(axis=0) > 2 * want)
+    assert noisy_features(clean, ref, (60.0, 60.0), 50, 0, rng).shape == (0, 256)
+
+
+def test_the_direct_regression_trains_on_fresh_noise_draws(stores):
+    """A store with clean voltages: the regression's training rows are the stored samples plus
+    ``noise_copies`` draws of each, over the training samples' SNR range; 0 copies trains on the
+    stored samples alone; the setting is validated."""
+    s = load_samples(stores["rigid"])
+    assert s.has_clean and s.reference_frames == 50
+    for copies in (0, 3):
+        cal = calibrate(s, Settings(regressor="ridge", noise_copies=copies), progress=lambda x: None)
+        t = cal.evaluation["regression"]["training"]
+        assert t["noise_copies"] == copies and t["rows"] == (copies + 1) * t["samples"]
+    lo, hi = t["snr_db"]
+    train = s.subset(~np.isin(s.group, cal.tables["regression"]["group"]))
+    assert (lo, hi) == (train.snr_db.min(), train.snr_db.max())
+    # each goal on position, depth and size is judged for both routes
+    routes = {g["route"] for g in cal.evaluation["goals"] if g["goal"] == "depth"}
+    assert routes == {"image", "direct (ridge)"}
+    for bad in (-1, 1001, 2.5):
+        with pytest.raises(ValueError, match="noise_copies"):
+            Settings(noise_copies=bad)
+
+
 def test_stiffness_of_rigid_targets_is_said_to_be_not_estimable(stores):
     cal = calibrate(load_samples(stores["rigid"]), Settings(regressor="ridge"), progress=lambda s: None)
     st = cal.evaluation["stiffness"]

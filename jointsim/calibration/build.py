@@ -20,7 +20,7 @@ from .com import fit_com_map
 from .curves import ALONG, LevelCurves, default_levels, fit_level_curves, value_at
 from .data import Samples, split_groups, voltage_features
 from .maps import VERSION_PACKAGES, CalibrationMap, _now
-from .regression import KINDS, OUTPUTS, fit_regressor, regression_targets
+from .regression import KINDS, OUTPUTS, fit_regressor, noisy_features, regression_targets
 from .stiffness import decades, fit_stiffness, force_sensitivity, group_features
 
 __all__ = ["Settings", "Calibration", "calibrate", "err_stats", "METRICS", "GOALS"]
@@ -44,8 +44,10 @@ GOALS = (
 class Settings:
     """What shapes a calibration besides the data: the held-out fraction and split ``seed``,
     the depth (m) and force (N) levels of the size curves (None: chosen from the data), the
-    direct regressor's kind, the goal SNR and the band around it (dB), and the cap on the
-    CoM map's fitted points."""
+    direct regressor's kind, the goal SNR and the band around it (dB), the cap on the
+    CoM map's fitted points, and ``noise_copies``: fresh noise draws of each training sample
+    added to the direct regression's training set (over the training samples' SNR range; 0:
+    the stored noisy samples only; ignored for a store without clean voltages)."""
 
     test_fraction: float = 0.2
     seed: int = 0
@@ -55,6 +57,7 @@ class Settings:
     goal_snr_db: float = 74.2
     snr_band_db: float = 4.0
     max_com_points: int = 3000
+    noise_copies: int = 30
 
     def __post_init__(self) -> None:
         if self.regressor not in KINDS:
@@ -65,6 +68,8 @@ class Settings:
                 raise ValueError(f"{name} = {v!r}: positive numbers, at least one")
         if not (self.snr_band_db > 0 and self.max_com_points >= 50):
             raise ValueError("snr_band_db must be > 0 dB and max_com_points >= 50")
+        if not (isinstance(self.noise_copies, int) and 0 <= self.noise_copies <= 1000):
+            raise ValueError(f"noise_copies = {self.noise_copies!r}: an integer in [0, 1000]")
 
 
 def err_stats(e: np.ndarray, scale: float = 1e3) -> dict[str, float]:
@@ -190,7 +195,15 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
     Xtr, Xte = voltage_features(train.voltages, train.dv), voltage_features(test.voltages, test.dv)
     Ttr = regression_targets(train.position, train.size, train.force_mag)
     Tte = regression_targets(test.position, test.size, test.force_mag)
-    regs = {k: fit_regressor(Xtr, Ttr, train.group, kind=k, seed=s.seed) for k in dict.fromkeys((s.regressor, "ridge"))}
+    Gtr = train.group
+    copies = s.noise_copies if train.has_clean else 0
+    snr_range = (float(train.snr_db.min()), float(train.snr_db.max()))
+    if copies:
+        rng = np.random.default_rng([s.seed, 7])
+        Xtr = np.vstack([Xtr, noisy_features(train.voltages_clean, train.reference_clean, snr_range,
+                                             train.reference_frames, copies, rng)])
+        Ttr, Gtr = np.tile(Ttr, (copies + 1, 1)), np.tile(Gtr, copies + 1)
+    regs = {k: fit_regressor(Xtr, Ttr, Gtr, kind=k, seed=s.seed) for k in dict.fromkeys((s.regressor, "ridge"))}
     direct = {k: reg(Xte) for k, reg in regs.items()}
     image = np.column_stack([pred, size_pred, np.full(len(test), np.nan)])
     comparison = {}
@@ -201,7 +214,12 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
                          **{k: err_stats((d[:, i] - Tte[:, i])[sel], scale) for k, d in direct.items()}}
         comparison[o]["image_goal_band"] = err_stats((image[:, i] - Tte[:, i])[sel & band], scale)
         comparison[o][f"{s.regressor}_goal_band"] = err_stats((direct[s.regressor][:, i] - Tte[:, i])[sel & band], scale)
+    d = direct[s.regressor] - Tte
+    direct_goal = {"com_xy": err_stats(np.hypot(d[:, 0], d[:, 1])[inside & band]), "depth": err_stats(d[band, 2]),
+                   "size": err_stats(d[in_range & band, 3])}
     ev["regression"] = {"kind": s.regressor, "comparison": comparison,
+                        "training": {"samples": len(train), "noise_copies": copies, "rows": int(len(Xtr)),
+                                     "snr_db": list(snr_range) if copies else None},
                         "note": "x, y over r <= 15 mm; diameter over 8-30 mm; errors in mm (force in mN)"}
     tables["regression"] = {"group": test.group, **{f"true_{o}": Tte[:, i] for i, o in enumerate(OUTPUTS)},
                             **{f"image_{o}": image[:, i] for i, o in enumerate(OUTPUTS)},
@@ -235,28 +253,35 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
                                         for lo, m in decades(Et)]
         tables["stiffness"] = {"group": ids, "true_modulus": Et, "predicted_modulus": E}
 
-    # goals
-    value = {"com_xy": ev["com"]["xy_r15_goal_band"], "depth": ev["com"]["depth_goal_band"],
-             "size": frame_rows[route]["range_goal_band"], "modulus": ev["stiffness"].get("relative")}
+    # goals, by each route that estimates the quantity: the image route (CoM map, size curve),
+    # the direct regression, and the stiffness model
+    routes = {"image": {"com_xy": ev["com"]["xy_r15_goal_band"], "depth": ev["com"]["depth_goal_band"],
+                        "size": frame_rows[route]["range_goal_band"]},
+              f"direct ({s.regressor})": direct_goal,
+              "stiffness model": {"modulus": ev["stiffness"].get("relative")}}
     goals = []
     for name, q, stat, limit in GOALS:
-        n = value[q]["n"] if value[q] is not None else 0
-        v = value[q][stat] if n else float("nan")
-        note = "" if np.isfinite(v) else ("not estimable: " + stiff.reason if q == "modulus" and not stiff.estimable
-                                          else "no held-out samples")
-        need = MIN_JUDGED.get(q, 20)
-        if np.isfinite(v) and n < need:
-            note = f"only {n} held-out {'presses' if q == 'modulus' else 'samples'} (< {need}): too few to judge"
-        goals.append({"goal": name, "statistic": stat, "limit": limit, "value": v, "n": int(n),
-                      "unit": "" if q == "modulus" else "mm",
-                      "met": bool(np.isfinite(v) and v <= limit and n >= need), "note": note})
+        for via, value in routes.items():
+            if q not in value:
+                continue
+            n = value[q]["n"] if value[q] is not None else 0
+            v = value[q][stat] if n else float("nan")
+            note = "" if np.isfinite(v) else ("not estimable: " + stiff.reason if q == "modulus" and not stiff.estimable
+                                              else "no held-out samples")
+            need = MIN_JUDGED.get(q, 20)
+            if np.isfinite(v) and n < need:
+                note = f"only {n} held-out {'presses' if q == 'modulus' else 'samples'} (< {need}): too few to judge"
+            goals.append({"goal": name, "route": via, "statistic": stat, "limit": limit, "value": v, "n": int(n),
+                          "unit": "" if q == "modulus" else "mm",
+                          "met": bool(np.isfinite(v) and v <= limit and n >= need), "note": note})
     ev["goals"] = goals
 
     cmap = CalibrationMap(
         fingerprint=samples.fingerprint, com=com_map, size=curves, size_route=route, regressor=regs[s.regressor],
         stiffness=stiff, source=samples.source,
         settings={"test_fraction": s.test_fraction, "seed": s.seed, "regressor": s.regressor,
-                  "goal_snr_db": s.goal_snr_db, "snr_band_db": s.snr_band_db, "max_com_points": s.max_com_points},
+                  "goal_snr_db": s.goal_snr_db, "snr_band_db": s.snr_band_db, "max_com_points": s.max_com_points,
+                  "noise_copies": s.noise_copies},
         evaluation=ev, versions=package_versions(VERSION_PACKAGES), created=_now(),
     )
     return Calibration(cmap, ev, tables)

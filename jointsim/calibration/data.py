@@ -41,7 +41,9 @@ class Samples:
     contact ``force`` (n, 3) N, ``snr_db``, ``voltages`` and ``dv`` (n, 256) V, reconstructed
     ``com`` (n, 3) m, ``sum_sigma``, image ``diameter`` m, the contact's centre of pressure
     ``contact_xy`` (n, 2) m (NaN from a version-1 store); ``fingerprint`` of the sensor and
-    ``source`` (path, data_sha256, n_records, seed)."""
+    ``source`` (path, data_sha256, n_records, seed). Where the store has them, the noise-free
+    ``voltages_clean`` and ``reference_clean`` (n, 256) V and the ``reference_frames`` averaged
+    into the measured reference: what fresh noise draws of the same samples need (else None)."""
 
     group: np.ndarray
     radius: np.ndarray
@@ -58,6 +60,9 @@ class Samples:
     contact_xy: np.ndarray
     fingerprint: dict[str, Any] = field(default_factory=dict)
     source: dict[str, Any] = field(default_factory=dict)
+    voltages_clean: np.ndarray | None = None
+    reference_clean: np.ndarray | None = None
+    reference_frames: int = 1
 
     def __len__(self) -> int:
         return len(self.group)
@@ -96,14 +101,22 @@ class Samples:
         return {"sum_sigma": self.sum_sigma, "diameter": self.diameter, "rms_dv": self.rms_dv,
                 "force": self.force_mag}[name]
 
+    @property
+    def has_clean(self) -> bool:
+        """Whether the noise-free voltages are there (fresh noise can be drawn)."""
+        return self.voltages_clean is not None and self.reference_clean is not None
+
     def subset(self, mask: np.ndarray) -> "Samples":
         """The samples where ``mask`` (n,) bool (or an index array) selects."""
         arrays = {k: getattr(self, k)[mask] for k in REQUIRED_ATTRS}
-        return Samples(**arrays, fingerprint=self.fingerprint, source=self.source)
+        clean = {k: None if getattr(self, k) is None else getattr(self, k)[mask] for k in CLEAN}
+        return Samples(**arrays, **clean, fingerprint=self.fingerprint, source=self.source,
+                       reference_frames=self.reference_frames)
 
 
 REQUIRED_ATTRS = ("group", "radius", "xy", "depth", "modulus", "force", "snr_db", "voltages", "dv", "com",
                   "sum_sigma", "diameter", "contact_xy")
+CLEAN = ("voltages_clean", "reference_clean")  # optional: fresh noise for the direct regression's training
 
 
 def _check_shapes(fields: Mapping[str, np.ndarray], n: int) -> None:
@@ -138,8 +151,9 @@ def load_samples(path: str | Path) -> Samples:
     if missing := [n for n in REQUIRED if n not in s.names]:
         raise ValueError(f"dataset {path}: missing field(s) {missing}; calibration needs {list(REQUIRED)}")
     extra = ["contact_centre"] if "contact_centre" in s.names else []
+    clean = list(CLEAN) if all(n in s.names for n in CLEAN) else []
     try:
-        rec = open_records(path, fields=list(REQUIRED) + extra)
+        rec = open_records(path, fields=list(REQUIRED) + extra + clean)
     except OSError as e:  # pragma: no cover - a damaged file
         raise ValueError(f"dataset {path}: cannot be read ({e})") from None
     f = {k: np.asarray(rec[k]) for k in REQUIRED}
@@ -154,7 +168,17 @@ def load_samples(path: str | Path) -> Samples:
         com=f["com"].astype(float), sum_sigma=f["sum_sigma"].astype(float), diameter=f["diameter"].astype(float),
         contact_xy=np.asarray(rec["contact_centre"], float)[:, :2] if extra else np.full((n, 2), np.nan),
         fingerprint=provenance_fingerprint(rec.provenance), source=source,
+        **{k: np.asarray(rec[k], float) for k in clean}, reference_frames=_reference_frames(rec.provenance),
     )
+
+
+def _reference_frames(provenance: Mapping[str, Any]) -> int:
+    """Frames averaged into each group's measured reference (the dataset spec's
+    ``reference_frames``; jointsim dataset's default when the provenance does not say)."""
+    from ..scene import DatasetSpec
+
+    spec = ((provenance.get("params") or {}).get("scene") or {}).get("dataset") or {}
+    return int(spec.get("reference_frames", DatasetSpec().reference_frames))
 
 
 def split_groups(group: np.ndarray, test_fraction: float = 0.2, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

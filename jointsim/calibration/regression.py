@@ -2,7 +2,8 @@
 without an image.
 
 Owns the features (δV relative to the measured reference, projected on its leading principal
-components and whitened) and two learned maps from them: a ridge (linear, the baseline) and a
+components and whitened), fresh noise draws of the training samples (:func:`noisy_features`),
+and two learned maps from them: a ridge (linear, the baseline) and a
 small multilayer perceptron (scikit-learn ``MLPRegressor``, ReLU). Both are stored as plain
 arrays (PCA mean and components, layer weights and biases, output scale) and evaluated by a
 NumPy forward pass: no pickle, identical predictions in a new process, and the same numbers
@@ -15,7 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["OUTPUTS", "KINDS", "DirectRegressor", "fit_regressor", "regression_targets"]
+from .data import voltage_features
+
+__all__ = ["OUTPUTS", "KINDS", "DirectRegressor", "fit_regressor", "regression_targets", "noisy_features"]
 
 OUTPUTS = ("x", "y", "depth", "diameter", "force")
 KINDS = ("mlp", "ridge")
@@ -59,6 +62,28 @@ class DirectRegressor:
         out = h * self.y_scale + self.y_mean
         out[~ok] = np.nan
         return out
+
+
+def noisy_features(voltages_clean: np.ndarray, reference_clean: np.ndarray, snr_db: tuple[float, float],
+                   reference_frames: int, copies: int, rng: np.random.Generator) -> np.ndarray:
+    """``copies`` fresh noisy versions of each sample, as features (copies·n, m), copy-major.
+    Each draws an SNR uniform in ``snr_db`` (lo, hi) dB and the instrument's white noise as
+    ``jointsim dataset`` does: standard deviation re the mean standing |V| of the sample's
+    ``reference_clean`` (n, m), on ``voltages_clean`` (n, m) once and on the reference averaged
+    over ``reference_frames``. The simulator's clean voltages are the expensive part of a
+    sample; noise draws are free, and a regressor that sees many of them learns to average the
+    noise instead of fitting the few draws the store holds."""
+    from ..eit.noise import noise_std
+
+    v, ref = np.asarray(voltages_clean, float), np.asarray(reference_clean, float)
+    out = []
+    for _ in range(copies):
+        snr = rng.uniform(snr_db[0], snr_db[1], len(v))
+        std = np.array([noise_std(r, q) for r, q in zip(ref, snr)])[:, None]
+        measured = v + std * rng.standard_normal(v.shape)
+        measured_ref = ref + std / np.sqrt(reference_frames) * rng.standard_normal(v.shape)
+        out.append(voltage_features(measured, measured - measured_ref))
+    return np.vstack(out) if out else np.empty((0, v.shape[1]))
 
 
 def _ridge_alpha(Z: np.ndarray, T: np.ndarray, groups: np.ndarray) -> float:

@@ -24,6 +24,17 @@ __all__ = ["write_report", "write_csv", "error_grid"]
 CELL = 2e-3  # m: the error map's bin size
 
 
+
+def _training_text(t: dict | None) -> str:
+    """One sentence on what the direct regression was trained on."""
+    if not t:
+        return ""
+    if not t["noise_copies"]:
+        return f"Trained on the {t['samples']} stored (noisy) training samples."
+    lo, hi = t["snr_db"]
+    return (f"Trained on the {t['samples']} stored training samples and {t['noise_copies']} fresh noise draws of each "
+            f"(SNR uniform {lo:.0f}–{hi:.0f} dB, as the dataset draws it): {t['rows']} rows.")
+
 def write_csv(path: Path, columns: Mapping[str, Sequence[Any]]) -> Path:
     """Columns of equal length as CSV (header = the names), floats with 6 significant digits."""
     names = list(columns)
@@ -157,11 +168,11 @@ def _markdown(cal: Calibration, command: str, files: list[str]) -> str:
         "Every error below is on the held-out presses only.", "",
         f"Goal figures use {ev['goal_band']}.", "",
         "## Goals (issue 6, at 74 dB)", "",
-        "| goal | statistic | limit | held-out value | met |", "|---|---|---|---|---|",
+        "| goal | route | statistic | limit | held-out value | met |", "|---|---|---|---|---|---|",
     ]
     for g in ev["goals"]:
         unit = g["unit"] or "(fraction)"
-        L.append(f"| {g['goal']} | {g['statistic']} | {g['limit']:g} {unit} | {_fmt(g['value'])} {g['unit']} | "
+        L.append(f"| {g['goal']} | {g.get('route', 'image')} | {g['statistic']} | {g['limit']:g} {unit} | {_fmt(g['value'])} {g['unit']} | "
                  f"{'yes' if g['met'] else 'no'}{(' — ' + g['note']) if g['note'] else ''} |")
     L += ["", "## CoM map (thin-plate spline, reconstructed CoM → x, y, depth)", "",
           "In x and y the spline fits the correction to the reconstructed CoM; each training point's smoothing is "
@@ -188,7 +199,7 @@ def _markdown(cal: Calibration, command: str, files: list[str]) -> str:
           "`size_curves_depth.png`, `size_curves_force.png`, `size_at_levels.csv`.", "",
           f"## Direct regression (256 δV/V → x, y, depth, diameter, |F|; {ev['regression']['kind']}) vs the image route", "",
           "Errors in mm (force in mN); x, y over r ≤ 15 mm, diameter over 8–30 mm. The image route is the CoM map "
-          "and the size curve; it has no force estimate.", "",
+          "and the size curve; it has no force estimate. " + _training_text(ev["regression"].get("training")), "",
           "| output | image route median / P95 | " + " | ".join(f"{k} median / P95" for k in ev["regression"]["comparison"]["x"]
                                                         if k in ("mlp", "ridge")) + " |",
           "|---|---|" + "---|" * len([k for k in ev["regression"]["comparison"]["x"] if k in ("mlp", "ridge")])]
@@ -240,7 +251,7 @@ def write_report(out: str | Path, cal: Calibration, command: str) -> list[Path]:
     written.append(write_csv(out / "regression_comparison.csv", {
         "output": list(OUTPUTS), **{f"{k}_{s}": [comp[o][k][s] for o in OUTPUTS] for k in kinds for s in ("n", "median", "p95")}}))
     g = cal.evaluation["goals"]
-    written.append(write_csv(out / "goals.csv", {k: [r[k] for r in g] for k in ("goal", "statistic", "limit", "value", "unit", "met")}))
+    written.append(write_csv(out / "goals.csv", {k: [r.get(k, "image" if k == "route" else None) for r in g] for k in ("goal", "route", "statistic", "limit", "value", "unit", "met")}))
     written += [_size_figure(out, cal, "depth"), _size_figure(out, cal, "force"), _com_figure(out, grids)]
     if "stiffness" in t:
         written.append(write_csv(out / "stiffness.csv", t["stiffness"]))

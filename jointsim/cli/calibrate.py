@@ -38,13 +38,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--goal-snr", type=float, default=74.2, help="SNR the goals are judged at, dB (default 74.2)")
     p.add_argument("--snr-band", type=float, default=4.0, help="held-out samples within this many dB of --goal-snr (default 4)")
     p.add_argument("--max-com-points", type=int, default=3000, help="CoM map points fitted at most (default 3000)")
+    p.add_argument("--noise-copies", type=int, default=30,
+                   help="fresh noise draws of each training sample for the direct regression, 0-1000 (default 30; 0: stored samples only)")
 
 
 def _command(args: argparse.Namespace) -> str:
     """The command line that reproduces this run (every setting spelled out)."""
     parts = ["jointsim calibrate", str(args.dataset), "--out", str(args.out), "--test-fraction", f"{args.test_fraction:g}",
              "--seed", str(args.seed), "--regressor", args.regressor, "--goal-snr", f"{args.goal_snr:g}",
-             "--snr-band", f"{args.snr_band:g}", "--max-com-points", str(args.max_com_points)]
+             "--snr-band", f"{args.snr_band:g}", "--max-com-points", str(args.max_com_points),
+             "--noise-copies", str(args.noise_copies)]
     parts += [f"--depths {args.depths}"] if args.depths else []
     parts += [f"--forces {args.forces}"] if args.forces else []
     return " ".join(shlex.quote(p) if " " not in p else p for p in parts)
@@ -60,10 +63,12 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--seed = {args.seed}: must be >= 0")
     if args.max_com_points < 50:
         raise ValueError(f"--max-com-points = {args.max_com_points}: must be >= 50")
+    if not 0 <= args.noise_copies <= 1000:
+        raise ValueError(f"--noise-copies = {args.noise_copies}: must be in [0, 1000]")
     settings = Settings(
         test_fraction=args.test_fraction, seed=args.seed, depth_levels=_levels(args.depths, "--depths", 1e-3),
         force_levels=_levels(args.forces, "--forces", 1.0), regressor=args.regressor, goal_snr_db=args.goal_snr,
-        snr_band_db=args.snr_band, max_com_points=args.max_com_points,
+        snr_band_db=args.snr_band, max_com_points=args.max_com_points, noise_copies=args.noise_copies,
     )
     command = _command(args)
     samples = load_samples(args.dataset)
@@ -73,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     files = write_report(args.out, cal, command)
     for g in cal.evaluation["goals"]:
         v = g["value"]
-        print(f"  goal {g['goal']} {g['statistic']} <= {g['limit']:g} {g['unit']}: "
+        print(f"  goal {g['goal']} ({g['route']}) {g['statistic']} <= {g['limit']:g} {g['unit']}: "
               f"{'n/a' if v != v else f'{v:.3g}'} -> {'met' if g['met'] else 'NOT met'}{(' (' + g['note'] + ')') if g['note'] else ''}")
     print(f"  wrote {path} and {len(files)} report files to {args.out}")
     return 0
