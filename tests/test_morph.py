@@ -255,7 +255,7 @@ def test_dropping_elements_renumbers_nodes_and_electrodes(test_chamber, morpher)
     assert np.all(np.isfinite(v))
 
 
-def test_auto_remeshes_when_the_quality_drops_below_the_threshold(test_chamber, morpher, monkeypatch):
+def test_auto_untangles_then_remeshes_when_the_quality_drops_below_the_threshold(test_chamber, morpher, monkeypatch):
     scene, ch = test_chamber
     calls = []
     monkeypatch.setattr(morph, "_remesh", lambda deformed, scene, use_cache: calls.append(deformed) or ch)
@@ -263,10 +263,22 @@ def test_auto_remeshes_when_the_quality_drops_below_the_threshold(test_chamber, 
     _, q = morpher.morph(deformed)
     ratio = q.min_shape / morpher.reference_quality.min_shape
     assert 0 < ratio < 1
-    below = deform_chamber(morpher, deformed, scene, min_quality_ratio=min(1.0, 1.01 * ratio))
+    plain = morpher(deformed)
+    # just below the threshold: the interior nodes of the worst elements are untangled first,
+    # and the morph passes (only interior nodes moved, the reason says so)
+    rescued = deform_chamber(morpher, deformed, scene, min_quality_ratio=min(1.0, 1.01 * ratio))
+    assert rescued.path == "morph" and "untangled" in rescued.reason and not calls
+    assert rescued.quality.min_shape >= 1.01 * q.min_shape
+    moved = np.any(rescued.chamber.mesh.nodes != plain.mesh.nodes, axis=1)
+    assert moved.any() and morpher._free[moved].all()
+    # where untangling cannot lift them (here: made to do nothing), the morph falls back on quality
+    with monkeypatch.context() as m:
+        m.setattr(morph, "untangle", lambda nodes, *a, **k: nodes)
+        below = deform_chamber(morpher, deformed, scene, min_quality_ratio=min(1.0, 1.01 * ratio))
     assert below.path == "remesh" and "quality" in below.reason and len(calls) == 1
     above = deform_chamber(morpher, deformed, scene, min_quality_ratio=0.99 * ratio)
-    assert above.path == "morph" and above.quality == q
+    assert above.path == "morph" and above.quality == q and "untangled" not in above.reason
+    np.testing.assert_array_equal(above.chamber.mesh.nodes, plain.mesh.nodes)  # a passing morph is untouched
     # "morph" never falls back on quality; "remesh" always remeshes
     assert deform_chamber(morpher, deformed, scene, "morph", min_quality_ratio=1.0).path == "morph"
     r = deform_chamber(morpher, deformed, scene, "remesh")

@@ -53,6 +53,7 @@ __all__ = [
 
 MODES = ("auto", "morph", "remesh")
 REGULAR_DIHEDRAL_DEG = float(np.degrees(np.arccos(1 / 3)))  # 70.53°, the largest possible minimum
+UNTANGLE_RATIO = 0.05  # untangling aims at least this × the reference's smallest shape measure
 
 
 class MeshInversionError(RuntimeError):
@@ -198,20 +199,31 @@ class ChamberMorpher:
             u[self._free] = self._solve(-(self._K_ft @ u_top))
         return u
 
-    def morph(self, deformed: DomeSurface) -> tuple[ChamberMesh, ElementQuality]:
-        """The morphed chamber and its :class:`ElementQuality`. Raises
-        :class:`MeshInversionError` when an element inverts or its smallest dihedral angle
-        falls below ``min_dihedral_deg``."""
+    def morph(self, deformed: DomeSurface, min_quality_ratio: float = 0.0) -> tuple[ChamberMesh, ElementQuality]:
+        """The morphed chamber and its :class:`ElementQuality`. Where the harmonic extension
+        inverts an element, takes a dihedral angle below ``min_dihedral_deg`` or a shape
+        measure below ``min_quality_ratio`` × the reference mesh's smallest, the interior nodes
+        of those elements are first moved by :func:`untangle` (the chamber's key then ends in
+        "-untangled"; a morph that passes is the harmonic extension, untouched). Raises
+        :class:`MeshInversionError` when an element is still inverted or below
+        ``min_dihedral_deg``."""
         mesh = self.chamber.mesh
         nodes = mesh.nodes + self.displacement(deformed)
         q = element_quality(nodes, mesh.tets)
+        floor = self.reference_quality.min_shape
+        untangled = q.n_inverted or q.min_dihedral_deg < self.min_dihedral_deg or q.min_shape < min_quality_ratio * floor
+        if untangled:
+            # near the surface a deep dent can fold a thin element the harmonic extension made
+            # (on the finest meshes first): its interior nodes can still be moved
+            nodes = untangle(nodes, mesh.tets, self._free, max(min_quality_ratio, UNTANGLE_RATIO) * floor)
+            q = element_quality(nodes, mesh.tets)
         if q.n_inverted or q.min_dihedral_deg < self.min_dihedral_deg:
             raise MeshInversionError(
                 f"morphed chamber mesh: {q.n_inverted} inverted elements, smallest dihedral angle "
                 f"{q.min_dihedral_deg:.2f} deg (limit min_dihedral_deg = {self.min_dihedral_deg} deg); "
                 "remesh this deformation"
             )
-        key = f"{self.chamber.key}-morph-{_digest(deformed.vertices)}"
+        key = f"{self.chamber.key}-morph-{_digest(deformed.vertices)}{'-untangled' if untangled else ''}"
         return replace(self.chamber, mesh=TetMesh(nodes, mesh.tets), key=key), q
 
     def __call__(self, deformed: DomeSurface) -> ChamberMesh:
@@ -311,13 +323,16 @@ def pull_back(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurfac
     )
 
 
-def untangle(nodes: np.ndarray, tets: np.ndarray, movable: np.ndarray, floor: float, rounds: int = 4) -> np.ndarray:
+def untangle(nodes: np.ndarray, tets: np.ndarray, movable: np.ndarray, floor: float, rounds: int = 4,
+             max_nodes: int = 500) -> np.ndarray:
     """``nodes`` (n, 3) with the ``movable`` (n,) bool nodes of the elements ``tets`` (m, 4)
     whose shape measure η is below ``floor`` moved, one node at a time, to where the worst
     element around it is best (a derivative-free search over the node's position: η is not
     smooth at the minimum), for at most ``rounds`` sweeps or until none is below ``floor``.
     Only the elements around a moved node change, and the worst of them never gets worse, so
-    the mesh's smallest η does not fall. A copy; ``nodes`` is not modified."""
+    the mesh's smallest η does not fall. A tangle of more than ``max_nodes`` movable nodes is
+    not a local defect (a folded mesh): ``nodes`` come back unchanged, at no cost. A copy;
+    ``nodes`` is not modified."""
     from scipy.optimize import minimize
 
     nodes = np.array(nodes, dtype=float)
@@ -327,7 +342,7 @@ def untangle(nodes: np.ndarray, tets: np.ndarray, movable: np.ndarray, floor: fl
         low = np.flatnonzero(eta < floor)
         todo = np.unique(tets[low])
         todo = todo[movable[todo]]
-        if not len(todo):
+        if not len(todo) or len(todo) > max_nodes:
             break
         for i in todo:
             els = star.indices[star.indptr[i]:star.indptr[i + 1]]
@@ -439,13 +454,14 @@ def deform_chamber(
     try:
         ref = morpher.reference_quality
         try:
-            chamber, q = morpher.morph(deformed)
+            chamber, q = morpher.morph(deformed, min_quality_ratio if mode == "auto" else 0.0)
         except MeshInversionError as err:
             if mode == "morph":
                 raise
             return _remeshed(deformed, reference, scene, use_cache, f"morph failed: {err}")
         limit = min_quality_ratio * ref.min_shape
-        summary = f"min shape {q.min_shape:.3g} (reference {ref.min_shape:.3g}), min dihedral {q.min_dihedral_deg:.1f} deg"
+        summary = (f"min shape {q.min_shape:.3g} (reference {ref.min_shape:.3g}), min dihedral {q.min_dihedral_deg:.1f} deg"
+                   + ("; interior nodes untangled" if chamber.key.endswith("-untangled") else ""))
         if mode == "auto" and q.min_shape < limit:
             return _remeshed(
                 deformed, reference, scene, use_cache,

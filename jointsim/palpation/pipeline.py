@@ -387,9 +387,10 @@ class Palpation:
         why = "mesh_update = 'remesh'"
         if mode != "remesh":
             try:
-                chamber, q = self.morpher.morph(dome)
+                chamber, q = self.morpher.morph(dome, MIN_QUALITY_RATIO if mode == "auto" else 0.0)
                 if mode == "morph" or q.min_shape >= MIN_QUALITY_RATIO * self._reference_min_shape:
-                    return DeformedChamber(chamber, "morph", f"morphed: min shape {q.min_shape:.3g}", q)
+                    untangled = "; interior nodes untangled" if chamber.key.endswith("-untangled") else ""
+                    return DeformedChamber(chamber, "morph", f"morphed: min shape {q.min_shape:.3g}{untangled}", q)
                 why = f"morph quality {q.min_shape:.3g} below {MIN_QUALITY_RATIO} x reference {self._reference_min_shape:.3g}"
             except MeshInversionError as e:
                 if mode == "morph":
