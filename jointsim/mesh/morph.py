@@ -211,7 +211,7 @@ class ChamberMorpher:
         nodes = mesh.nodes + self.displacement(deformed)
         q = element_quality(nodes, mesh.tets)
         floor = self.reference_quality.min_shape
-        untangled = q.n_inverted or q.min_dihedral_deg < self.min_dihedral_deg or q.min_shape < min_quality_ratio * floor
+        untangled = bool(q.n_inverted or q.min_dihedral_deg < self.min_dihedral_deg or q.min_shape < min_quality_ratio * floor)
         if untangled:
             # near the surface a deep dent can fold a thin element the harmonic extension made
             # (on the finest meshes first): its interior nodes can still be moved
@@ -330,9 +330,9 @@ def untangle(nodes: np.ndarray, tets: np.ndarray, movable: np.ndarray, floor: fl
     element around it is best (a derivative-free search over the node's position: η is not
     smooth at the minimum), for at most ``rounds`` sweeps or until none is below ``floor``.
     Only the elements around a moved node change, and the worst of them never gets worse, so
-    the mesh's smallest η does not fall. A tangle of more than ``max_nodes`` movable nodes is
-    not a local defect (a folded mesh): ``nodes`` come back unchanged, at no cost. A copy;
-    ``nodes`` is not modified."""
+    the mesh's smallest η does not fall. A sweep with more than ``max_nodes`` movable nodes
+    to move is not repairing a local defect (a folded mesh) and is not run: before the first
+    sweep, ``nodes`` come back unchanged, at no cost. A copy; ``nodes`` is not modified."""
     from scipy.optimize import minimize
 
     nodes = np.array(nodes, dtype=float)
