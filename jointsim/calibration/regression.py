@@ -70,7 +70,8 @@ def noisy_features(voltages_clean: np.ndarray, reference_clean: np.ndarray, snr_
     Each draws an SNR uniform in ``snr_db`` (lo, hi) dB and the instrument's white noise as
     ``jointsim dataset`` does: standard deviation re the mean standing |V| of the sample's
     ``reference_clean`` (n, m), on ``voltages_clean`` (n, m) once and on the reference averaged
-    over ``reference_frames``. The simulator's clean voltages are the expensive part of a
+    over ``reference_frames`` (drawn per sample here; a dataset draws one reference per press,
+    shared by its samples). The simulator's clean voltages are the expensive part of a
     sample; noise draws are free, and a regressor that sees many of them learns to average the
     noise instead of fitting the few draws the store holds."""
     from ..eit.noise import noise_std
