@@ -292,7 +292,7 @@ def pull_back(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurfac
     # coarser one, fTetWild's envelope) keeps its offset instead of being snapped onto it
     with ChamberMorpher(chamber, deformed, min_dihedral_deg=0.0) as morpher:
         back = TetMesh(mesh.nodes + morpher.displacement(reference), mesh.tets)
-        top, smallest = morpher.top, morpher.reference_quality.min_shape
+        top, interior, smallest = morpher.top, morpher._free, morpher.reference_quality.min_shape
     floor = min_quality_ratio * smallest
     eta = shape_measure(back.nodes, mesh.tets)
     on_dome = np.zeros(mesh.n_nodes, bool)
@@ -302,8 +302,6 @@ def pull_back(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurfac
         # the harmonic extension tangled a few elements near the dent's rim: the pulled-back
         # mesh only has to be a valid mesh of the reference chamber, so its interior nodes may
         # move (the remesh's own stay where they are)
-        interior = np.ones(mesh.n_nodes, bool)
-        interior[np.unique(mesh.boundary_faces)] = False
         back = TetMesh(untangle(back.nodes, mesh.tets, interior, floor), mesh.tets)
         eta = shape_measure(back.nodes, mesh.tets)
     bad = eta < floor
