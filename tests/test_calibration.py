@@ -8,6 +8,7 @@ import json
 import subprocess
 import sys
 import tomllib
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -194,7 +195,16 @@ def test_the_direct_regression_trains_on_fresh_noise_draws(stores):
         cal = calibrate(s, Settings(regressor="ridge", noise_copies=copies), progress=lambda x: None)
         t = cal.evaluation["regression"]["training"]
         assert t["noise_copies"] == copies and t["rows"] == (copies + 1) * t["samples"]
+        assert t["symmetries"] == 0  # a synthetic store's voltages are not a chamber's: not moved
     lo, hi = t["snr_db"]
+    # a simulated store's noise draws are moved about the ring by the 32 symmetries of its
+    # 16 electrodes and skip protocol (as its fingerprint records them)
+    simulated = replace(s, source={**s.source, "synthetic": False})
+    t = calibrate(simulated, Settings(regressor="ridge", noise_copies=3), progress=lambda x: None).evaluation["regression"]["training"]
+    assert t["symmetries"] == 32 and t["rows"] == 4 * t["samples"]
+    t = calibrate(simulated, Settings(regressor="ridge", noise_copies=3, symmetry=False),
+                  progress=lambda x: None).evaluation["regression"]["training"]
+    assert t["symmetries"] == 0
     train = s.subset(~np.isin(s.group, cal.tables["regression"]["group"]))
     assert (lo, hi) == (train.snr_db.min(), train.snr_db.max())
     # each goal on position, depth and size is judged for both routes
@@ -253,8 +263,6 @@ def test_map_refuses_another_sensor_and_accepts_its_own(built):
     with pytest.raises(SceneMismatchError, match=r"mesh\.preset"):
         built.map.check_scene(scene.with_mesh_preset("test"))
     # values a dataset randomises (saline, noise) do not make another sensor
-    from dataclasses import replace
-
     built.map.check_scene(replace(scene, noise=replace(scene.noise, snr_db=60.0)))
 
 

@@ -10,7 +10,7 @@ import pytest
 
 from jointsim.eit.forward import ForwardModel
 from jointsim.eit.jacobian import jacobian
-from jointsim.eit.protocol import Protocol, skip_pairs, skip_protocol
+from jointsim.eit.protocol import Protocol, ring_symmetries, skip_pairs, skip_protocol
 from jointsim.mesh.electrodes import disc_patches, plane_face_patch
 from jointsim.mesh.shapes import box_mesh, cylinder_mesh
 from jointsim.reconstruction.grid import VoxelGrid, element_voxel_map
@@ -151,6 +151,41 @@ def test_protocol_semantics():
     np.testing.assert_array_equal(adj.meas[0][0, :2], [1, -1])
     with pytest.raises(ValueError, match="skip"):
         skip_pairs(16, 15)
+
+
+def test_ring_symmetries_form_the_dihedral_group_of_the_protocol():
+    """A skip protocol on 16 electrodes is invariant under the 32 turns and mirrors of the
+    ring: the identity first, turns with no sign change, mirrors reversing every injection
+    (electrode-to-ground measurements: sign −1; adjacent pairs reversed as well: +1), and two
+    symmetries compose to a third (measurement maps and point moves alike)."""
+    p = skip_protocol(16, 8)
+    sym = ring_symmetries(p, first_angle_deg=30.0)
+    assert len(sym) == 32 and (sym[0].turn, sym[0].mirror) == (0, False)
+    np.testing.assert_array_equal(sym[0].source, np.arange(256))
+    for g in sym:
+        assert sorted(g.source.tolist()) == list(range(256))  # a permutation
+        assert (g.sign == (-1.0 if g.mirror else 1.0)).all()
+    # turn 1: injection i' (i', i'+9) is the original injection i' − 1 seen one pitch on
+    t1 = next(g for g in sym if g.turn == 1 and not g.mirror)
+    assert t1.source.reshape(16, 16)[5, 7] == 4 * 16 + 6
+    np.testing.assert_allclose(t1.positions(np.array([1.0, 0.0])), [np.cos(np.pi / 8), np.sin(np.pi / 8)], atol=1e-15)
+    # the mirror keeps the line through electrode 0 (at 30°) and reverses its normal
+    m0 = next(g for g in sym if g.turn == 0 and g.mirror)
+    u = np.array([np.cos(np.pi / 6), np.sin(np.pi / 6)])
+    np.testing.assert_allclose(m0.positions(u), u, atol=1e-15)
+    np.testing.assert_allclose(m0.positions(np.array([-u[1], u[0]])), [u[1], -u[0]], atol=1e-15)
+    v = np.random.default_rng(0).normal(size=256)
+    xy = np.array([0.3, -0.7])
+    for a, b in [(sym[3], sym[20]), (sym[17], sym[25])]:
+        ab = a.frames(b.frames(v))  # b, then a
+        c = [g for g in sym if np.array_equal(g.frames(v), ab)]
+        assert len(c) == 1 and np.allclose(c[0].positions(xy), a.positions(b.positions(xy)), atol=1e-15)
+    adj = ring_symmetries(skip_protocol(16, 8, measure="adjacent"))
+    assert len(adj) == 32 and all((g.sign == 1.0).all() for g in adj if g.mirror)
+    # doubling injection 3's current (3 → 12) leaves the identity and the mirror that swaps
+    # electrodes 3 and 12 (reversing that injection onto itself)
+    odd = Protocol(p.stim * np.where(np.arange(16) == 3, 2.0, 1.0)[:, None], p.meas)
+    assert [(g.turn, g.mirror) for g in ring_symmetries(odd)] == [(0, False), (15, True)]
 
 
 def test_skip_n_and_skip_14_minus_n_carry_the_same_information(chamber_fields):

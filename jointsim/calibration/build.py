@@ -15,12 +15,13 @@ from typing import Any
 
 import numpy as np
 
+from ..eit.protocol import RingSymmetry, ring_symmetries, skip_protocol
 from ..io.store import package_versions
 from .com import fit_com_map
 from .curves import ALONG, LevelCurves, default_levels, fit_level_curves, value_at
 from .data import Samples, split_groups, voltage_features
 from .maps import VERSION_PACKAGES, CalibrationMap, _now
-from .regression import KINDS, OUTPUTS, fit_regressor, noisy_features, regression_targets
+from .regression import KINDS, OUTPUTS, fit_regressor, moved_by_symmetry, noisy_features, regression_targets
 from .stiffness import decades, fit_stiffness, force_sensitivity, group_features
 
 __all__ = ["Settings", "Calibration", "calibrate", "err_stats", "METRICS", "GOALS"]
@@ -47,7 +48,9 @@ class Settings:
     direct regressor's kind, the goal SNR and the band around it (dB), the cap on the
     CoM map's fitted points, and ``noise_copies``: fresh noise draws of each training sample
     added to the direct regression's training set (over the training samples' SNR range; 0:
-    the stored noisy samples only; ignored for a store without clean voltages)."""
+    the stored noisy samples only; ignored for a store without clean voltages), each moved
+    about the ring by one of the sensor's symmetries when ``symmetry`` (a simulated store's
+    only: a synthetic one's voltages are not a chamber's)."""
 
     test_fraction: float = 0.2
     seed: int = 0
@@ -58,6 +61,7 @@ class Settings:
     snr_band_db: float = 4.0
     max_com_points: int = 3000
     noise_copies: int = 30
+    symmetry: bool = True
 
     def __post_init__(self) -> None:
         if self.regressor not in KINDS:
@@ -89,6 +93,19 @@ class Calibration:
     map: CalibrationMap
     evaluation: dict[str, Any]
     tables: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+
+
+def _ring_symmetries(samples: Samples, n_meas: int) -> list[RingSymmetry]:
+    """The electrode ring's symmetries under the store's drive protocol (from its sensor
+    fingerprint); none for a synthetic store or one whose frames are not that protocol's."""
+    if samples.source.get("synthetic"):
+        return []
+    fp = samples.fingerprint
+    try:
+        protocol = skip_protocol(int(fp["electrodes.count"]), int(fp["drive.skip"]), float(fp["drive.current"]))
+    except (KeyError, TypeError, ValueError):
+        return []
+    return ring_symmetries(protocol, float(fp["electrodes.first_angle_deg"])) if protocol.n_meas == n_meas else []
 
 
 def _goal_band(test: Samples, s: Settings) -> tuple[np.ndarray, str]:
@@ -203,6 +220,10 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
         Xtr = np.vstack([Xtr, noisy_features(train.voltages_clean, train.reference_clean, snr_range,
                                              train.reference_frames, copies, rng)])
         Ttr, Gtr = np.tile(Ttr, (copies + 1, 1)), np.tile(Gtr, copies + 1)
+    symmetries = _ring_symmetries(train, Xtr.shape[1]) if s.symmetry and copies else []
+    if symmetries:
+        fresh = slice(len(train), None)  # the noise copies; the stored samples stay where they were pressed
+        Xtr[fresh], Ttr[fresh] = moved_by_symmetry(Xtr[fresh], Ttr[fresh], symmetries, rng)
     regs = {k: fit_regressor(Xtr, Ttr, Gtr, kind=k, seed=s.seed) for k in dict.fromkeys((s.regressor, "ridge"))}
     direct = {k: reg(Xte) for k, reg in regs.items()}
     image = np.column_stack([pred, size_pred, np.full(len(test), np.nan)])
@@ -219,6 +240,7 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
                    "size": err_stats(d[in_range & band, 3])}
     ev["regression"] = {"kind": s.regressor, "comparison": comparison,
                         "training": {"samples": len(train), "noise_copies": copies, "rows": int(len(Xtr)),
+                                     "symmetries": len(symmetries),
                                      "snr_db": list(snr_range) if copies else None},
                         "note": "x, y over r <= 15 mm; diameter over 8-30 mm; errors in mm (force in mN)"}
     tables["regression"] = {"group": test.group, **{f"true_{o}": Tte[:, i] for i, o in enumerate(OUTPUTS)},
@@ -281,7 +303,7 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
         stiffness=stiff, source=samples.source,
         settings={"test_fraction": s.test_fraction, "seed": s.seed, "regressor": s.regressor,
                   "goal_snr_db": s.goal_snr_db, "snr_band_db": s.snr_band_db, "max_com_points": s.max_com_points,
-                  "noise_copies": s.noise_copies},
+                  "noise_copies": s.noise_copies, "symmetry": s.symmetry},
         evaluation=ev, versions=package_versions(VERSION_PACKAGES), created=_now(),
     )
     return Calibration(cmap, ev, tables)

@@ -2,8 +2,8 @@
 without an image.
 
 Owns the features (δV relative to the measured reference, projected on its leading principal
-components and whitened), fresh noise draws of the training samples (:func:`noisy_features`),
-and two learned maps from them: a ridge (linear, the baseline) and a
+components and whitened), fresh noise draws of the training samples (:func:`noisy_features`)
+moved about the ring by the sensor's symmetries (:func:`moved_by_symmetry`), and two learned maps from them: a ridge (linear, the baseline) and a
 small multilayer perceptron (scikit-learn ``MLPRegressor``, ReLU). Both are stored as plain
 arrays (PCA mean and components, layer weights and biases, output scale) and evaluated by a
 NumPy forward pass: no pickle, identical predictions in a new process, and the same numbers
@@ -12,13 +12,16 @@ scikit-learn's ``predict`` gives (tested).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from ..eit.protocol import RingSymmetry
 from .data import voltage_features
 
-__all__ = ["OUTPUTS", "KINDS", "DirectRegressor", "fit_regressor", "regression_targets", "noisy_features"]
+__all__ = ["OUTPUTS", "KINDS", "DirectRegressor", "fit_regressor", "regression_targets", "noisy_features",
+           "moved_by_symmetry"]
 
 OUTPUTS = ("x", "y", "depth", "diameter", "force")
 KINDS = ("mlp", "ridge")
@@ -85,6 +88,22 @@ def noisy_features(voltages_clean: np.ndarray, reference_clean: np.ndarray, snr_
         measured_ref = ref + std / np.sqrt(reference_frames) * rng.standard_normal(v.shape)
         out.append(voltage_features(measured, measured - measured_ref))
     return np.vstack(out) if out else np.empty((0, v.shape[1]))
+
+
+def moved_by_symmetry(features: np.ndarray, targets: np.ndarray, symmetries: Sequence[RingSymmetry],
+                      rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Each sample (features (n, m), targets (n, 5)) moved by one of ``symmetries`` drawn
+    uniformly: its features read through the symmetry's measurement map, its contact (x, y)
+    moved with it; depth, size and force stay. A press turned by an electrode pitch, or
+    mirrored, is a press the sensor could have seen; the dataset holds each at one place only.
+    The features are ratios δV/V of the same measurement, so a reversed pair's sign cancels."""
+    X, T = np.array(features, float), np.array(targets, float)
+    pick = rng.integers(0, len(symmetries), len(X))
+    for i, g in enumerate(symmetries):
+        rows = np.flatnonzero(pick == i)
+        X[rows] = X[rows][:, g.source]
+        T[rows, :2] = g.positions(T[rows, :2])
+    return X, T
 
 
 def _ridge_alpha(Z: np.ndarray, T: np.ndarray, groups: np.ndarray) -> float:

@@ -40,6 +40,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-com-points", type=int, default=3000, help="CoM map points fitted at most (default 3000)")
     p.add_argument("--noise-copies", type=int, default=30,
                    help="fresh noise draws of each training sample for the direct regression, 0-1000 (default 30; 0: stored samples only)")
+    p.add_argument("--no-symmetry", dest="symmetry", action="store_false",
+                   help="do not move the noise draws about the electrode ring by the sensor's symmetries (default: moved)")
 
 
 def _command(args: argparse.Namespace) -> str:
@@ -47,7 +49,7 @@ def _command(args: argparse.Namespace) -> str:
     parts = ["jointsim calibrate", str(args.dataset), "--out", str(args.out), "--test-fraction", f"{args.test_fraction:g}",
              "--seed", str(args.seed), "--regressor", args.regressor, "--goal-snr", f"{args.goal_snr:g}",
              "--snr-band", f"{args.snr_band:g}", "--max-com-points", str(args.max_com_points),
-             "--noise-copies", str(args.noise_copies)]
+             "--noise-copies", str(args.noise_copies)] + ([] if args.symmetry else ["--no-symmetry"])
     parts += [f"--depths {args.depths}"] if args.depths else []
     parts += [f"--forces {args.forces}"] if args.forces else []
     return " ".join(shlex.quote(p) if " " not in p else p for p in parts)
@@ -69,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
         test_fraction=args.test_fraction, seed=args.seed, depth_levels=_levels(args.depths, "--depths", 1e-3),
         force_levels=_levels(args.forces, "--forces", 1.0), regressor=args.regressor, goal_snr_db=args.goal_snr,
         snr_band_db=args.snr_band, max_com_points=args.max_com_points, noise_copies=args.noise_copies,
+        symmetry=args.symmetry,
     )
     command = _command(args)
     samples = load_samples(args.dataset)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Protocol", "skip_protocol", "skip_pairs"]
+__all__ = ["Protocol", "RingSymmetry", "ring_symmetries", "skip_protocol", "skip_pairs"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -82,3 +82,76 @@ def skip_protocol(n_el: int = 16, skip: int = 8, current: float = 120e-6, measur
     else:
         raise ValueError(f"measure = {measure!r}: allowed values are 'ground', 'adjacent'")
     return Protocol(stim, m)
+
+
+@dataclass(frozen=True, eq=False)
+class RingSymmetry:
+    """A symmetry of the electrode ring that maps a protocol onto itself: the press turned by
+    ``turn`` electrode pitches anticlockwise about the ring's centre, after a mirror in the line
+    through electrode 0 when ``mirror``. The frame of the moved press is
+    ``sign * frame[source]`` (:meth:`frames`), its position ``matrix @ xy`` (:meth:`positions`);
+    exact for an axisymmetric chamber, up to the mesh's asymmetry for a real one."""
+
+    turn: int
+    mirror: bool
+    source: np.ndarray  # (n_meas,) measurement of the original frame each one reads
+    sign: np.ndarray  # (n_meas,) ±1: a reversed injection or measurement pair
+    matrix: np.ndarray  # (2, 2) the move of a point in the base plane
+
+    def frames(self, v: np.ndarray) -> np.ndarray:
+        """Frames (..., n_meas) of the presses moved by this symmetry."""
+        return self.sign * np.asarray(v)[..., self.source]
+
+    def positions(self, xy: np.ndarray) -> np.ndarray:
+        """Points (..., 2) moved by this symmetry."""
+        return np.asarray(xy) @ self.matrix.T
+
+
+def _match(patterns: np.ndarray, target: np.ndarray) -> tuple[int, float] | None:
+    """Index and sign (±1) of the row of ``patterns`` equal to ± ``target``, or None."""
+    for sgn in (1.0, -1.0):
+        hit = np.flatnonzero(np.all(np.abs(patterns - sgn * target) <= 1e-12 * np.abs(target).max(), axis=1))
+        if len(hit):
+            return int(hit[0]), sgn
+    return None
+
+
+def ring_symmetries(protocol: Protocol, first_angle_deg: float = 0.0) -> list[RingSymmetry]:
+    """The symmetries of a ring of ``protocol.n_el`` equally spaced electrodes (electrode k at
+    ``first_angle_deg`` + 360°·k/n, anticlockwise) under which ``protocol`` is invariant, the
+    identity first: all 2n of the dihedral group for a skip protocol.
+
+    Moving the press by a symmetry g moves its potentials with it, so the moved frame's
+    injection s' equals the original injection whose currents are those of s' read through g
+    (electrode e takes the current of electrode g(e)), and its measurement the original one
+    with weights read the same way; a pair that comes back reversed flips the sign."""
+    n = protocol.n_el
+    e = np.arange(n)
+    out = []
+    for mirror in (False, True):
+        for turn in range(n):
+            image = ((-e if mirror else e) + turn) % n  # electrode e moves to image[e]
+            source, sign = np.empty((protocol.n_stim, protocol.meas.shape[1]), int), np.empty((protocol.n_stim, protocol.meas.shape[1]))
+            ok = True
+            for s1 in range(protocol.n_stim):
+                hit = _match(protocol.stim, protocol.stim[s1][image])
+                if hit is None:
+                    ok = False
+                    break
+                s0, ts = hit
+                for m1 in range(protocol.meas.shape[1]):
+                    mh = _match(protocol.meas[s0], protocol.meas[s1, m1][image])
+                    if mh is None:
+                        ok = False
+                        break
+                    source[s1, m1], sign[s1, m1] = s0 * protocol.meas.shape[1] + mh[0], ts * mh[1]
+                if not ok:
+                    break
+            if ok:
+                a = 2 * np.pi * turn / n
+                rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+                if mirror:
+                    b = 2 * np.deg2rad(first_angle_deg)
+                    rot = rot @ np.array([[np.cos(b), np.sin(b)], [np.sin(b), -np.cos(b)]])
+                out.append(RingSymmetry(turn, mirror, source.ravel(), sign.ravel(), rot))
+    return out
