@@ -195,16 +195,17 @@ def test_the_direct_regression_trains_on_fresh_noise_draws(stores):
         cal = calibrate(s, Settings(regressor="ridge", noise_copies=copies), progress=lambda x: None)
         t = cal.evaluation["regression"]["training"]
         assert t["noise_copies"] == copies and t["rows"] == (copies + 1) * t["samples"]
-        assert t["symmetries"] == 0  # a synthetic store's voltages are not a chamber's: not moved
     lo, hi = t["snr_db"]
-    # a simulated store's noise draws are moved about the ring by the 32 symmetries of its
+    # asked to, a simulated store's noise draws are moved about the ring by the 32 symmetries of its
     # 16 electrodes and skip protocol (as its fingerprint records them)
     simulated = replace(s, source={**s.source, "synthetic": False})
-    t = calibrate(simulated, Settings(regressor="ridge", noise_copies=3), progress=lambda x: None).evaluation["regression"]["training"]
-    assert t["symmetries"] == 32 and t["rows"] == 4 * t["samples"]
-    t = calibrate(simulated, Settings(regressor="ridge", noise_copies=3, symmetry=False),
+    t = calibrate(simulated, Settings(regressor="ridge", noise_copies=3, symmetry=True),
                   progress=lambda x: None).evaluation["regression"]["training"]
-    assert t["symmetries"] == 0
+    assert t["symmetries"] == 32 and t["rows"] == 4 * t["samples"]
+    t = calibrate(simulated, Settings(regressor="ridge", noise_copies=3), progress=lambda x: None).evaluation["regression"]["training"]
+    assert t["symmetries"] == 0  # off by default
+    t = calibrate(s, Settings(regressor="ridge", noise_copies=3, symmetry=True), progress=lambda x: None)
+    assert t.evaluation["regression"]["training"]["symmetries"] == 0  # a synthetic store's voltages are no chamber's
     train = s.subset(~np.isin(s.group, cal.tables["regression"]["group"]))
     assert (lo, hi) == (train.snr_db.min(), train.snr_db.max())
     # each goal on position, depth and size is judged for both routes

@@ -40,8 +40,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-com-points", type=int, default=3000, help="CoM map points fitted at most (default 3000)")
     p.add_argument("--noise-copies", type=int, default=30,
                    help="fresh noise draws of each training sample for the direct regression, 0-1000 (default 30; 0: stored samples only)")
-    p.add_argument("--no-symmetry", dest="symmetry", action="store_false",
-                   help="do not move the noise draws about the electrode ring by the sensor's symmetries (default: moved)")
+    p.add_argument("--symmetry", action="store_true",
+                   help="move the noise draws about the electrode ring by the sensor's turns and mirrors (default: off)")
 
 
 def _command(args: argparse.Namespace) -> str:
@@ -49,7 +49,7 @@ def _command(args: argparse.Namespace) -> str:
     parts = ["jointsim calibrate", str(args.dataset), "--out", str(args.out), "--test-fraction", f"{args.test_fraction:g}",
              "--seed", str(args.seed), "--regressor", args.regressor, "--goal-snr", f"{args.goal_snr:g}",
              "--snr-band", f"{args.snr_band:g}", "--max-com-points", str(args.max_com_points),
-             "--noise-copies", str(args.noise_copies)] + ([] if args.symmetry else ["--no-symmetry"])
+             "--noise-copies", str(args.noise_copies)] + (["--symmetry"] if args.symmetry else [])
     parts += [f"--depths {args.depths}"] if args.depths else []
     parts += [f"--forces {args.forces}"] if args.forces else []
     return " ".join(shlex.quote(p) if " " not in p else p for p in parts)
