@@ -216,6 +216,26 @@ def test_the_direct_regression_trains_on_fresh_noise_draws(stores):
             Settings(noise_copies=bad)
 
 
+def test_binned_errors_tell_a_flat_prediction_from_a_noisy_one():
+    """The report's by-size table: a regressor that returns the training mean shows a flat
+    predicted median and an error growing away from it; one that follows the truth with
+    noise shows the truth's medians and the noise's median |error| (0.6745 σ)."""
+    from jointsim.calibration.build import SIZE_BINS, _binned
+
+    rng = np.random.default_rng(0)
+    size = rng.uniform(8e-3, 30e-3, 20000)
+    flat = _binned(size, np.full_like(size, 19e-3), SIZE_BINS)
+    assert [r["predicted_median"] for r in flat] == [19e-3] * 5
+    assert flat[0]["error_median"] == pytest.approx(19e-3 - 10e-3, abs=2e-4)  # bin 8-12 mm
+    assert sum(r["n"] for r in flat) == len(size)
+    noisy = _binned(size, size + rng.normal(0, 1e-3, len(size)), SIZE_BINS)
+    for r, lo, hi in zip(noisy, SIZE_BINS[:-1], SIZE_BINS[1:]):
+        assert r["predicted_median"] == pytest.approx((lo + hi) / 2, abs=3e-4)
+        assert r["error_median"] == pytest.approx(0.6745e-3, rel=0.1)
+    force = _binned(np.array([0.5e-3, 2.5e-3]), np.array([0.02, 0.06]), (0.0, 1e-3, 2e-3, 3e-3), truth=np.array([0.01, 0.05]))
+    assert [r["n"] for r in force] == [1, 0, 1] and force[2]["relative_median"] == pytest.approx(0.2)
+
+
 def test_stiffness_of_rigid_targets_is_said_to_be_not_estimable(stores):
     cal = calibrate(load_samples(stores["rigid"]), Settings(regressor="ridge"), progress=lambda s: None)
     st = cal.evaluation["stiffness"]

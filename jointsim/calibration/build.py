@@ -11,6 +11,7 @@ SNR, and the issue's goals with whether each is met. The figures and files are
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -97,6 +98,28 @@ class Calibration:
     map: CalibrationMap
     evaluation: dict[str, Any]
     tables: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+
+
+SIZE_BINS = (8e-3, 12e-3, 16e-3, 20e-3, 25e-3, 30e-3 + 1e-9)  # m, true diameter
+DEPTH_BINS = (0.0, 1e-3, 2e-3, 3e-3 + 1e-9)  # m, true depth
+
+
+def _binned(by: np.ndarray, pred: np.ndarray, edges: Sequence[float], truth: np.ndarray | None = None) -> list[dict[str, Any]]:
+    """Held-out predictions per bin of ``by`` (SI): n, the medians of the truth (``by`` itself
+    unless ``truth`` is given) and of the prediction, the median |error| and |error| / truth.
+    Where one output's error comes from: a prediction that stays put across the bins of its
+    own truth is the training mean (the voltages do not tell it), one that follows the truth
+    with a wide spread is noise."""
+    truth = by if truth is None else truth
+    rows = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (by >= lo) & (by < hi) & np.isfinite(pred)
+        e = np.abs(pred[sel] - truth[sel])
+        rows.append({"from": float(lo), "to": float(min(hi, edges[-1] - 1e-9)), "n": int(sel.sum()),
+                     **({"truth_median": float(np.median(truth[sel])), "predicted_median": float(np.median(pred[sel])),
+                         "error_median": float(np.median(e)), "relative_median": float(np.median(e / np.abs(truth[sel])))}
+                        if sel.any() else {})})
+    return rows
 
 
 def _ring_symmetries(samples: Samples, n_meas: int) -> list[RingSymmetry]:
@@ -243,6 +266,8 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
     direct_goal = {"com_xy": err_stats(np.hypot(d[:, 0], d[:, 1])[inside & band]), "depth": err_stats(d[band, 2]),
                    "size": err_stats(d[in_range & band, 3])}
     ev["regression"] = {"kind": s.regressor, "comparison": comparison,
+                        "by_size": _binned(Tte[:, 3], direct[s.regressor][:, 3], SIZE_BINS),
+                        "force_by_depth": _binned(test.depth, direct[s.regressor][:, 4], DEPTH_BINS, truth=Tte[:, 4]),
                         "training": {"samples": len(train), "noise_copies": copies, "rows": int(len(Xtr)),
                                      "symmetries": len(symmetries),
                                      "snr_db": list(snr_range) if copies else None},

@@ -32,8 +32,30 @@ def _training_text(t: dict | None) -> str:
     if not t["noise_copies"]:
         return f"Trained on the {t['samples']} stored (noisy) training samples."
     lo, hi = t["snr_db"]
+    moved = (f", each moved about the ring by one of its {t['symmetries']} symmetries" if t.get("symmetries") else "")
     return (f"Trained on the {t['samples']} stored training samples and {t['noise_copies']} fresh noise draws of each "
-            f"(SNR uniform {lo:.0f}–{hi:.0f} dB, as the dataset draws it): {t['rows']} rows.")
+            f"(SNR uniform {lo:.0f}–{hi:.0f} dB, as the dataset draws it{moved}): {t['rows']} rows.")
+
+def _binned_tables(reg: Mapping[str, Any]) -> list[str]:
+    """Where the direct regression's size and force errors come from (held-out, by bin)."""
+    L = []
+    rows = [r for r in reg.get("by_size", []) if r["n"]]
+    if rows:
+        L += ["", "By true diameter (all held-out samples): a predicted median that stays near the training mean "
+              "across the bins means the voltages do not tell the size.", "",
+              "| true diameter (mm) | n | predicted median (mm) | median error (mm) |", "|---|---|---|---|"]
+        L += [f"| {r['from'] * 1e3:.0f}-{r['to'] * 1e3:.0f} | {r['n']} | {_fmt(r['predicted_median'] * 1e3)} | "
+              f"{_fmt(r['error_median'] * 1e3)} |" for r in rows]
+    rows = [r for r in reg.get("force_by_depth", []) if r["n"]]
+    if rows:
+        L += ["", "|F| by true depth (all held-out samples):", "",
+              "| depth (mm) | n | true median (mN) | predicted median (mN) | median error (mN) | median relative error |",
+              "|---|---|---|---|---|---|"]
+        L += [f"| {r['from'] * 1e3:.0f}-{r['to'] * 1e3:.0f} | {r['n']} | {_fmt(r['truth_median'] * 1e3)} | "
+              f"{_fmt(r['predicted_median'] * 1e3)} | {_fmt(r['error_median'] * 1e3)} | {r['relative_median']:.0%} |"
+              for r in rows]
+    return L
+
 
 def write_csv(path: Path, columns: Mapping[str, Sequence[Any]]) -> Path:
     """Columns of equal length as CSV (header = the names), floats with 6 significant digits."""
@@ -207,6 +229,7 @@ def _markdown(cal: Calibration, command: str, files: list[str]) -> str:
         kinds = [k for k in c if k in ("mlp", "ridge")]
         L.append(f"| {o} | {_fmt(c['image']['median'])} / {_fmt(c['image']['p95'])} | "
                  + " | ".join(f"{_fmt(c[k]['median'])} / {_fmt(c[k]['p95'])}" for k in kinds) + " |")
+    L += _binned_tables(ev["regression"])
     st = ev["stiffness"]
     L += ["", "## Stiffness", ""]
     if st["estimable"]:
