@@ -1,7 +1,9 @@
-"""What the benchmarks say about the machine they ran on."""
+"""What the benchmarks say about the machine they ran on, and how they write their results."""
 
 from __future__ import annotations
 
+import json
+import os
 import platform
 from pathlib import Path
 
@@ -43,3 +45,17 @@ def speed_reference(repeats: int = 3) -> float:
             solve(b)
         best = min(best, time.perf_counter() - t0)
     return best
+
+
+def atomic_write(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary name: never a half-written result."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def write_pair(stem: Path, data: dict, markdown: str) -> None:
+    """``stem``.json (``data``) and ``stem``.md (``markdown``), each written atomically."""
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(stem.with_suffix(".json"), json.dumps(data, indent=2))
+    atomic_write(stem.with_suffix(".md"), markdown)

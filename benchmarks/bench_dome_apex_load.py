@@ -25,7 +25,7 @@ import scipy.sparse as sp
 from scipy.optimize import brentq
 from scipy.sparse.linalg import spsolve
 
-from _machine import cpu_name, speed_reference
+from _machine import cpu_name, speed_reference, write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "results" / "dome_apex_load"
@@ -455,10 +455,7 @@ def write(out: dict) -> None:
                      f"{um(r['uz_outer_apex'])} | {r['stiffness_N_per_m']:.3f} | {r['stiffness_ratio']:.3f} | {r['apex_ratio']:.3f} | "
                      f"{r['stiffness_ratio_same_rms_radius']:.3f} | {r['newton_iterations']} | {r['solve_s']:.1f} |")
     lines += ["", "## Findings", "", findings(out, finest)]
-    for suffix, text in ((".json", json.dumps(out, indent=2)), (".md", "\n".join(lines) + "\n")):
-        tmp = OUT.with_suffix(suffix + ".tmp")
-        tmp.write_text(text)
-        os.replace(tmp, OUT.with_suffix(suffix))
+    write_pair(OUT, out, "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

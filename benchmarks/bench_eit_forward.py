@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from _machine import write_pair
+
 ROOT = Path(__file__).resolve().parents[1]
 SIZES = {
     # (max_edge_mm, electrode_refinement, uniform refinements)
@@ -169,13 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         "date": time.strftime("%Y-%m-%d"),
         "references_on_this_machine": {"eidors_octave": EIDORS_OCTAVE, "pyeit_1.2.4": PYEIT_REF},
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
-    os.replace(tmp, args.out.with_suffix(".json"))
-    tmp = args.out.with_suffix(".md.tmp")
-    tmp.write_text(_markdown(meta, rows))
-    os.replace(tmp, args.out.with_suffix(".md"))
+    write_pair(args.out, {"meta": meta, "rows": rows}, _markdown(meta, rows))
     print(f"wrote {args.out}.json and .md")
     return 0
 

@@ -8,7 +8,6 @@ jointsim/mechanics/fem.py, over elements through the thickness and element shape
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import sys
@@ -16,6 +15,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from _machine import write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 L, T, MU, P = 20e-3, 2e-3, 22e3, 1e-5
@@ -63,10 +64,7 @@ def main() -> int:
              "| elements through thickness | along length | shape | pointwise | mean dilatation |", "|---|---|---|---|---|"]
     lines += [f"| {r['through_thickness']} | {r['along']} | {r['shape']:.2f} | {r['pointwise']:.3f} | {r['mean_dilatation']:.3f} |" for r in rows]
     out = ROOT / "results" / "locking_cantilever"
-    for suffix, text in ((".json", json.dumps({"meta": meta, "rows": rows}, indent=2)), (".md", "\n".join(lines) + "\n")):
-        tmp = out.with_suffix(suffix + ".tmp")
-        tmp.write_text(text)
-        os.replace(tmp, out.with_suffix(suffix))
+    write_pair(out, {"meta": meta, "rows": rows}, "\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _machine import speed_reference
+from _machine import speed_reference, atomic_write
 
 ROOT = Path(__file__).resolve().parents[1]
 # (rim vertices, layers through the thickness, apex edge mm or 0 for uniform, volumetric form);
@@ -146,7 +146,7 @@ def main() -> int:
             print(r.stderr[-2000:], file=sys.stderr)
             return 1
         rows.append(json.loads(r.stdout.strip().splitlines()[-1]))
-        _atomic(partial, json.dumps({"meta": meta, "rows": rows}, indent=2))
+        atomic_write(partial, json.dumps({"meta": meta, "rows": rows}, indent=2))
         s = rows[-1]["steps"]
         print(f"{n_rim} rim, {layers} layers, apex {apex} mm, {volumetric}: {np.mean([x['wall_s'] for x in s[1:]]):.2f} s/step, F(3 mm) {s[-1]['force_mN']:.2f} mN", flush=True)
     meta["load_average_start_end"][1] = os.getloadavg()[0]
@@ -180,7 +180,7 @@ def solvers() -> int:
             print(r.stderr[-2000:], file=sys.stderr)
             return 1
         runs.append(json.loads(r.stdout.strip().splitlines()[-1]))
-        _atomic(partial, json.dumps({"meta": meta, "runs": runs}, indent=2))
+        atomic_write(partial, json.dumps({"meta": meta, "runs": runs}, indent=2))
         print(f"{linear}: {np.mean([x['wall_s'] for x in runs[-1]['steps'][1:]]):.2f} s/step", flush=True)
     meta["load_average_start_end"][1] = os.getloadavg()[0]
     mean = lambda rs, key: float(np.mean([x[key] for r in rs for x in r["steps"][1:]]))
@@ -197,8 +197,8 @@ def solvers() -> int:
         lines.append(f"| {k} | {mean(rs, 'wall_s'):.2f} | {mean(rs, 'wall_s') / mean(base, 'wall_s'):.2f} | {mean(rs, 'factorise+solve_s'):.2f} | "
                      f"{mean(rs, 'factorise+solve_s') / mean(base, 'factorise+solve_s'):.2f} | {mean(rs, 'iterations'):.1f} | "
                      + " / ".join(f"{_at(rs[0], d):.2f}" for d in (1.0, 2.0, 3.0)) + " |")
-    _atomic(SOLVERS_OUT.with_suffix(".json"), json.dumps({"meta": meta, "runs": runs}, indent=2))
-    _atomic(SOLVERS_OUT.with_suffix(".md"), "\n".join(lines) + "\n")
+    atomic_write(SOLVERS_OUT.with_suffix(".json"), json.dumps({"meta": meta, "runs": runs}, indent=2))
+    atomic_write(SOLVERS_OUT.with_suffix(".md"), "\n".join(lines) + "\n")
     partial.unlink()
     print("\n".join(lines))
     return 0
@@ -208,12 +208,6 @@ def _new_meta(command: str) -> dict:
     """A run's provenance: command, machine, date, the load average at the start."""
     return {"command": command, "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
             "date": time.strftime("%Y-%m-%d"), "load_average_start_end": [os.getloadavg()[0], None]}
-
-
-def _atomic(path: Path, text: str) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def write(rows: list[dict], meta: dict) -> None:
@@ -280,8 +274,8 @@ def write(rows: list[dict], meta: dict) -> None:
                   + f". The errors above are against a {ref['layers']}-layer reference, so they leave out this through-thickness "
                   "part: against a mesh refined in both directions a mesh's force is that much further off (pointwise P2 at "
                   "κ = 1000 μ stiffens a little on fewer layers; results/dome_apex_load.md)."]
-    _atomic(OUT.with_suffix(".json"), json.dumps({"meta": meta, "rows": rows}, indent=2))
-    _atomic(OUT.with_suffix(".md"), "\n".join(lines) + "\n")
+    atomic_write(OUT.with_suffix(".json"), json.dumps({"meta": meta, "rows": rows}, indent=2))
+    atomic_write(OUT.with_suffix(".md"), "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

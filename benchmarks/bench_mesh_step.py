@@ -17,7 +17,6 @@ in µV and in dB re the mean standing |V| (the paper's SNR convention), beside t
 from __future__ import annotations
 
 import inspect
-import json
 import os
 import platform
 import subprocess
@@ -29,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _machine import cpu_name
+from _machine import cpu_name, write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -327,10 +326,7 @@ def main() -> int:
             "date": time.strftime("%Y-%m-%d")}
     out = ROOT / "results" / ("mesh_step_benchmark" + (f"_{preset}" if preset else ""))
     text = _markdown(meta, r)
-    for suffix, content in ((".json", json.dumps({"meta": meta, "result": r}, indent=2)), (".md", text)):
-        tmp = out.with_suffix(suffix + ".tmp")
-        tmp.write_text(content)
-        os.replace(tmp, out.with_suffix(suffix))
+    write_pair(out, {"meta": meta, "result": r}, text)
     print(text)
     return 0
 

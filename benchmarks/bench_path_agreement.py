@@ -15,7 +15,6 @@ spread between remeshes of one press is part of what the difference measures).
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import sys
@@ -25,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _machine import cpu_name
+from _machine import cpu_name, write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -133,10 +132,7 @@ def main() -> int:
     r = run(preset)
     out = ROOT / "results" / f"path_agreement_{preset}"
     text = _markdown(meta, r)
-    for suffix, content in ((".json", json.dumps({"meta": meta, "result": r}, indent=2)), (".md", text)):
-        tmp = out.with_suffix(suffix + ".tmp")
-        tmp.write_text(content)
-        os.replace(tmp, out.with_suffix(suffix))
+    write_pair(out, {"meta": meta, "result": r}, text)
     print(text)
     return 0
 

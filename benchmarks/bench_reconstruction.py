@@ -16,13 +16,14 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_v] = "1"
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+
+from _machine import write_pair  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -89,11 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         "frames_per_s_batch2000": batch,
         "goal_frames_per_s": 5000,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    for suffix, text in ((".json", json.dumps(res, indent=2)), (".md", _md(res))):
-        tmp = args.out.with_suffix(suffix + ".tmp")
-        tmp.write_text(text)
-        os.replace(tmp, args.out.with_suffix(suffix))
+    write_pair(args.out, res, _md(res))
     print(_md(res))
     return 0
 
