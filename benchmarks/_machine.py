@@ -19,6 +19,11 @@ def cpu_name() -> str:
     return platform.processor() or "unknown CPU"
 
 
+def machine() -> str:
+    """This machine in one line: architecture, CPU, cores, Python."""
+    return f"{platform.machine()} {cpu_name()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+
+
 def speed_reference(repeats: int = 3) -> float:
     """Seconds (best of ``repeats``) of a fixed workload like the benchmarks' hot path: the
     sparse LDLᵀ factorisation and one solve of a 3-D 7-point Laplacian on a 32³ grid (32 768

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -25,7 +24,7 @@ import scipy.sparse as sp
 from scipy.optimize import brentq
 from scipy.sparse.linalg import spsolve
 
-from _machine import cpu_name, speed_reference, write_pair
+from _machine import machine, speed_reference, write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "results" / "dome_apex_load"
@@ -373,7 +372,7 @@ def main() -> int:
     command = "python benchmarks/bench_dome_apex_load.py" + ("" if tuple(args.levels) == LEVELS else " --levels " + " ".join(map(str, args.levels)))
     out["meta"] = {"command": command,
                    "date": time.strftime("%Y-%m-%d"),
-                   "machine": f"{platform.machine()} {cpu_name()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+                   "machine": machine(),
                    "load_average_start_end": [load0, os.getloadavg()[0]],
                    "speed_reference_s_start_end": [speed0, speed_reference()], "wall_s": time.perf_counter() - t0}
     write(out)

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import inspect
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -28,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _machine import cpu_name, write_pair
+from _machine import machine, write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -322,7 +321,7 @@ def main() -> int:
     preset = sys.argv[sys.argv.index("--preset") + 1] if "--preset" in sys.argv else None
     r = run(preset)
     meta = {"command": "python benchmarks/bench_mesh_step.py" + (f" --preset {preset}" if preset else ""),
-            "machine": f"{platform.machine()} {cpu_name()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+            "machine": machine(),
             "date": time.strftime("%Y-%m-%d")}
     out = ROOT / "results" / ("mesh_step_benchmark" + (f"_{preset}" if preset else ""))
     text = _markdown(meta, r)

@@ -16,7 +16,6 @@ spread between remeshes of one press is part of what the difference measures).
 from __future__ import annotations
 
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -24,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _machine import cpu_name, write_pair
+from _machine import machine, write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -127,7 +126,7 @@ def _markdown(meta: dict, r: dict) -> str:
 def main() -> int:
     preset = sys.argv[sys.argv.index("--preset") + 1] if "--preset" in sys.argv else "paper"
     meta = {"command": "python benchmarks/bench_path_agreement.py" + (f" --preset {preset}" if preset != "paper" else ""),
-            "machine": f"{platform.machine()} {cpu_name()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+            "machine": machine(),
             "date": time.strftime("%Y-%m-%d")}
     r = run(preset)
     out = ROOT / "results" / f"path_agreement_{preset}"
