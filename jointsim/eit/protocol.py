@@ -130,28 +130,32 @@ def ring_symmetries(protocol: Protocol, first_angle_deg: float = 0.0) -> list[Ri
     out = []
     for mirror in (False, True):
         for turn in range(n):
-            image = ((-e if mirror else e) + turn) % n  # electrode e moves to image[e]
-            source, sign = np.empty((protocol.n_stim, protocol.meas.shape[1]), int), np.empty((protocol.n_stim, protocol.meas.shape[1]))
-            ok = True
-            for s1 in range(protocol.n_stim):
-                hit = _match(protocol.stim, protocol.stim[s1][image])
-                if hit is None:
-                    ok = False
-                    break
-                s0, ts = hit
-                for m1 in range(protocol.meas.shape[1]):
-                    mh = _match(protocol.meas[s0], protocol.meas[s1, m1][image])
-                    if mh is None:
-                        ok = False
-                        break
-                    source[s1, m1], sign[s1, m1] = s0 * protocol.meas.shape[1] + mh[0], ts * mh[1]
-                if not ok:
-                    break
-            if ok:
-                a = 2 * np.pi * turn / n
-                rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-                if mirror:
-                    b = 2 * np.deg2rad(first_angle_deg)
-                    rot = rot @ np.array([[np.cos(b), np.sin(b)], [np.sin(b), -np.cos(b)]])
-                out.append(RingSymmetry(turn, mirror, source.ravel(), sign.ravel(), rot))
+            read = _read_through(protocol, ((-e if mirror else e) + turn) % n)
+            if read is None:
+                continue
+            a = 2 * np.pi * turn / n
+            rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+            if mirror:
+                b = 2 * np.deg2rad(first_angle_deg)
+                rot = rot @ np.array([[np.cos(b), np.sin(b)], [np.sin(b), -np.cos(b)]])
+            out.append(RingSymmetry(turn, mirror, *read, rot))
     return out
+
+
+def _read_through(protocol: Protocol, image: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(source, sign) (n_meas,) of the frame moved by the electrode map ``image`` (electrode e
+    moves to ``image[e]``), or None where the protocol has no injection or measurement that
+    the map's reading of one matches."""
+    per_stim = protocol.meas.shape[1]
+    source, sign = np.empty(protocol.n_meas, int), np.empty(protocol.n_meas)
+    for s1 in range(protocol.n_stim):
+        hit = _match(protocol.stim, protocol.stim[s1][image])
+        if hit is None:
+            return None
+        s0, ts = hit
+        for m1 in range(per_stim):
+            mh = _match(protocol.meas[s0], protocol.meas[s1, m1][image])
+            if mh is None:
+                return None
+            source[s1 * per_stim + m1], sign[s1 * per_stim + m1] = s0 * per_stim + mh[0], ts * mh[1]
+    return source, sign
