@@ -48,12 +48,20 @@ __all__ = [
     "dome_nodes",
     "closest_on_surface",
     "untangle",
+    "untangled_note",
     "MODES",
 ]
 
 MODES = ("auto", "morph", "remesh")
 REGULAR_DIHEDRAL_DEG = float(np.degrees(np.arccos(1 / 3)))  # 70.53°, the largest possible minimum
 UNTANGLE_RATIO = 0.05  # untangling aims at least this × the reference's smallest shape measure
+UNTANGLED_KEY = "-untangled"  # the end of a morphed chamber's key when its interior nodes were untangled
+
+
+def untangled_note(chamber: ChamberMesh) -> str:
+    """"; interior nodes untangled" for a chamber :meth:`ChamberMorpher.morph` untangled, else
+    "": what a morph's reason says of it."""
+    return "; interior nodes untangled" if chamber.key.endswith(UNTANGLED_KEY) else ""
 
 
 class MeshInversionError(RuntimeError):
@@ -223,7 +231,7 @@ class ChamberMorpher:
                 f"{q.min_dihedral_deg:.2f} deg (limit min_dihedral_deg = {self.min_dihedral_deg} deg); "
                 "remesh this deformation"
             )
-        key = f"{self.chamber.key}-morph-{_digest(deformed.vertices)}{'-untangled' if untangled else ''}"
+        key = f"{self.chamber.key}-morph-{_digest(deformed.vertices)}{UNTANGLED_KEY if untangled else ''}"
         return replace(self.chamber, mesh=TetMesh(nodes, mesh.tets), key=key), q
 
     def __call__(self, deformed: DomeSurface) -> ChamberMesh:
@@ -459,7 +467,7 @@ def deform_chamber(
             return _remeshed(deformed, reference, scene, use_cache, f"morph failed: {err}")
         limit = min_quality_ratio * ref.min_shape
         summary = (f"min shape {q.min_shape:.3g} (reference {ref.min_shape:.3g}), min dihedral {q.min_dihedral_deg:.1f} deg"
-                   + ("; interior nodes untangled" if chamber.key.endswith("-untangled") else ""))
+                   + untangled_note(chamber))
         if mode == "auto" and q.min_shape < limit:
             return _remeshed(
                 deformed, reference, scene, use_cache,

@@ -57,7 +57,7 @@ from ..mechanics.dome import MembraneModel, MembraneState, UnreachablePose
 from ..mechanics.geometric import indent_dome
 from ..mesh.chamber import ChamberMesh, chamber_mesh, mesh_chamber
 from ..mesh.tetmesh import TetMesh
-from ..mesh.morph import ChamberMorpher, DeformedChamber, MeshInversionError, element_quality, remeshed
+from ..mesh.morph import ChamberMorpher, DeformedChamber, MeshInversionError, element_quality, remeshed, untangled_note
 from ..metrics import ImageMetrics, image_metrics, rms
 from ..reconstruction.grid import ChamberGrid
 from ..reconstruction.tikhonov import SVD, Reconstructor, choose_lambda
@@ -389,8 +389,7 @@ class Palpation:
             try:
                 chamber, q = self.morpher.morph(dome, MIN_QUALITY_RATIO if mode == "auto" else 0.0)
                 if mode == "morph" or q.min_shape >= MIN_QUALITY_RATIO * self._reference_min_shape:
-                    untangled = "; interior nodes untangled" if chamber.key.endswith("-untangled") else ""
-                    return DeformedChamber(chamber, "morph", f"morphed: min shape {q.min_shape:.3g}{untangled}", q)
+                    return DeformedChamber(chamber, "morph", f"morphed: min shape {q.min_shape:.3g}{untangled_note(chamber)}", q)
                 why = f"morph quality {q.min_shape:.3g} below {MIN_QUALITY_RATIO} x reference {self._reference_min_shape:.3g}"
             except MeshInversionError as e:
                 if mode == "morph":
