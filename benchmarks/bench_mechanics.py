@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _machine import speed_reference, atomic_write
+from _machine import atomic_write, speed_reference
 
 ROOT = Path(__file__).resolve().parents[1]
 # (rim vertices, layers through the thickness, apex edge mm or 0 for uniform, volumetric form);

@@ -10,8 +10,8 @@ SNR, and the issue's goals with whether each is met. The figures and files are
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np

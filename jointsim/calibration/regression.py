@@ -3,11 +3,12 @@ without an image.
 
 Owns the features (δV relative to the measured reference, projected on its leading principal
 components and whitened), fresh noise draws of the training samples (:func:`noisy_features`)
-moved about the ring by the sensor's symmetries (:func:`moved_by_symmetry`), and two learned maps from them: a ridge (linear, the baseline) and a
-small multilayer perceptron (scikit-learn ``MLPRegressor``, ReLU). Both are stored as plain
-arrays (PCA mean and components, layer weights and biases, output scale) and evaluated by a
-NumPy forward pass: no pickle, identical predictions in a new process, and the same numbers
-scikit-learn's ``predict`` gives (tested).
+moved about the ring by the sensor's symmetries (:func:`moved_by_symmetry`), and two learned
+maps from them: a ridge (linear, the baseline) and a small multilayer perceptron
+(scikit-learn ``MLPRegressor``, ReLU). Both are stored as plain arrays (PCA mean and
+components, layer weights and biases, output scale) and evaluated by a NumPy forward pass: no
+pickle, identical predictions in a new process, and the same numbers scikit-learn's
+``predict`` gives (tested).
 """
 
 from __future__ import annotations

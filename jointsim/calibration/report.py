@@ -24,7 +24,6 @@ __all__ = ["write_report", "write_csv", "error_grid"]
 CELL = 2e-3  # m: the error map's bin size
 
 
-
 def _training_text(t: dict | None) -> str:
     """One sentence on what the direct regression was trained on."""
     if not t:
@@ -35,6 +34,7 @@ def _training_text(t: dict | None) -> str:
     moved = (f", each moved about the ring by one of its {t['symmetries']} symmetries" if t.get("symmetries") else "")
     return (f"Trained on the {t['samples']} stored training samples and {t['noise_copies']} fresh noise draws of each "
             f"(SNR uniform {lo:.0f}–{hi:.0f} dB, as the dataset draws it{moved}): {t['rows']} rows.")
+
 
 def _binned_tables(reg: Mapping[str, Any]) -> list[str]:
     """Where the direct regression's size and force errors come from (held-out, by bin)."""

@@ -39,7 +39,7 @@ from __future__ import annotations
 import math
 import time
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -57,7 +57,7 @@ from ..mechanics.dome import MembraneModel, MembraneState, UnreachablePose
 from ..mechanics.geometric import indent_dome
 from ..mesh.chamber import ChamberMesh, chamber_mesh, mesh_chamber
 from ..mesh.tetmesh import TetMesh
-from ..mesh.morph import ChamberMorpher, DeformedChamber, MeshInversionError, element_quality, remeshed, untangled_note
+from ..mesh.morph import ChamberMorpher, DeformedChamber, MeshInversionError, remeshed, untangled_note
 from ..metrics import ImageMetrics, image_metrics, rms
 from ..reconstruction.grid import ChamberGrid
 from ..reconstruction.tikhonov import SVD, Reconstructor, choose_lambda
