@@ -5,6 +5,7 @@ reference chamber, δV = V(remesh) − V(its pull-back)), against the instrument
 
     python benchmarks/bench_path_agreement.py                  # paper preset (~15 min here)
     python benchmarks/bench_path_agreement.py --preset dataset # writes ..._dataset.{md,json}
+    python benchmarks/bench_path_agreement.py --order 2        # P2 forward: ..._paper_p2.{md,json}
 
 Beside each press: the saline's height over the electrode nearest the press (the membrane's
 inner surface straight above the electrode's centre, pressed and at rest), and the share of the
@@ -42,7 +43,7 @@ def height_over(vertices: np.ndarray, faces: np.ndarray, point: np.ndarray) -> f
     return float(hits[:, 2].min() / scale) if len(hits) else float("nan")
 
 
-def run(preset: str) -> dict:
+def run(preset: str, order: int = 1) -> dict:
     from jointsim.eit.forward import ForwardModel
     from jointsim.eit.protocol import skip_protocol
     from jointsim.geometry import dome_from_scene, electrode_layout
@@ -51,7 +52,10 @@ def run(preset: str) -> dict:
     from jointsim.mesh.morph import ChamberMorpher, deform_chamber
     from jointsim.scene import load_scene
 
+    from dataclasses import replace
+
     scene = load_scene(ROOT / "scenes" / "paper_sensor.toml").with_mesh_preset(preset)
+    scene = replace(scene, mesh=replace(scene.mesh, element_order=order))
     ch = chamber_mesh(scene)  # the user's cache: the reference mesh
     os.environ["JOINTSIM_CACHE"] = tempfile.mkdtemp(prefix="jointsim-bench-agree-")
     dome = dome_from_scene(scene)
@@ -94,7 +98,7 @@ def run(preset: str) -> dict:
             })
             print(f"  ({x:g}, {y:g}) mm, {depth:g} mm: height over electrode {nearest} {rows[-1]['height_over_electrode_mm']:.2f} mm, "
                   f"difference {rows[-1]['difference_uV']:.2f} µV = {rows[-1]['difference_vs_noise']:.2f}× noise", flush=True)
-    return {"preset": preset, "tets": ch.mesh.n_tets, "mean_standing_uV": mean_v * 1e6, "instrument_snr_db": scene.noise.snr_db,
+    return {"preset": preset, "element_order": order, "tets": ch.mesh.n_tets, "mean_standing_uV": mean_v * 1e6, "instrument_snr_db": scene.noise.snr_db,
             "instrument_noise_uV": noise * 1e6, "presses": rows}
 
 
@@ -102,7 +106,8 @@ def _markdown(meta: dict, r: dict) -> str:
     L = ["# Do the morph and remesh paths agree on δV?", "",
          f"Command: `{meta['command']}`  ",
          f"Machine: {meta['machine']}; run {meta['date']}.  ",
-         f"Chamber of `scenes/paper_sensor.toml` at the {r['preset']} preset: {r['tets']:,} tets. "
+         f"Chamber of `scenes/paper_sensor.toml` at the {r['preset']} preset: {r['tets']:,} tets, "
+         f"P{r.get('element_order', 1)} elements in the forward model. "
          f"Rigid {2e3 * TARGET_RADIUS:g} mm target, geometric indentation. Instrument noise at "
          f"{r['instrument_snr_db']} dB re the mean standing |V| ({r['mean_standing_uV'] / 1e3:.2f} mV): "
          f"{r['instrument_noise_uV']:.2f} µV RMS.", "",
@@ -125,11 +130,13 @@ def _markdown(meta: dict, r: dict) -> str:
 
 def main() -> int:
     preset = sys.argv[sys.argv.index("--preset") + 1] if "--preset" in sys.argv else "paper"
-    meta = {"command": "python benchmarks/bench_path_agreement.py" + (f" --preset {preset}" if preset != "paper" else ""),
+    order = int(sys.argv[sys.argv.index("--order") + 1]) if "--order" in sys.argv else 1
+    meta = {"command": "python benchmarks/bench_path_agreement.py" + (f" --preset {preset}" if preset != "paper" else "")
+            + (f" --order {order}" if order != 1 else ""),
             "machine": machine(),
             "date": time.strftime("%Y-%m-%d")}
-    r = run(preset)
-    out = ROOT / "results" / f"path_agreement_{preset}"
+    r = run(preset, order)
+    out = ROOT / "results" / (f"path_agreement_{preset}" + (f"_p{order}" if order != 1 else ""))
     text = _markdown(meta, r)
     write_pair(out, {"meta": meta, "result": r}, text)
     print(text)

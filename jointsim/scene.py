@@ -141,7 +141,8 @@ MESH_PRESETS: dict[str, dict[str, float]] = {
 
 @dataclass(frozen=True)
 class MeshSpec:
-    """Chamber mesh resolution: bulk edge length, refinement factor and zone around electrodes."""
+    """Chamber mesh resolution: bulk edge length, refinement factor and zone around electrodes,
+    and the order of the EIT forward model's elements on it (1: P1; 2: P2, same tetrahedra)."""
 
     preset: str = "dataset"
     max_edge: float = 2.2 * MM
@@ -153,6 +154,7 @@ class MeshSpec:
     # (30, 20) takes 90 s for min dihedral angles of ~12-20 deg
     stop_energy: float = 30.0
     max_opt_iter: int = 20
+    element_order: int = 1
 
 
 @dataclass(frozen=True)
@@ -357,6 +359,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     eps = t.number("epsilon_rel", 3e-4, 1e-6, 1e-2)
     stop_energy = t.number("stop_energy", 30.0, 3.0, 1000.0)
     max_opt_iter = t.integer("max_opt_iter", 20, 0, 1000)
+    element_order = t.integer("element_order", 1, 1, 2)
     t.finish()
     if preset != "custom" and ("max_edge_mm" in data.get("mesh", {}) or "electrode_refinement" in data.get("mesh", {})):
         preset = "custom"
@@ -384,7 +387,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         saline=Saline(sigma),
         drive=Drive(current * 1e-6, freqs, skip),
         noise=Noise(snr, seed, drift, rate),
-        mesh=MeshSpec(preset, max_edge * MM, refine, zone * MM, grading, eps, stop_energy, max_opt_iter),
+        mesh=MeshSpec(preset, max_edge * MM, refine, zone * MM, grading, eps, stop_energy, max_opt_iter, element_order),
         membrane=Membrane(law, mu * 1e3, tuple(c * 1e3 for c in yc), bulk_ratio, layers, p_res, closed, rim_vertices, volumetric),
         target=target,
         palpation=_palpation(data.get("palpation", {}), base_r, height, thick, zf is not None),

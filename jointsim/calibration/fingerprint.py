@@ -39,6 +39,9 @@ SENSOR_KEYS: dict[str, tuple[str, ...]] = {
     "membrane": ("law", "shear_modulus", "yeoh_c", "reservoir_pressure", "chamber"),
     "palpation": ("cells", "lambda_method"),
 }
+# values that define the sensor only where they differ from the default they had before they
+# existed, so maps and datasets recorded without them still match the scenes they were built for
+OPTIONAL_KEYS: dict[str, Any] = {"mesh.element_order": 1}
 _REL_TOL = 1e-9  # mm → m conversions of the same text agree far better than this
 
 
@@ -55,9 +58,14 @@ def sensor_fingerprint(scene: Scene | Mapping[str, Any]) -> dict[str, Any]:
     of a :class:`Scene` or of its ``to_dict()`` form (as a dataset's provenance holds it)."""
     d = scene.to_dict() if isinstance(scene, Scene) else scene
     try:
-        return {f"{s}.{k}": _plain(d[s][k]) for s, keys in SENSOR_KEYS.items() for k in keys}
+        fp = {f"{s}.{k}": _plain(d[s][k]) for s, keys in SENSOR_KEYS.items() for k in keys}
     except (KeyError, TypeError) as e:
         raise ValueError(f"the scene record lacks the sensor value {e}: cannot tell which sensor it describes") from None
+    for key, default in OPTIONAL_KEYS.items():
+        s, k = key.split(".")
+        if (v := _plain(d[s].get(k, default))) != default:
+            fp[key] = v
+    return fp
 
 
 def provenance_fingerprint(provenance: Mapping[str, Any]) -> dict[str, Any]:

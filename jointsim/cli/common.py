@@ -1,10 +1,12 @@
-"""Helpers shared by subcommands: scene loading with a preset override, stage timing."""
+"""Helpers shared by subcommands: scene loading with mesh preset and element order overrides,
+stage timing."""
 
 from __future__ import annotations
 
 import argparse
 import time
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 from typing import Iterator
 
@@ -16,6 +18,8 @@ DEFAULT_SCENE = Path(__file__).resolve().parents[2] / "scenes" / "paper_sensor.t
 def add_scene_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", nargs="?", default=str(DEFAULT_SCENE), help="scene TOML file (default: the paper's sensor)")
     p.add_argument("--mesh", dest="mesh_preset", choices=sorted(MESH_PRESETS), help="override the scene's mesh preset")
+    p.add_argument("--order", dest="element_order", type=int, choices=(1, 2),
+                   help="override the scene's mesh.element_order: P1 or P2 elements in the EIT forward model")
 
 
 def add_target_size_arguments(p: argparse.ArgumentParser, default: str) -> None:
@@ -41,7 +45,11 @@ def target_radius_mm(args: argparse.Namespace, default: float) -> float:
 
 def scene_from_args(args: argparse.Namespace) -> Scene:
     scene = load_scene(args.scene)
-    return scene.with_mesh_preset(args.mesh_preset) if args.mesh_preset else scene
+    if args.mesh_preset:
+        scene = scene.with_mesh_preset(args.mesh_preset)
+    if getattr(args, "element_order", None):
+        scene = replace(scene, mesh=replace(scene.mesh, element_order=args.element_order))
+    return scene
 
 
 @contextmanager

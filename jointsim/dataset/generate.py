@@ -296,5 +296,5 @@ class DatasetSetup:
         return disc_patches(mesh, centres, layout.radii)
 
     def _voltages(self, chamber: ChamberMesh, patches: list[ElectrodePatch], z: np.ndarray, sigma: float) -> np.ndarray:
-        model = ForwardModel(chamber.mesh, patches, chamber.ground, z)
+        model = ForwardModel(chamber.mesh, patches, chamber.ground, z, order=self.scene.mesh.element_order)
         return model.solve(sigma).voltages(self.pal.protocol)

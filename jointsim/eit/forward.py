@@ -24,8 +24,9 @@ __all__ = ["ForwardModel", "LeadFields"]
 class LeadFields:
     """Potentials for a unit current into each driven electrode (out through the ground).
 
-    ``nodal`` (n_nodes, L) in V/A, ``transfer`` (L, L): electrode potentials, the transfer
-    impedance matrix Z (symmetric by reciprocity). ``sigma`` (n_tets,), ``z`` (n_el,)."""
+    ``nodal`` (n_dofs, L) in V/A (the nodes' values first; P2 adds the edges'), ``transfer``
+    (L, L): electrode potentials, the transfer impedance matrix Z (symmetric by reciprocity).
+    ``sigma`` (n_tets,), ``z`` (n_el,)."""
 
     model: "ForwardModel"
     sigma: np.ndarray
@@ -43,19 +44,21 @@ class LeadFields:
         return protocol.measure(self.electrode_voltages(protocol))
 
     def potentials(self, protocol: Protocol) -> np.ndarray:
-        """Nodal potentials for each injection, (n_nodes, n_stim)."""
+        """Potentials at the mesh's nodes for each injection, (n_nodes, n_stim)."""
         self.model._check_protocol(protocol)
-        return self.nodal @ protocol.stim.T
+        return self.nodal[: self.model.mesh.n_nodes] @ protocol.stim.T
 
     def electrode_currents(self, protocol: Protocol) -> np.ndarray:
         """Current through every electrode (ground included) per injection, (n_stim, n_el)."""
-        u = self.potentials(protocol)
+        self.model._check_protocol(protocol)
+        u = self.nodal @ protocol.stim.T
         U = self.electrode_voltages(protocol).T
         return self.model.assembler.electrode_currents(u, U, self.z).T
 
 
 class ForwardModel:
-    """P1 + CEM forward model on a tetrahedral mesh with electrodes as boundary patches.
+    """CEM forward model with P1 or P2 elements on a tetrahedral mesh, electrodes as boundary
+    patches.
 
     Parameters
     ----------
@@ -64,6 +67,7 @@ class ForwardModel:
     ground : index of the reference electrode in ``electrodes``
     contact_impedance : (n_el,) Ω·m², one per electrode (ground included)
     backend : sparse direct solver, see :func:`jointsim.eit.solver.factorize`
+    order : element order, 1 (P1) or 2 (P2 on the same tetrahedra; see :mod:`jointsim.eit.fem`)
     """
 
     def __init__(
@@ -73,9 +77,11 @@ class ForwardModel:
         ground: int,
         contact_impedance: np.ndarray | float,
         backend: str = "auto",
+        order: int = 1,
     ):
         self.mesh = mesh
-        self.assembler = CEMAssembler(mesh, tuple(electrodes), ground)
+        self.order = order
+        self.assembler = CEMAssembler(mesh, tuple(electrodes), ground, order)
         z = np.broadcast_to(np.asarray(contact_impedance, float), (len(electrodes),)).copy()
         if not (z > 0).all():
             raise ValueError("contact_impedance: must be > 0 Ω·m² for every electrode")
@@ -83,10 +89,13 @@ class ForwardModel:
         self.backend = backend
 
     @classmethod
-    def from_chamber(cls, chamber: ChamberMesh, scene: Scene, backend: str = "auto") -> "ForwardModel":
+    def from_chamber(cls, chamber: ChamberMesh, scene: Scene, backend: str = "auto", order: int | None = None) -> "ForwardModel":
+        """The model of ``chamber`` with the scene's contact impedances and, unless ``order``
+        is given, its ``mesh.element_order``."""
         e = scene.electrodes
         z = np.append(np.asarray(e.contact_impedance), e.ground_contact_impedance)
-        return cls(chamber.mesh, chamber.electrodes, chamber.ground, z, backend)
+        order = scene.mesh.element_order if order is None else order
+        return cls(chamber.mesh, chamber.electrodes, chamber.ground, z, backend, order)
 
     @property
     def n_driven(self) -> int:
@@ -103,7 +112,7 @@ class ForwardModel:
         z = self.z if z is None else np.asarray(z, float)
         sigma = np.broadcast_to(np.asarray(sigma, float), (self.mesh.n_tets,))
         A = self.assembler.assemble(sigma, z)
-        n, L = self.mesh.n_nodes, self.n_driven
+        n, L = self.assembler.n_dofs, self.n_driven
         rhs = np.zeros((n + L, L))
         rhs[n + np.arange(L), np.arange(L)] = 1.0
         with factorize(A, self.backend) as solve:

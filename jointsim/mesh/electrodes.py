@@ -1,13 +1,15 @@
 """Electrodes as weighted sets of boundary triangles, with exact contact integrals.
 
-The complete electrode model needs, per electrode e, ∫_e φ_i dS and ∫_e φ_i φ_j dS for the P1
-basis. A boundary triangle that an electrode's outline cuts contributes only the part inside
+The complete electrode model needs, per electrode e, ∫_e φ_i dS and ∫_e φ_i φ_j dS for the
+basis of the forward model's elements: P1 (the face's barycentrics λ) and P2 (λ_a(2λ_a − 1) at
+the vertices, 4λ_aλ_b on the edges). A boundary triangle that an electrode's outline cuts contributes only the part inside
 the outline. Tagging whole triangles by centroid misplaces the area by ~2h/r, and on a
 current-carrying electrode the contact term I·z/|e| dominates the voltage, so a mesh-dependent
 area is mesh noise. Here each base triangle is clipped against the electrode disc
 (a regular polygon with the disc's exact area, 256 sides, so the region is fixed in space and
 independent of the mesh) and the moments of the barycentric coordinates are integrated
-exactly over the clipped polygon.
+exactly over the clipped polygon (closed forms for P1, a degree-4 rule on each piece of the
+polygon for P2: exact for its degree-4 products).
 """
 
 from __future__ import annotations
@@ -18,21 +20,41 @@ import numpy as np
 
 from .tetmesh import TetMesh
 
-__all__ = ["ElectrodePatch", "disc_patches", "plane_face_patch"]
+__all__ = ["ElectrodePatch", "disc_patches", "plane_face_patch", "FACE_EDGES", "p2_face_basis"]
 
 N_POLY = 256
+FACE_EDGES = np.array([[0, 1], [1, 2], [2, 0]])  # the edges of a face's P2 basis, after its vertices
+# Dunavant's 6-point rule, exact to degree 4 on a triangle: (barycentrics, weight / area)
+_D4_A, _D4_B = 0.445948490915965, 0.091576213509771
+_D4_POINTS = np.array([[1 - 2 * _D4_A, _D4_A, _D4_A], [_D4_A, 1 - 2 * _D4_A, _D4_A], [_D4_A, _D4_A, 1 - 2 * _D4_A],
+                       [1 - 2 * _D4_B, _D4_B, _D4_B], [_D4_B, 1 - 2 * _D4_B, _D4_B], [_D4_B, _D4_B, 1 - 2 * _D4_B]])
+_D4_WEIGHTS = np.array([0.223381589678011] * 3 + [0.109951743655322] * 3)
+
+
+def p2_face_basis(lam: np.ndarray) -> np.ndarray:
+    """The six P2 basis functions of a triangle at barycentrics ``lam`` (..., 3): the vertices'
+    λ_a(2λ_a − 1), then the edges' 4λ_aλ_b in :data:`FACE_EDGES` order. (..., 6)."""
+    a, b = FACE_EDGES.T
+    return np.concatenate([lam * (2 * lam - 1), 4 * lam[..., a] * lam[..., b]], axis=-1)
 
 
 @dataclass(frozen=True)
 class ElectrodePatch:
     """One electrode: ``faces`` (k, 3) node indices of the boundary triangles it touches and,
     per face, ``area`` (k,) of the covered part, ``m1`` (k, 3) = ∫ λ_a dS and
-    ``m2`` (k, 3, 3) = ∫ λ_a λ_b dS over the covered part (λ: the face's barycentrics)."""
+    ``m2`` (k, 3, 3) = ∫ λ_a λ_b dS over the covered part (λ: the face's barycentrics), and the
+    same moments ``q1`` (k, 6), ``q2`` (k, 6, 6) of the P2 basis (:func:`p2_face_basis`)."""
 
     faces: np.ndarray
     area: np.ndarray
     m1: np.ndarray
     m2: np.ndarray
+    q1: np.ndarray
+    q2: np.ndarray
+
+    def moments(self, order: int) -> tuple[np.ndarray, np.ndarray]:
+        """(∫ φ_a dS, ∫ φ_a φ_b dS) per face for the basis of elements of ``order`` (1 or 2)."""
+        return (self.m1, self.m2) if order == 1 else (self.q1, self.q2)
 
     @property
     def total_area(self) -> float:
@@ -46,11 +68,12 @@ class ElectrodePatch:
         area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
         m1 = np.repeat(area[:, None] / 3, 3, axis=1)
         m2 = area[:, None, None] / 12 * (np.ones((3, 3)) + np.eye(3))
-        return cls(faces, area, m1, m2)
+        q1, q2 = _p2_moments(area[:, None], np.broadcast_to(np.eye(3), (len(faces), 1, 3, 3)))
+        return cls(faces, area, m1, m2, q1, q2)
 
     @classmethod
     def concat(cls, patches: list["ElectrodePatch"]) -> "ElectrodePatch":
-        return cls(*(np.concatenate([getattr(p, f) for p in patches]) for f in ("faces", "area", "m1", "m2")))
+        return cls(*(np.concatenate([getattr(p, f) for p in patches]) for f in ("faces", "area", "m1", "m2", "q1", "q2")))
 
 
 def plane_face_patch(mesh: TetMesh, axis: int, value: float, tol: float | None = None) -> ElectrodePatch:
@@ -87,9 +110,9 @@ def disc_patches(
         reach = r * scale
         cand = np.all((hi >= c - reach) & (lo <= c + reach), axis=1)
         tri = (xy[cand] - c) / r  # unit-disc frame
-        area, m1, m2 = _clip_moments(tri, unit_poly)
-        keep = area > 1e-14
-        patch = ElectrodePatch(base[cand][keep], area[keep] * r * r, m1[keep] * r * r, m2[keep] * r * r)
+        moments = _clip_moments(tri, unit_poly, quadratic=True)
+        keep = moments[0] > 1e-14
+        patch = ElectrodePatch(base[cand][keep], *(m[keep] * r * r for m in moments))
         if abs(patch.total_area / (np.pi * r * r) - 1) > 1e-9:
             raise ValueError(
                 f"electrode {k}: base triangles cover {patch.total_area / (np.pi * r * r):.4%} of its "
@@ -99,12 +122,14 @@ def disc_patches(
     return patches
 
 
-def _clip_moments(tri: np.ndarray, poly: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _clip_moments(tri: np.ndarray, poly: np.ndarray, quadratic: bool = False) -> tuple[np.ndarray, ...]:
     """Clip the convex polygon ``poly`` (N, 2) by each triangle ``tri`` (k, 3, 2) and integrate
-    the triangle's barycentrics over the intersection: area (k,), m1 (k, 3), m2 (k, 3, 3)."""
+    the triangle's barycentrics over the intersection: area (k,), m1 (k, 3), m2 (k, 3, 3), and
+    with ``quadratic`` the P2 moments q1 (k, 6), q2 (k, 6, 6) too."""
     k = len(tri)
     if k == 0:
-        return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3))
+        empty = (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)))
+        return empty + ((np.zeros((0, 6)), np.zeros((0, 6, 6))) if quadratic else ())
     # orient triangles anticlockwise so "inside" is left of every edge
     cross = _cross2(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     tri = np.where((cross < 0)[:, None, None], tri[:, [0, 2, 1]], tri)
@@ -138,7 +163,22 @@ def _clip_moments(tri: np.ndarray, poly: np.ndarray) -> tuple[np.ndarray, np.nda
     perm = np.array([0, 2, 1])
     m1 = np.where(flipped[:, None], m1[:, perm], m1)
     m2 = np.where(flipped[:, None, None], m2[:, perm][:, :, perm], m2)
-    return area, m1, m2
+    if not quadratic:
+        return area, m1, m2
+    # the pieces' corners in the barycentrics of the triangle as given (λ of a flipped one reordered back)
+    lam = np.where(flipped[:, None, None], lam[..., perm], lam)
+    corners = np.stack([np.broadcast_to(lam[:, :1], lam[:, 1:-1].shape), lam[:, 1:-1], lam[:, 2:]], axis=2)
+    return (area, m1, m2) + _p2_moments(sub_area, corners)
+
+
+def _p2_moments(piece_area: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """∫ φ_a and ∫ φ_a φ_b of the P2 basis over triangular pieces of each face: ``piece_area``
+    (k, p), ``corners`` (k, p, 3, 3) the pieces' corners in the face's barycentrics. The
+    degree-4 rule is exact for these degree-≤4 integrands. → (k, 6), (k, 6, 6)."""
+    lam = np.einsum("qc,kpcj->kpqj", _D4_POINTS, corners)  # (k, p, 6 points, 3)
+    phi = p2_face_basis(lam)
+    w = piece_area[..., None] * _D4_WEIGHTS  # (k, p, q)
+    return np.einsum("kpq,kpqa->ka", w, phi), np.einsum("kpq,kpqa,kpqb->kab", w, phi, phi)
 
 
 def _cross2(u: np.ndarray, v: np.ndarray) -> np.ndarray:
