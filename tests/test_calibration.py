@@ -283,6 +283,9 @@ def test_map_refuses_another_sensor_and_accepts_its_own(built):
         built.map.check_scene(other)
     with pytest.raises(SceneMismatchError, match=r"mesh\.preset"):
         built.map.check_scene(scene.with_mesh_preset("test"))
+    # P2 voltages are not the P1 voltages the map learnt
+    with pytest.raises(SceneMismatchError, match=r"mesh\.element_order: 'absent' in the map, 2 in the scene"):
+        built.map.check_scene(replace(scene, mesh=replace(scene.mesh, element_order=2)))
     # values a dataset randomises (saline, noise) do not make another sensor
     built.map.check_scene(replace(scene, noise=replace(scene.noise, snr_db=60.0)))
 
@@ -292,6 +295,8 @@ def test_fingerprint_from_a_datasets_recorded_scene_matches_the_scene():
     d = json.loads(json.dumps(scene.to_dict()))  # as a store's JSON provenance holds it
     from jointsim.calibration.fingerprint import provenance_fingerprint
 
+    assert provenance_fingerprint({"params": {"scene": d}, "scene_toml": ""}) == sensor_fingerprint(scene)
+    del d["mesh"]["element_order"]  # recorded before the element order existed: P1
     assert provenance_fingerprint({"params": {"scene": d}, "scene_toml": ""}) == sensor_fingerprint(scene)
     prov = {"scene_toml": SCENE.read_text(), "params": {"mesh_preset": "test"}}
     assert scene_from_provenance(prov).mesh.preset == "test"

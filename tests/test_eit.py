@@ -44,19 +44,19 @@ def test_layered_conductor_in_series():
     assert R == pytest.approx(L / 2 / (0.2 * A) + L / 2 / (1.0 * A) + 2e-3 / A, rel=5e-3)
 
 
-def _box_with_discs(n):
+def _box_with_discs(n, order=1):
     """A 20 × 20 × 6 mm saline box with four disc electrodes and a ground on its base."""
     mesh = box_mesh((0.02, 0.02, 0.006), (n, n, max(2, round(n * 0.3))), origin=(-0.01, -0.01, 0.0))
     ang = np.pi / 2 * np.arange(4)
     centres = np.column_stack([6e-3 * np.cos(ang), 6e-3 * np.sin(ang), np.zeros(4)])
     centres = np.vstack([centres, [0, 0, 0]])
     radii = np.array([2.5e-3] * 4 + [2e-3])
-    return ForwardModel(mesh, disc_patches(mesh, centres, radii), ground=4, contact_impedance=1e-3)
+    return ForwardModel(mesh, disc_patches(mesh, centres, radii), ground=4, contact_impedance=1e-3, order=order)
 
 
-@pytest.fixture(scope="module")
-def box_fields():
-    model = _box_with_discs(12)
+@pytest.fixture(scope="module", params=[1, 2], ids=["P1", "P2"])
+def box_fields(request):
+    model = _box_with_discs(12, request.param)
     rng = np.random.default_rng(1)
     sigma = 0.37 * np.exp(0.3 * rng.standard_normal(model.mesh.n_tets))  # heterogeneous
     return model, sigma, model.solve(sigma)
@@ -136,6 +136,38 @@ def test_voltages_converge_under_refinement():
     assert rate < 0.6
     # geometric-series estimate of the remaining error of the finest mesh
     assert d2 * rate / (1 - rate) < 0.05 * np.linalg.norm(v[2])
+
+
+def test_p2_converges_faster_than_p1():
+    # against P2 on a fine mesh (32 cells across; P2 on 24 cells is within 0.4 % of it):
+    # measured P2 on 12 cells 2.3 %, P1 on 24 cells 5.5 % (P1 on 8/16/24: 25/9.5/5.5 %)
+    p = skip_protocol(4, 1, 1e-4)
+    ref = _box_with_discs(32, order=2).voltages(0.37, p)
+    err = {(o, n): np.linalg.norm(_box_with_discs(n, order=o).voltages(0.37, p) - ref) / np.linalg.norm(ref)
+           for o, n in ((2, 12), (1, 24))}
+    assert err[2, 12] < 0.5 * err[1, 24]
+
+
+def test_p2_stiffness_is_exact_for_a_harmonic_quadratic():
+    # u = x² − y² lies in the P2 space and ∇²u = 0, so K u vanishes at every dof not on the
+    # boundary (Galerkin orthogonality with no discretisation error); P1 cannot represent u
+    from jointsim.eit.fem import dofs, element_stiffness
+    from jointsim.mesh.tetmesh import TetMesh
+
+    mesh = box_mesh((1.0, 1.0, 1.0), (4, 4, 4))
+    rng = np.random.default_rng(0)
+    inner = np.all((mesh.nodes > 1e-9) & (mesh.nodes < 1 - 1e-9), axis=1)
+    nodes = mesh.nodes + inner[:, None] * rng.uniform(-0.06, 0.06, mesh.nodes.shape)  # unstructured
+    mesh = TetMesh(nodes, mesh.tets)
+    d = dofs(mesh, 2)
+    x = np.vstack([mesh.nodes, mesh.nodes[d.edges].mean(axis=1)])  # the dofs' positions
+    u = x[:, 0] ** 2 - x[:, 1] ** 2
+    k = element_stiffness(mesh, 2)
+    Ku = np.bincount(d.elements.ravel(), weights=np.einsum("kab,kb->ka", k, u[d.elements]).ravel(), minlength=d.n)
+    on_boundary = np.zeros(d.n, bool)
+    bf = d.faces(mesh.boundary_faces)
+    on_boundary[bf] = True
+    assert np.abs(Ku[~on_boundary]).max() < 1e-12 * np.abs(Ku).max()
 
 
 def test_protocol_semantics():

@@ -80,6 +80,18 @@ def test_clipped_moments_of_a_triangle_inside_the_disc_are_the_whole_triangle_mo
     np.testing.assert_allclose(m2, full.m2, rtol=1e-12)
 
 
+def test_p2_moments_of_a_whole_triangle_are_the_p2_mass_matrix():
+    # closed forms: ∫ vertex functions = 0, ∫ edge functions = A/3, M = A/180 · [[6, −1, −1, 0, −4, 0], …]
+    tri = np.array([[[0.1, -0.2], [0.4, 0.1], [-0.3, 0.3]]])
+    area, _, _, q1, q2 = _clip_moments(tri, _unit_poly(), quadratic=True)
+    V, E = 6 * np.eye(3) - (1 - np.eye(3)), 16 * (np.ones((3, 3)) + np.eye(3))
+    VE = np.array([[0, -4, 0], [0, 0, -4], [-4, 0, 0]])  # vertex a against the edge opposite it
+    np.testing.assert_allclose(q2[0], area[0] / 180 * np.block([[V, VE], [VE.T, E]]), atol=1e-14 * area[0])
+    np.testing.assert_allclose(q1[0], area[0] * np.r_[0, 0, 0, 1, 1, 1] / 3, atol=1e-14 * area[0])
+    full = ElectrodePatch.from_faces(np.c_[tri[0], np.zeros(3)], [[0, 1, 2]])
+    np.testing.assert_allclose(full.q2[0], q2[0], atol=1e-14 * area[0])
+
+
 def test_quarter_disc_first_moment():
     # ∫ x dA over the quarter of the unit disc in the triangle (0,0),(2,0),(0,2) is 1/3; λ1 = x/2
     area, m1, _ = _clip_moments(np.array([[[0, 0], [2, 0], [0, 2.0]]]), _unit_poly())
@@ -93,8 +105,14 @@ def test_clipped_moments_are_consistent(coords):
     tri = np.array(coords).reshape(1, 3, 2)
     if abs(_cross2(tri[0, 1] - tri[0, 0], tri[0, 2] - tri[0, 0])) < 1e-3:
         return
-    area, m1, m2 = _clip_moments(tri, _unit_poly())
+    area, m1, m2, q1, q2 = _clip_moments(tri, _unit_poly(), quadratic=True)
     tri_area = 0.5 * abs(_cross2(tri[0, 1] - tri[0, 0], tri[0, 2] - tri[0, 0]))
+    # the P2 basis sums to one as well, and its moments carry the P1 ones (λ_a = φ_a + ½ Σ edges at a)
+    assert q1[0].sum() == pytest.approx(area[0], abs=1e-12)
+    np.testing.assert_allclose(q2[0].sum(axis=1), q1[0], atol=1e-12)
+    to_p1 = np.hstack([np.eye(3), 0.5 * np.array([[1, 0, 1], [1, 1, 0], [0, 1, 1]])])  # λ = to_p1 @ φ
+    np.testing.assert_allclose(to_p1 @ q1[0], m1[0], atol=1e-12)
+    np.testing.assert_allclose(to_p1 @ q2[0] @ to_p1.T, m2[0], atol=1e-12)
     assert -1e-12 <= area[0] <= min(tri_area, np.pi) + 1e-12
     # the barycentrics sum to one: Σ_a m1_a = area and Σ_ab m2_ab = area
     assert m1[0].sum() == pytest.approx(area[0], abs=1e-12)

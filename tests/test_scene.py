@@ -36,6 +36,7 @@ def test_paper_scene_holds_the_papers_values(paper_scene):
         ({"drive": {"skip": 9}}, "drive.skip"),
         ({"noise": {"snr_db": -3}}, "noise.snr_db"),
         ({"mesh": {"preset": "huge"}}, "mesh.preset"),
+        ({"mesh": {"element_order": 3}}, "mesh.element_order"),
         ({"saline": {"conductivity": 0.4}}, "conductivity_s_per_m"),  # unit missing from the key
         ({"optics": {}}, "optics"),
         ({"membrane": {"law": "mooney"}}, "membrane.law"),
