@@ -99,7 +99,7 @@ def run_size(label: str, pyeit: bool) -> dict:
     fields = model.solve(sigma)
     v = fields.voltages(protocol)
     out["forward_s"] = time.perf_counter() - t0  # assemble + factorise + 16 solves + 256 voltages
-    out["backend"] = default_backend(A.shape[0]) if model.backend == "auto" else model.backend
+    out["backend"] = default_backend(A.shape[0], A.nnz) if model.backend == "auto" else model.backend
     out["mean_abs_v_mV"] = float(np.abs(v).mean() * 1e3)
     t0 = time.perf_counter()
     J = jacobian(fields, protocol)

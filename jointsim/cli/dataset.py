@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     d = scene.dataset
     k = d.samples_per_press
     where = f"Dask scheduler {args.scheduler}" if args.scheduler else f"{args.workers or default_workers()} local worker(s)"
-    print(f"jointsim dataset: scene {scene.name}, mesh {scene.mesh.preset}, {args.n} samples "
+    print(f"jointsim dataset: scene {scene.name}, mesh {scene.mesh.preset} P{scene.mesh.element_order}, {args.n} samples "
           f"({-(-args.n // k)} presses x {k} depths), radius {d.radius[0] * 1e3:g}-{d.radius[1] * 1e3:g} mm, "
           f"depth {d.depth[0] * 1e3:g}-{d.depth[1] * 1e3:g} mm, r <= {d.r_max * 1e3:g} mm, {where} -> {args.out}")
     bar = tqdm(total=args.n, unit="sample", disable=None if args.progress is None else not args.progress, smoothing=0.1)

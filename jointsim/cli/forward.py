@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--voxels = {args.voxels}: must be >= 1")
     out: Path = args.out
     t: dict[str, float] = {}
-    print(f"jointsim forward: scene {scene.name}, mesh preset {scene.mesh.preset}, skip-{skip}")
+    print(f"jointsim forward: scene {scene.name}, mesh preset {scene.mesh.preset}, P{scene.mesh.element_order} elements, skip-{skip}")
     with stage("chamber mesh (cached after the first run)", t):
         ch = chamber_mesh(scene)
     print("  " + ch.quality().summary())

@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     command = "jointsim palpate " + " ".join(shlex.quote(a) for a in (sys.argv[2:] if sys.argv[1:2] == ["palpate"] else []))
     params = program_params(scene, spec)
     diam = ", ".join(f"{2e3 * r:g}" for r in spec.target_radii)
-    print(f"jointsim palpate: scene {scene.name}, mesh {scene.mesh.preset}, {spec.mode} mode, targets {diam} mm, "
+    print(f"jointsim palpate: scene {scene.name}, mesh {scene.mesh.preset} P{scene.mesh.element_order}, {spec.mode} mode, targets {diam} mm, "
           f"{params['n_records']} frames at {scene.noise.frame_rate_hz:g} Hz -> {out}")
     if h5.exists():
         rec = open_records(h5)

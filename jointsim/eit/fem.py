@@ -14,10 +14,9 @@ gives the symmetric positive definite block system
 
 with M_l = ∫_{e_l} φ_i φ_j, b_l = ∫_{e_l} φ_i, K_k = ∫_k ∇φ ∇φᵀ (V_k ∇λ ∇λᵀ for P1).
 
-P2 converges much faster than P1 on the same mesh (measured on the dataset chamber: standing
-voltages within 0.2 mV RMS of a twice-refined P2 answer, against 2.5 mV for P1, whose
-δV for a deep press then carries a discretisation error of several times the instrument
-noise); it costs ~7× the unknowns.
+P2 converges much faster than P1 on the same mesh, at ~7× the unknowns: on the box with disc
+electrodes of tests/test_eit.py, P2 on 12 cells across errs 2.3 %, P1 on 24 cells 5.5 %
+(test_p2_converges_faster_than_p1).
 """
 
 from __future__ import annotations
@@ -28,13 +27,13 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..mesh.electrodes import FACE_EDGES, ElectrodePatch
-from ..mesh.tetmesh import _EDGES, TetMesh, unique_edges
+from ..mesh.tetmesh import TET_EDGES, TetMesh, unique_edges
 
-__all__ = ["CEMAssembler", "ORDERS", "Dofs", "dofs", "element_stiffness"]
+__all__ = ["CEMAssembler", "ORDERS", "Dofs", "dofs", "element_stiffness", "p2_gradients", "KEAST_POINTS"]
 
 ORDERS = (1, 2)
 # Keast's 4-point rule, exact to degree 2 (the P2 gradients' products): barycentrics, weights 1/4
-_KEAST = np.full((4, 4), 0.1381966011250105) + np.eye(4) * (0.5854101966249685 - 0.1381966011250105)
+KEAST_POINTS = np.full((4, 4), 0.1381966011250105) + np.eye(4) * (0.5854101966249685 - 0.1381966011250105)
 
 
 def _check_order(order: int) -> int:
@@ -44,10 +43,10 @@ def _check_order(order: int) -> int:
 
 
 def p2_gradients(g: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """Gradients of the ten P2 basis functions (vertices, then edges in ``_EDGES`` order) at
+    """Gradients of the ten P2 basis functions (vertices, then edges in ``TET_EDGES`` order) at
     barycentrics ``lam`` (4,), from the barycentrics' gradients ``g`` (m, 4, 3): (m, 10, 3).
     ∇[λ_a(2λ_a − 1)] = (4λ_a − 1)∇λ_a, ∇[4λ_aλ_b] = 4(λ_a∇λ_b + λ_b∇λ_a)."""
-    a, b = _EDGES.T
+    a, b = TET_EDGES.T
     vertex = (4 * lam - 1)[None, :, None] * g
     edge = 4 * (lam[a][None, :, None] * g[:, b] + lam[b][None, :, None] * g[:, a])
     return np.concatenate([vertex, edge], axis=1)
@@ -59,7 +58,7 @@ def element_stiffness(mesh: TetMesh, order: int = 1) -> np.ndarray:
     g = mesh.gradients
     if _check_order(order) == 1:
         return mesh.volumes[:, None, None] * np.einsum("kai,kbi->kab", g, g)
-    k = sum(np.einsum("kai,kbi->kab", d, d) for d in (p2_gradients(g, lam) for lam in _KEAST))
+    k = sum(np.einsum("kai,kbi->kab", d, d) for d in (p2_gradients(g, lam) for lam in KEAST_POINTS))
     return (mesh.volumes / 4)[:, None, None] * k
 
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .fem import _KEAST, p2_gradients
+from .fem import KEAST_POINTS, p2_gradients
 from .forward import LeadFields
 from .protocol import Protocol
 
@@ -55,7 +55,7 @@ def jacobian(
             raise ValueError(f"coarse: expected {mesh.n_tets} rows (one per element), got {coarse.shape[0]}")
     vol = mesh.volumes
     shared_meas = bool((protocol.meas == protocol.meas[:1]).all())
-    points = [None] if fields.model.order == 1 else list(_KEAST)  # P2: ∫_k = V_k/4 Σ over Keast's points
+    points = [None] if fields.model.order == 1 else list(KEAST_POINTS)  # P2: ∫_k = V_k/4 Σ over Keast's points
     for start in range(0, mesh.n_tets, chunk):
         sl = slice(start, min(start + chunk, mesh.n_tets))
         block = 0.0

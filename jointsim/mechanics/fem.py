@@ -36,7 +36,7 @@ import scipy.sparse as sp
 import warp as wp
 from threadpoolctl import threadpool_limits
 
-from ..mesh.tetmesh import _EDGES, TetMesh, unique_edges
+from ..mesh.tetmesh import TET_EDGES, TetMesh, unique_edges
 from .materials import Material, first_piola, piola_derivative, strain_energy, tangent_with_pressure
 
 __all__ = ["P2Mesh", "ElementState", "ElementKernel", "ElasticTerm", "project_psd", "assemble_hessian", "assemble_gradient"]
@@ -82,7 +82,7 @@ class P2Mesh:
         # _shape_gradients at the same points
         dl = np.array([[-1.0, -1, -1], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
         corner = (4 * l[:, :, None] - 1) * dl[None]
-        a, b = _EDGES.T
+        a, b = TET_EDGES.T
         edge = 4 * (l[:, a, None] * dl[b] + l[:, b, None] * dl[a])
         Gr = np.concatenate([corner, edge], axis=1)
         J = np.einsum("mni,qnk->mqik", self.nodes[self.tets], Gr)

@@ -8,10 +8,10 @@ from functools import cached_property
 
 import numpy as np
 
-__all__ = ["TetMesh", "MeshQuality", "mesh_quality", "refine_uniform", "edge_midpoints", "unique_edges"]
+__all__ = ["TetMesh", "MeshQuality", "mesh_quality", "refine_uniform", "edge_midpoints", "unique_edges", "TET_EDGES"]
 
 # the six edges of a tetrahedron, in the order P2 midpoint nodes follow
-_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 _FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])  # face i is opposite vertex i, outward
 
 
@@ -143,15 +143,15 @@ def _circumradius(p: np.ndarray) -> np.ndarray:
 
 def unique_edges(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
     """The mesh's k unique edges (k, 2) (node pairs, sorted), and for each element the index
-    (m, 6) of each of its edges, in the order of ``_EDGES``."""
-    key = np.sort(mesh.tets[:, _EDGES].reshape(-1, 2), axis=1)
+    (m, 6) of each of its edges, in the order of ``TET_EDGES``."""
+    key = np.sort(mesh.tets[:, TET_EDGES].reshape(-1, 2), axis=1)
     uniq, inv = np.unique(key, axis=0, return_inverse=True)
     return uniq, inv.reshape(-1, 6)
 
 
 def edge_midpoints(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
     """The midpoints (k, 3) of the mesh's k unique edges, and for each element the index (m, 6)
-    of the midpoint of each of its edges, in the order of ``_EDGES``."""
+    of the midpoint of each of its edges, in the order of ``TET_EDGES``."""
     uniq, index = unique_edges(mesh)
     return mesh.nodes[uniq].mean(axis=1), index
 
