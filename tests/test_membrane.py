@@ -176,7 +176,7 @@ def test_a_closed_chamber_holds_its_volume_and_stiffens_the_dome():
         for d in (0.5e-3, 1.0e-3):
             st = model.press(np.array([0.0, 0.0, top - d]))
         states[closed] = (model, st)
-    (m_open, s_open), (m_closed, s_closed) = states[False], states[True]
+    (_, s_open), (m_closed, s_closed) = states[False], states[True]
     assert s_open.displaced_volume > 1e-9  # tens of mm³ leave an open chamber
     # the secant on the pressure stops at |ΔV| ≤ 1e-6 V0
     assert abs(s_closed.displaced_volume) <= 1.01e-6 * m_closed.V0
