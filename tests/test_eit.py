@@ -168,6 +168,8 @@ def test_p2_stiffness_is_exact_for_a_harmonic_quadratic():
     bf = d.faces(mesh.boundary_faces)
     on_boundary[bf] = True
     assert np.abs(Ku[~on_boundary]).max() < 1e-12 * np.abs(Ku).max()
+    with pytest.raises(ValueError, match="not an edge of the mesh"):
+        d.faces(np.array([[0, 1, mesh.n_nodes - 1]]))  # corner to corner: no element has that edge
 
 
 def test_protocol_semantics():

@@ -82,7 +82,10 @@ class Dofs:
             return faces
         key = self.edges[:, 0].astype(np.int64) * self.n_nodes + self.edges[:, 1]
         e = np.sort(faces[:, FACE_EDGES], axis=2)
-        at = np.searchsorted(key, e[..., 0].astype(np.int64) * self.n_nodes + e[..., 1])
+        wanted = e[..., 0].astype(np.int64) * self.n_nodes + e[..., 1]
+        at = np.minimum(np.searchsorted(key, wanted), len(key) - 1)
+        if not np.array_equal(key[at], wanted):
+            raise ValueError("faces: a face has an edge that is not an edge of the mesh's elements")
         return np.hstack([faces, self.n_nodes + at])
 
 
