@@ -51,7 +51,8 @@ def _box_with_discs(n, order=1):
     centres = np.column_stack([6e-3 * np.cos(ang), 6e-3 * np.sin(ang), np.zeros(4)])
     centres = np.vstack([centres, [0, 0, 0]])
     radii = np.array([2.5e-3] * 4 + [2e-3])
-    return ForwardModel(mesh, disc_patches(mesh, centres, radii), ground=4, contact_impedance=1e-3, order=order)
+    patches = disc_patches(mesh, centres, radii, quadratic=order == 2)
+    return ForwardModel(mesh, patches, ground=4, contact_impedance=1e-3, order=order)
 
 
 @pytest.fixture(scope="module", params=[1, 2], ids=["P1", "P2"])
@@ -146,6 +147,12 @@ def test_p2_converges_faster_than_p1():
     err = {(o, n): np.linalg.norm(_box_with_discs(n, order=o).voltages(0.37, p) - ref) / np.linalg.norm(ref)
            for o, n in ((2, 12), (1, 24))}
     assert err[2, 12] < 0.5 * err[1, 24]
+
+
+def test_p2_needs_the_p2_electrode_moments():
+    m = _box_with_discs(4)  # P1 patches: no P2 moments
+    with pytest.raises(ValueError, match="order 2 needs the P2 moments"):
+        ForwardModel(m.mesh, list(m.assembler.electrodes), ground=4, contact_impedance=1e-3, order=2)
 
 
 def test_p2_stiffness_is_exact_for_a_harmonic_quadratic():

@@ -293,7 +293,7 @@ class DatasetSetup:
         layout = self.pal.chamber.layout
         centres = layout.centres.copy()
         centres[: len(jitter), :2] += jitter
-        return disc_patches(mesh, centres, layout.radii)
+        return disc_patches(mesh, centres, layout.radii, quadratic=self.scene.mesh.element_order == 2)
 
     def _voltages(self, chamber: ChamberMesh, patches: list[ElectrodePatch], z: np.ndarray, sigma: float) -> np.ndarray:
         model = ForwardModel(chamber.mesh, patches, chamber.ground, z, order=self.scene.mesh.element_order)

@@ -115,6 +115,8 @@ class CEMAssembler:
         L = len(self.electrodes) - 1
         if not 0 <= self.ground <= L:
             raise ValueError(f"ground = {self.ground}: must index one of the {L + 1} electrodes")
+        if self.order == 2 and any(e.q1 is None for e in self.electrodes):
+            raise ValueError("electrodes: order 2 needs the P2 moments of every patch (disc_patches(..., quadratic=True))")
         d = dofs(self.mesh, self.order)
         n, nl = d.n, d.elements.shape[1]
         el = d.elements

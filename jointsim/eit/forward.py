@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..mesh.chamber import ChamberMesh
-from ..mesh.electrodes import ElectrodePatch
+from ..mesh.electrodes import ElectrodePatch, disc_patches
 from ..mesh.tetmesh import TetMesh
 from ..scene import Scene
 from .fem import CEMAssembler
@@ -80,7 +80,6 @@ class ForwardModel:
         order: int = 1,
     ):
         self.mesh = mesh
-        self.order = order
         self.assembler = CEMAssembler(mesh, tuple(electrodes), ground, order)
         z = np.broadcast_to(np.asarray(contact_impedance, float), (len(electrodes),)).copy()
         if not (z > 0).all():
@@ -95,7 +94,15 @@ class ForwardModel:
         e = scene.electrodes
         z = np.append(np.asarray(e.contact_impedance), e.ground_contact_impedance)
         order = scene.mesh.element_order if order is None else order
-        return cls(chamber.mesh, chamber.electrodes, chamber.ground, z, backend, order)
+        electrodes = chamber.electrodes
+        if order == 2 and any(e.q1 is None for e in electrodes):
+            # a chamber's patches carry P1 moments only; the P2 ones come from the same discs
+            electrodes = disc_patches(chamber.mesh, chamber.layout.centres, chamber.layout.radii, quadratic=True)
+        return cls(chamber.mesh, electrodes, chamber.ground, z, backend, order)
+
+    @property
+    def order(self) -> int:
+        return self.assembler.order
 
     @property
     def n_driven(self) -> int:
