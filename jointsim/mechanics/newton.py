@@ -352,6 +352,8 @@ def minimize_energy(
         if eager:
             E, g, Hs, _ = _total(terms, u, True)
         history.append(float(np.linalg.norm(g[free])))
+    if history[-1] <= tol:  # converged by the last iteration allowed
+        return NewtonResult(u, E, g, max_iter, history[-1], history)
     err = NewtonError(f"no convergence in {max_iter} iterations: residual {np.linalg.norm(g[free]):.3e} > {tol:.3e}")
     err.history = history
     raise err
