@@ -354,3 +354,39 @@ def test_pattern_solver_reports_the_inertia_and_solves_to_its_precision(single, 
     eps = np.finfo(np.float32 if single else np.float64).eps / 2
     assert np.linalg.norm(A @ x - b) <= 100 * eps * np.abs(eig - sigma).max() * np.linalg.norm(x)
     solver.free()
+
+
+@pytest.mark.parametrize("single", [False, True])
+def test_cholesky_fails_exactly_on_a_matrix_that_is_not_positive_definite(single):
+    """PatternSolver.try_factor on L − σI (the 3-D grid Laplacian, 12³ unknowns, smallest
+    eigenvalue λ₁ in closed form): σ at 0.9 λ₁ factors (and solves backward stably), σ at 1.1 λ₁
+    leaves one eigenvalue −0.1 λ₁ ≈ −0.01 — far above either precision's round-off of ‖A‖ ≈ 12
+    — and is refused, with no stale factor left to solve with."""
+    from jointsim.eit.solver import PatternSolver, available_backends
+
+    if "pardiso" not in available_backends():
+        pytest.skip("needs PARDISO")
+    m = 12
+    lam1 = 2 - 2 * np.cos(np.arange(1, m + 1) * np.pi / (m + 1))
+    low = 3 * lam1[0]
+    T = sp.diags([-np.ones(m - 1), 2 * np.ones(m), -np.ones(m - 1)], [-1, 0, 1])
+    eye = sp.identity(m)
+    L = sp.kron(sp.kron(T, eye), eye) + sp.kron(sp.kron(eye, T), eye) + sp.kron(sp.kron(eye, eye), T)
+    upper = sp.triu(sp.csr_matrix(L), format="csr")
+    upper.sort_indices()
+    solver = PatternSolver(upper.indptr, upper.indices, spd=True, backend="pardiso", refinement=0, single=single)
+    diag = np.flatnonzero(np.repeat(np.arange(m**3), np.diff(upper.indptr)) == upper.indices)
+    for factor, definite in ((0.9, True), (1.1, False), (0.9, True)):
+        data = upper.data.copy()
+        data[diag] -= factor * low
+        assert solver.try_factor(data) is definite
+        if definite:
+            b = np.ones(m**3)
+            x = solver.solve(b)
+            A = sp.csr_matrix(L - factor * low * sp.identity(m**3))
+            eps = np.finfo(np.float32 if single else np.float64).eps / 2
+            assert np.linalg.norm(A @ x - b) <= 100 * eps * 12 * np.linalg.norm(x)
+        else:
+            with pytest.raises(RuntimeError, match="factor"):
+                solver.solve(np.ones(m**3))
+    solver.free()

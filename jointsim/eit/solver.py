@@ -224,6 +224,21 @@ class PatternSolver:
         # iparm(23) (1-based): the number of negative pivots of the LDLᵀ factor
         self.negative_eigenvalues = None if self.spd else int(self._solver.iparm[22])
 
+    def try_factor(self, data: np.ndarray) -> bool:
+        """:meth:`factor` a matrix that may not be positive definite (``spd`` solvers, PARDISO):
+        False where Cholesky meets a non-positive pivot (PARDISO error −4), which in exact
+        arithmetic happens exactly when the matrix is not positive definite."""
+        if not (self.spd and self.backend == "pardiso"):
+            raise ValueError("try_factor: for PARDISO Cholesky (spd=True) only")
+        try:
+            self.factor(data)
+        except Exception as e:
+            if getattr(e, "value", None) != -4:
+                raise
+            self._A = None  # no factor to solve with
+            return False
+        return True
+
     def solve(self, b: np.ndarray) -> np.ndarray:
         if self._A is None:
             raise RuntimeError("factor() first")

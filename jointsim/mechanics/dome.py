@@ -495,7 +495,7 @@ class MembraneModel:
             return None
         free = self.system.free
         du = np.zeros(self.u.size)
-        du[free] = self.system.full.solve(rhs[free])
+        du[free] = self.system.solve_tangent(rhs[free])
         guess = self.u + du.reshape(self.u.shape)
         return guess if self.elastic.evaluate(guess, False)[3] else None
 

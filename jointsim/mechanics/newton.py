@@ -1,7 +1,10 @@
 """Quasi-static equilibrium as energy minimisation: Newton's method with a backtracking
 (Armijo) line search that also rejects inverted elements. Where the Hessian is indefinite the
 step is taken with a positive definite modification of it: H + σ·diag|H| (Levenberg–Marquardt)
-when the linear solver reports the inertia, else each term's PSD-projected Hessian.
+when the linear solver reports the inertia, else each term's PSD-projected Hessian. With
+PARDISO each Hessian is factored by Cholesky first, which succeeds exactly where it is positive
+definite (nearly every Newton iteration of a press), and by LDLᵀ, whose inertia decides the
+rest, only where Cholesky fails; the shifted Hessians by Cholesky alone.
 
 The total energy is a sum of terms (elastic, pressure, contact), each returning its energy,
 gradient and Hessian over all 3n displacement components. Dirichlet components are fixed to
@@ -61,6 +64,8 @@ SINGLE_PRECISION = True
 # Bunch–Kaufman 1×1 and 2×2 pivots in the indefinite LDLᵀ (1×1 only measured no faster on the
 # 92-rim membrane: results/mechanics_solvers.md)
 PIVOT_2X2 = True
+# factor the Hessian (and its shifts) by Cholesky first, LDLᵀ only where that fails
+CHOLESKY_FIRST = True
 
 
 def csr_rows(indptr: np.ndarray) -> np.ndarray:
@@ -104,6 +109,8 @@ class NewtonSystem:
         # (the residual test is on g, in double). Without refinement the solve is ~5× faster (6
         # against 32 ms on the 64-rim membrane), in single precision the factorisation ~1.6×
         self.full = PatternSolver(indptr_f, cols_f, spd=False, refinement=0, single=SINGLE_PRECISION, two_by_two=PIVOT_2X2)
+        # Cholesky: positive definite matrices only (it fails on any other, which is the test),
+        # for the projected Hessians and, with CHOLESKY_FIRST, the Hessians and their shifts
         self.projected = PatternSolver(indptr_f, cols_f, spd=True, refinement=0, single=SINGLE_PRECISION)
         # upper triangle, columns sorted: each row's diagonal is its first entry (None: a
         # pattern without every diagonal entry, which cannot be shifted)
@@ -111,10 +118,11 @@ class NewtonSystem:
         has_diag = np.all(np.diff(indptr_f) > 0) and np.array_equal(cols_f[first], np.arange(len(first)))
         self.diagonal = first if has_diag else None
         self.shift = SHIFT_START  # Levenberg–Marquardt σ, carried from one regularised step to the next
-        # True while `full` holds the factor of a positive definite, unmodified Hessian (the
-        # last equilibrium's tangent, for predictors)
+        # True while `tangent` holds the factor of a positive definite, unmodified Hessian (the
+        # last equilibrium's tangent, for predictors: solve_tangent)
         self.tangent_ready = False
         self.tangent_u: np.ndarray | None = None  # the displacement that factor was taken at
+        self.tangent: PatternSolver = self.full  # the solver holding it
         self._placements: dict[int, tuple[np.ndarray, ...]] = {}  # see _placement
 
     def data(self, matrices: list) -> np.ndarray:
@@ -147,13 +155,35 @@ class NewtonSystem:
         return entries, slot[entries]
 
     def factor_tangent(self, terms: list, u: np.ndarray) -> None:
-        """Factor the full Hessian of ``terms`` at ``u`` into ``full``, as the last Newton
-        iteration there would have (restoring a checkpoint bit for bit)."""
+        """Factor the full Hessian of ``terms`` at ``u`` as the last Newton iteration there
+        would have (restoring a checkpoint bit for bit)."""
         _, _, Hs, ok = _total(terms, u, True)
         if not ok:
             raise ValueError("factor_tangent: the displacement inverts elements")
-        self.full.factor(self.data(Hs))
-        self.tangent_ready, self.tangent_u = self.full.negative_eigenvalues == 0, u
+        self.factor_hessian(self.data(Hs), u)
+
+    def factor_hessian(self, data: np.ndarray, u: np.ndarray) -> bool:
+        """Factor the free Hessian with values ``data`` taken at ``u``; whether it is positive
+        definite (then it is the tangent ``solve_tangent`` uses). Cholesky first where
+        CHOLESKY_FIRST: ~25 % cheaper than LDLᵀ and the Hessian nearly always is (results/
+        mechanics_solvers.md); where it fails, LDLᵀ and its inertia."""
+        self.tangent_ready, self.tangent_u = False, u
+        if CHOLESKY_FIRST and self.projected.backend == "pardiso" and self.projected.try_factor(data):
+            self.tangent, self.tangent_ready = self.projected, True
+            return True
+        self.full.factor(data)
+        self.tangent, self.tangent_ready = self.full, self.full.negative_eigenvalues == 0
+        return self.tangent_ready
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """Solve with the last factor :meth:`factor_hessian` took."""
+        return self.tangent.solve(b)
+
+    def solve_tangent(self, b: np.ndarray) -> np.ndarray:
+        """Solve with the held tangent (``tangent_ready`` must be True)."""
+        if not self.tangent_ready:
+            raise RuntimeError("no positive definite tangent factor held")
+        return self.tangent.solve(b)
 
     def free_factors(self) -> None:
         self.full.free()
@@ -178,10 +208,8 @@ def _full_step(u, Hs, free, g, system, data=None) -> tuple[np.ndarray | None, bo
     ``data``: the system's values of Σ Hs when already gathered."""
     try:
         if system is not None:
-            system.full.factor(system.data(Hs) if data is None else data)
-            d = system.full.solve(-g[free])
-            spd = system.full.negative_eigenvalues == 0
-            system.tangent_ready, system.tangent_u = spd, u
+            spd = system.factor_hessian(system.data(Hs) if data is None else data, u)
+            d = system.solve(-g[free])
         else:
             with factorize(_summed(Hs)[free][:, free], _BACKEND, spd=False) as solve:
                 d = solve(-g[free])
@@ -212,11 +240,17 @@ def _regularised_step(data: np.ndarray, free, g, system: NewtonSystem) -> np.nda
     for _ in range(SHIFT_TRIES):
         shifted = data.copy()
         shifted[diag] += sigma * scale
-        system.full.factor(shifted)
+        if CHOLESKY_FIRST:
+            solver = system.projected
+            definite = solver.try_factor(shifted)
+        else:
+            solver = system.full
+            solver.factor(shifted)
+            definite = solver.negative_eigenvalues == 0
         system.tangent_ready = False
-        if system.full.negative_eigenvalues == 0:
+        if definite:
             system.shift = max(sigma / 10, SHIFT_START)
-            d = system.full.solve(-g[free])
+            d = solver.solve(-g[free])
             return d if _descent(d, g[free]) else None
         sigma *= 10
     return None
@@ -227,6 +261,7 @@ def _projected_step(terms, u, free, g, system) -> np.ndarray:
     Hs = [t.projected_hessian(u) if hasattr(t, "projected_hessian") else t.evaluate(u, True)[2] for t in terms]
     if system is not None:
         system.projected.factor(system.data(Hs))
+        system.tangent_ready = False
         return -system.projected.solve(g[free])
     with factorize(_summed(Hs)[free][:, free], _BACKEND) as solve:
         return -solve(g[free])
