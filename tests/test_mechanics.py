@@ -35,6 +35,47 @@ def test_element_gradient_and_hessian_match_finite_differences(volumetric):
     assert k(np.zeros_like(u), False).energy.sum() == 0.0
 
 
+@pytest.mark.parametrize("volumetric", ["mean_dilatation", "pointwise"])
+def test_the_kernel_split_over_threads_equals_one_launch(monkeypatch, volumetric):
+    """The element kernel launched in uneven chunks from several threads gives every element the
+    same energy, gradient and Hessian as one launch; the assembled Hessians differ only by the
+    order of the additions (to 1e-14 of the largest entry)."""
+    import jointsim.mechanics.fem as fem
+
+    m = P2Mesh.from_linear(box_mesh((1.0, 1.0, 1.0), (3, 3, 3)))  # 162 tets
+    k = ElementKernel(m, Material.yeoh(9.8e3, 0.91e3, -0.16e3), volumetric=volumetric)
+    u = 0.02 * np.random.default_rng(4).standard_normal((m.n_nodes, 3))
+    monkeypatch.setattr(fem, "KERNEL_THREADS", 1)
+    one = k(u, True, elements=True)
+    monkeypatch.setattr(fem, "KERNEL_THREADS", 3)
+    monkeypatch.setattr(fem, "MIN_CHUNK", 50)  # 162 // 50 = 3 chunks of 54
+    split = k(u, True, elements=True)
+    np.testing.assert_array_equal(split.energy, one.energy)
+    np.testing.assert_array_equal(split.grad, one.grad)
+    np.testing.assert_array_equal(split.element_hessians, one.element_hessians)
+    assert abs(split.hessian - one.hessian).max() <= 1e-14 * abs(one.hessian).max()
+
+
+def test_cholesky_first_reaches_the_equilibrium_ldlt_reaches(monkeypatch):
+    """The pressurised dome pressed 1 mm (two 0.5 mm steps): Newton with Cholesky-first
+    factorisations ends where the LDLᵀ-only Newton does, to the force tolerance's 1e-3 of the
+    contact force (both stop at their own iterate below it)."""
+    import jointsim.mechanics.newton as newton
+    from jointsim.geometry import isotropic_cap
+    from jointsim.mechanics.dome import MembraneModel
+
+    if newton._BACKEND != "pardiso":
+        pytest.skip("Cholesky-first needs PARDISO")
+    forces = {}
+    for cholesky in (True, False):
+        monkeypatch.setattr(newton, "CHOLESKY_FIRST", cholesky)
+        model = MembraneModel(isotropic_cap(0.02, 0.01, 48), 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3)
+        assert model.system.projected.backend == "pardiso"
+        top = model.first_contact_height((0.0, 0.0))
+        forces[cholesky] = [model.press(np.array([0.0, 0.0, top - d])).force[2] for d in (0.5e-3, 1e-3)]
+    np.testing.assert_allclose(forces[True], forces[False], rtol=2e-3)
+
+
 def _uniaxial(material, stretches):
     L = 1e-2
     m = P2Mesh.from_linear(box_mesh((L, L, L), (1, 1, 1)))
