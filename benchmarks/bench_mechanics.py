@@ -20,14 +20,13 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from _machine import atomic_write, speed_reference
+from _machine import atomic_write, machine, speed_reference
 
 ROOT = Path(__file__).resolve().parents[1]
 # (rim vertices, layers through the thickness, apex edge mm or 0 for uniform, volumetric form);
@@ -37,16 +36,19 @@ ROOT = Path(__file__).resolve().parents[1]
 RESOLUTIONS = [(48, 2, 0.0, "pointwise"), (64, 2, 0.0, "pointwise"), (72, 2, 0.0, "pointwise"), (80, 2, 0.0, "pointwise"),
                (88, 2, 0.0, "pointwise"), (92, 2, 0.0, "pointwise"), (96, 2, 0.0, "pointwise"), (64, 3, 0.0, "pointwise"), (96, 3, 0.0, "pointwise"),
                (128, 3, 0.0, "pointwise"), (128, 2, 0.0, "pointwise"), (160, 2, 0.0, "pointwise")]
-# `--solvers`: the Newton solves' linear-solver settings compared on one mesh, each run REPEATS
-# times interleaved (load drift falls on all alike): (single precision, 2×2 pivots); the first is
-# the package default, every RESOLUTIONS row's
-SOLVERS = {"single": (True, True), "double": (False, True), "single, 1×1 pivots": (True, False)}
+# `--solvers`: the Newton solves' settings compared on one mesh, each run REPEATS times
+# interleaved (load drift falls on all alike): (single precision, 2×2 pivots, Cholesky first,
+# element-kernel threads or 0 for the package's KERNEL_THREADS); the first is the package
+# default, every RESOLUTIONS row's. The last is the default before Cholesky-first and the
+# threaded kernel (results of 2026-11-21)
+SOLVERS = {"default": (True, True, True, 0), "LDLᵀ only": (True, True, False, 0), "one kernel thread": (True, True, True, 1),
+           "double precision": (False, True, True, 0), "LDLᵀ only, one kernel thread": (True, True, False, 1)}
 SOLVER_MESH, REPEATS = (92, 2, 0.0, "pointwise"), 2
 GOAL_S, CONVERGED = 1.0, 0.02  # the issue's goal: ≤ 1 s per step at a mesh within 2 % in force
 DEPTHS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 
 
-def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatation", linear: str = "single") -> dict:
+def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatation", linear: str = "default") -> dict:
     import jointsim.eit.solver as solver
     import jointsim.mechanics.fem as fem
     import jointsim.mechanics.newton as newton
@@ -54,7 +56,8 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
     from jointsim.mechanics.dome import MembraneModel
     from jointsim.scene import load_scene
 
-    newton.SINGLE_PRECISION, newton.PIVOT_2X2 = SOLVERS[linear]
+    newton.SINGLE_PRECISION, newton.PIVOT_2X2, newton.CHOLESKY_FIRST, threads = SOLVERS[linear]
+    fem.KERNEL_THREADS = threads or fem.KERNEL_THREADS
 
     timers = {"kernel": 0.0, "factorise+solve": 0.0}
 
@@ -169,7 +172,7 @@ def solvers() -> int:
 
     partial = SOLVERS_OUT.with_suffix(".partial.json")
     saved = json.loads(partial.read_text()) if partial.exists() else {"runs": [], "meta": {}}
-    meta = saved["meta"] or _new_meta("python benchmarks/bench_mechanics.py --solvers")
+    meta = saved["meta"] or {**_new_meta("python benchmarks/bench_mechanics.py --solvers"), "speed_reference_s": speed_reference()}
     runs = saved["runs"]
     for i in range(REPEATS * len(SOLVERS)):
         if i < len(runs):
@@ -185,17 +188,23 @@ def solvers() -> int:
     meta["load_average_start_end"][1] = os.getloadavg()[0]
     mean = lambda rs, key: float(np.mean([x[key] for r in rs for x in r["steps"][1:]]))
     by = {k: [r for r in runs if r["linear"] == k] for k in SOLVERS}
-    base = by["single"]
-    lines = ["# Mechanics: the Newton solves' linear-solver settings", "", f"Command: `{meta['command']}`  ",
+    base = by["default"]
+    lines = ["# Mechanics: the Newton solves' linear-solver and kernel settings", "", f"Command: `{meta['command']}`  ",
              f"Machine: {meta['machine']}; run {meta['date']}; 1-min load average {meta['load_average_start_end'][0]:.1f} at the start, "
-             f"{meta['load_average_start_end'][1]:.1f} at the end.  ",
+             f"{meta['load_average_start_end'][1]:.1f} at the end; speed_reference {meta.get('speed_reference_s', float('nan')):.3f} s "
+             "(`benchmarks/_machine.py`).  ",
              f"The press of results/mechanics_benchmark.md (rigid 15 mm target, 0.5 mm steps to 3 mm) on the {_label(runs[0])} membrane, "
-             f"each setting run {REPEATS} times interleaved; per-step means over the steps after the first. PARDISO LDLᵀ, the ordering and "
-             "symbolic analysis once per model. Ratios against the package default (single precision, Bunch–Kaufman 1×1 and 2×2 pivots).", "",
-             "| LDLᵀ | s / step | ratio | factorise+solve s / step | ratio | Newton its / step | F 1 / 2 / 3 mm, mN |", "|---|---|---|---|---|---|---|"]
+             f"each setting run {REPEATS} times interleaved; per-step means over the steps after the first. PARDISO, the ordering and "
+             "symbolic analysis once per model. Ratios against the package default: single precision; each Hessian (and each shifted one) "
+             "factored by Cholesky first, by Bunch–Kaufman LDLᵀ (1×1 and 2×2 pivots) with its inertia only where Cholesky fails; the Warp "
+             f"element kernel launched in {meta.get('kernel_threads', '?')} chunks from as many threads. \"LDLᵀ only, one kernel thread\" "
+             "is the default of results/mechanics_benchmark.md before 2026-11-22.", "",
+             "| setting | s / step | ratio | factorise+solve s / step | ratio | kernel s / step | ratio | Newton its / step | F 1 / 2 / 3 mm, mN |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for k, rs in by.items():
         lines.append(f"| {k} | {mean(rs, 'wall_s'):.2f} | {mean(rs, 'wall_s') / mean(base, 'wall_s'):.2f} | {mean(rs, 'factorise+solve_s'):.2f} | "
-                     f"{mean(rs, 'factorise+solve_s') / mean(base, 'factorise+solve_s'):.2f} | {mean(rs, 'iterations'):.1f} | "
+                     f"{mean(rs, 'factorise+solve_s') / mean(base, 'factorise+solve_s'):.2f} | {mean(rs, 'kernel_s'):.2f} | "
+                     f"{mean(rs, 'kernel_s') / mean(base, 'kernel_s'):.2f} | {mean(rs, 'iterations'):.1f} | "
                      + " / ".join(f"{_at(rs[0], d):.2f}" for d in (1.0, 2.0, 3.0)) + " |")
     atomic_write(SOLVERS_OUT.with_suffix(".json"), json.dumps({"meta": meta, "runs": runs}, indent=2))
     atomic_write(SOLVERS_OUT.with_suffix(".md"), "\n".join(lines) + "\n")
@@ -206,8 +215,10 @@ def solvers() -> int:
 
 def _new_meta(command: str) -> dict:
     """A run's provenance: command, machine, date, the load average at the start."""
-    return {"command": command, "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
-            "date": time.strftime("%Y-%m-%d"), "load_average_start_end": [os.getloadavg()[0], None]}
+    from jointsim.mechanics.fem import KERNEL_THREADS
+
+    return {"command": command, "machine": machine(), "date": time.strftime("%Y-%m-%d"), "kernel_threads": KERNEL_THREADS,
+            "load_average_start_end": [os.getloadavg()[0], None]}
 
 
 def write(rows: list[dict], meta: dict) -> None:
@@ -229,8 +240,9 @@ def write(rows: list[dict], meta: dict) -> None:
              "no predictor yet). Membrane meshes: the inner surface as a uniform isotropic cap of edge 2π·20 mm / rim vertices,",
              "P2 tetrahedra (isoparametric, on the true spheres) in prism layers through the 2 mm thickness, the volumetric energy",
              "pointwise (the scene default; validated on this dome against an axisymmetric reference in results/dome_apex_load.md).",
-             "Kernel s: the Warp element kernel's calls, which include the elastic Hessian's assembly into its sparse pattern;",
-             "factorise+solve s: PARDISO's (LDLᵀ in single precision, jointsim/mechanics/newton.py SINGLE_PRECISION).",
+             f"Kernel s: the Warp element kernel's calls ({meta.get('kernel_threads', 1)} chunks launched from as many threads), which include "
+             "the elastic Hessian's assembly into its sparse pattern; factorise+solve s: PARDISO's, in single precision, each Hessian by "
+             "Cholesky first and by LDLᵀ where that fails (jointsim/mechanics/newton.py SINGLE_PRECISION, CHOLESKY_FIRST).",
              f"Errors: against the last row ({_label(ref)}: rim vertices / layers).  ",
              f"1-min load average {meta['load_average_start_end'][0]:.1f} at the start, {meta['load_average_start_end'][1]:.1f} at the end "
              "(on 2 cores a load above 1 inflates the times; the forces do not depend on it).  ",
