@@ -9,7 +9,7 @@ and the rest.
 
     python benchmarks/bench_mechanics.py            # writes results/mechanics_benchmark.{md,json}
     python benchmarks/bench_mechanics.py --report   # rewrites the .md from the .json
-    python benchmarks/bench_mechanics.py --solvers  # the linear-solver settings on one mesh:
+    python benchmarks/bench_mechanics.py --solvers [N]  # the solver settings on one mesh, N runs each:
                                                     # results/mechanics_solvers.{md,json}
 
 Each mesh runs in its own process; finished rows are kept in results/mechanics_benchmark.partial.json,
@@ -134,7 +134,7 @@ def main() -> int:
         print(json.dumps(run(int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]), sys.argv[5], *sys.argv[6:7])))
         return 0
     if len(sys.argv) > 1 and sys.argv[1] == "--solvers":
-        return solvers()
+        return solvers(int(sys.argv[2]) if len(sys.argv) > 2 else REPEATS)
     import subprocess
 
     partial = OUT.with_suffix(".partial.json")
@@ -165,7 +165,7 @@ OUT = ROOT / "results" / "mechanics_benchmark"
 SOLVERS_OUT = ROOT / "results" / "mechanics_solvers"
 
 
-def solvers() -> int:
+def solvers(repeats: int = REPEATS) -> int:
     """The linear-solver comparison on SOLVER_MESH (``--solvers``): results/mechanics_solvers.{md,json},
     finished runs kept in its .partial.json (an interrupted run resumes)."""
     import subprocess
@@ -174,7 +174,8 @@ def solvers() -> int:
     saved = json.loads(partial.read_text()) if partial.exists() else {"runs": [], "meta": {}}
     meta = saved["meta"] or {**_new_meta("python benchmarks/bench_mechanics.py --solvers"), "speed_reference_s": speed_reference()}
     runs = saved["runs"]
-    for i in range(REPEATS * len(SOLVERS)):
+    meta.setdefault("repeats", repeats)
+    for i in range(meta["repeats"] * len(SOLVERS)):
         if i < len(runs):
             continue
         linear = list(SOLVERS)[i % len(SOLVERS)]
@@ -194,7 +195,7 @@ def solvers() -> int:
              f"{meta['load_average_start_end'][1]:.1f} at the end; speed_reference {meta.get('speed_reference_s', float('nan')):.3f} s "
              "(`benchmarks/_machine.py`).  ",
              f"The press of results/mechanics_benchmark.md (rigid 15 mm target, 0.5 mm steps to 3 mm) on the {_label(runs[0])} membrane, "
-             f"each setting run {REPEATS} times interleaved; per-step means over the steps after the first. PARDISO, the ordering and "
+             f"each setting run {meta['repeats']} times interleaved; per-step means over the steps after the first. PARDISO, the ordering and "
              "symbolic analysis once per model. Ratios against the package default: single precision; each Hessian (and each shifted one) "
              "factored by Cholesky first, by Bunch–Kaufman LDLᵀ (1×1 and 2×2 pivots) with its inertia only where Cholesky fails; the Warp "
              f"element kernel launched in {meta.get('kernel_threads', '?')} chunks from as many threads. \"LDLᵀ only, one kernel thread\" "
