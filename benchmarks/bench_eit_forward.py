@@ -43,7 +43,6 @@ def _rss_mb() -> float:
 
 
 def run_size(label: str, pyeit: bool) -> dict:
-    from jointsim.eit.fem import CEMAssembler
     from jointsim.eit.forward import ForwardModel
     from jointsim.eit.jacobian import jacobian
     from jointsim.eit.protocol import skip_protocol

@@ -220,7 +220,7 @@ class DatasetSetup:
 
     def press(self, draw: GroupDraw, n_samples: int) -> list[dict[str, Any]]:
         """Press ``draw``'s target through its first ``n_samples`` depths; one record each."""
-        pal, scene = self.pal, self.scene
+        pal = self.pal
         t: dict[str, float] = {}
         with timed(t, "group_setup"):
             model = self._membrane(draw)

@@ -114,7 +114,7 @@ def element_quality(nodes: np.ndarray, tets: np.ndarray) -> ElementQuality:
     if len(tets) == 0:
         raise ValueError("tets: the mesh has no elements")
     p0, p1, p2, p3 = (nodes[tets[:, a]] for a in range(4))
-    e01, e02, e03, e12, e13, e23 = p1 - p0, p2 - p0, p3 - p0, p2 - p1, p3 - p1, p3 - p2
+    e01, e02, e03, e12, e13 = p1 - p0, p2 - p0, p3 - p0, p2 - p1, p3 - p1
     # outward (for positive orientation) area normals of the faces opposite vertices 0..3
     n = [_cross(e12, e13), _cross(e03, e02), _cross(e01, e03), _cross(e02, e01)]
     vol6 = -np.einsum("mi,mi->m", e01, n[1])  # e01 · (e02 × e03) = 6 V
