@@ -1,6 +1,8 @@
 """Mechanics against closed forms: uniaxial stretch of one cube (neo-Hookean, Yeoh), the
 pressurised thick neo-Hookean sphere; derivative checks of the Warp element kernel."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -54,6 +56,39 @@ def test_the_kernel_split_over_threads_equals_one_launch(monkeypatch, volumetric
     np.testing.assert_array_equal(split.grad, one.grad)
     np.testing.assert_array_equal(split.element_hessians, one.element_hessians)
     assert abs(split.hessian - one.hessian).max() <= 1e-14 * abs(one.hessian).max()
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
+def test_a_forked_child_runs_the_split_kernel(monkeypatch):
+    """A child forked after the kernel threads exist gets threads of its own: the parent's pool
+    has none in the child, and a chunk submitted to it would never run (a hang, caught here by a
+    60 s wait on the child's answer)."""
+    import select
+
+    import jointsim.mechanics.fem as fem
+
+    monkeypatch.setattr(fem, "KERNEL_THREADS", 2)
+    monkeypatch.setattr(fem, "MIN_CHUNK", 50)
+    m = P2Mesh.from_linear(box_mesh((1.0, 1.0, 1.0), (3, 3, 3)))
+    k = ElementKernel(m, Material.neo_hookean(1.0))
+    u = 0.01 * np.random.default_rng(5).standard_normal((m.n_nodes, 3))
+    expected = k(u, False).energy.sum()  # the parent's pool now exists
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: answer, then leave without running pytest's teardown
+        try:
+            os.write(write, repr(float(k(u, False).energy.sum())).encode())
+        finally:
+            os._exit(0)
+    os.close(write)
+    ready, _, _ = select.select([read], [], [], 60.0)
+    if not ready:
+        os.kill(pid, 9)
+    os.waitpid(pid, 0)
+    answer = os.read(read, 100).decode() if ready else ""
+    os.close(read)
+    assert ready, "the forked child's kernel call did not return within 60 s"
+    assert float(answer) == expected
 
 
 def test_cholesky_first_reaches_the_equilibrium_ldlt_reaches(monkeypatch):

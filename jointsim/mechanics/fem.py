@@ -57,14 +57,16 @@ _MatN = wp.types.matrix(shape=(10, 3), dtype=wp.float64)
 # on a single core; more than 4 chunks would spend more on the buffers than they save
 KERNEL_THREADS = max(1, min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1))
 MIN_CHUNK = 1024  # elements: below this a launch is too short to share
-_POOL: ThreadPoolExecutor | None = None
+_POOL: tuple[int, ThreadPoolExecutor] | None = None  # (the process it was made in, the pool)
 
 
 def _pool() -> ThreadPoolExecutor:
+    """The kernel threads of this process. A forked child gets a pool of its own: the parent's
+    copied pool has no threads there, and a chunk submitted to it would never run."""
     global _POOL
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(max_workers=KERNEL_THREADS, thread_name_prefix="jointsim-kernel")
-    return _POOL
+    if _POOL is None or _POOL[0] != os.getpid():
+        _POOL = (os.getpid(), ThreadPoolExecutor(max_workers=KERNEL_THREADS, thread_name_prefix="jointsim-kernel"))
+    return _POOL[1]
 
 # 4-point degree-2 rule on the tetrahedron (barycentric points, weights summing to 1)
 _QA, _QB = 0.5854101966249685, 0.1381966011250105
