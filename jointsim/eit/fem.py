@@ -27,13 +27,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..mesh.electrodes import FACE_EDGES, ElectrodePatch
-from ..mesh.tetmesh import TET_EDGES, TetMesh, unique_edges
+from ..mesh.tetmesh import KEAST_POINTS, TET_EDGES, TetMesh, unique_edges
 
-__all__ = ["CEMAssembler", "ORDERS", "Dofs", "dofs", "element_stiffness", "p2_gradients", "KEAST_POINTS"]
+__all__ = ["CEMAssembler", "ORDERS", "Dofs", "dofs", "element_stiffness", "p2_gradients"]
 
 ORDERS = (1, 2)
-# Keast's 4-point rule, exact to degree 2 (the P2 gradients' products): barycentrics, weights 1/4
-KEAST_POINTS = np.full((4, 4), 0.1381966011250105) + np.eye(4) * (0.5854101966249685 - 0.1381966011250105)
 
 
 def _check_order(order: int) -> int:

@@ -17,7 +17,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .fem import KEAST_POINTS, p2_gradients
+from ..mesh.tetmesh import KEAST_POINTS
+from .fem import p2_gradients
 from .forward import LeadFields
 from .protocol import Protocol
 

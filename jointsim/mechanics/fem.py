@@ -40,7 +40,7 @@ import scipy.sparse as sp
 import warp as wp
 from threadpoolctl import threadpool_limits
 
-from ..mesh.tetmesh import TET_EDGES, TetMesh, unique_edges
+from ..mesh.tetmesh import KEAST_POINTS, TET_EDGES, TetMesh, unique_edges
 from .materials import Material, first_piola, piola_derivative, strain_energy, tangent_with_pressure
 
 __all__ = ["P2Mesh", "ElementState", "ElementKernel", "ElasticTerm", "project_psd", "assemble_hessian", "assemble_gradient"]
@@ -68,9 +68,9 @@ def _pool() -> ThreadPoolExecutor:
         _POOL = (os.getpid(), ThreadPoolExecutor(max_workers=KERNEL_THREADS, thread_name_prefix="jointsim-kernel"))
     return _POOL[1]
 
-# 4-point degree-2 rule on the tetrahedron (barycentric points, weights summing to 1)
-_QA, _QB = 0.5854101966249685, 0.1381966011250105
-QUAD_BARY = np.array([[_QA, _QB, _QB, _QB], [_QB, _QA, _QB, _QB], [_QB, _QB, _QA, _QB], [_QB, _QB, _QB, _QA]])
+
+# the element quadrature: Keast's 4-point degree-2 rule (barycentric points, weights summing to 1)
+QUAD_BARY = KEAST_POINTS
 QUAD_W = np.full(4, 0.25)
 
 
@@ -414,8 +414,8 @@ class ElementKernel:
                 f.result()
         H = None
         if hessian:
-            values = data[0].numpy() if not cpu else host[0]
-            for h in host[1:] if cpu else ():
+            values = host[0] if cpu else data[0].numpy()
+            for h in host[1:]:  # the other chunks' buffers (CPU only: elsewhere one chunk)
                 values += h
             n = 3 * self.mesh.n_nodes
             H = sp.csr_matrix((values, self._indices, self._indptr), shape=(n, n))

@@ -8,10 +8,13 @@ from functools import cached_property
 
 import numpy as np
 
-__all__ = ["TetMesh", "MeshQuality", "mesh_quality", "refine_uniform", "edge_midpoints", "unique_edges", "TET_EDGES"]
+__all__ = ["TetMesh", "MeshQuality", "mesh_quality", "refine_uniform", "edge_midpoints", "unique_edges", "TET_EDGES", "KEAST_POINTS"]
 
 # the six edges of a tetrahedron, in the order P2 midpoint nodes follow
 TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+# Keast's 4-point rule on the tetrahedron, exact to degree 2 (products of P2 gradients):
+# barycentric points (4, 4), each of weight 1/4
+KEAST_POINTS = np.full((4, 4), 0.1381966011250105) + np.eye(4) * (0.5854101966249685 - 0.1381966011250105)
 _FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])  # face i is opposite vertex i, outward
 
 
