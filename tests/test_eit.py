@@ -320,6 +320,16 @@ def test_repeated_solves_do_not_leak_the_factor():
     assert grown < 20e6, f"{default_backend()} grew {grown / 1e6:.0f} MB over 5 solves"
 
 
+def _grid_laplacian(m: int) -> tuple[sp.csr_matrix, np.ndarray]:
+    """The 7-point Laplacian on an m³ grid (Dirichlet, unit spacing) and its eigenvalues in closed
+    form, λ_i + λ_j + λ_k with λ_i = 2 − 2 cos(iπ/(m + 1))."""
+    lam1 = 2 - 2 * np.cos(np.arange(1, m + 1) * np.pi / (m + 1))
+    T = sp.diags([-np.ones(m - 1), 2 * np.ones(m), -np.ones(m - 1)], [-1, 0, 1])
+    eye = sp.identity(m)
+    L = sp.kron(sp.kron(T, eye), eye) + sp.kron(sp.kron(eye, T), eye) + sp.kron(sp.kron(eye, eye), T)
+    return sp.csr_matrix(L), (lam1[:, None, None] + lam1[None, :, None] + lam1[None, None, :]).ravel()
+
+
 @pytest.mark.parametrize("single, two_by_two", [(False, True), (True, True), (True, False)])
 def test_pattern_solver_reports_the_inertia_and_solves_to_its_precision(single, two_by_two):
     """PatternSolver on a shifted 3-D grid Laplacian L − σI (20³ = 8000 unknowns, on PARDISO's
@@ -333,14 +343,10 @@ def test_pattern_solver_reports_the_inertia_and_solves_to_its_precision(single, 
     if "pardiso" not in available_backends():
         pytest.skip("needs PARDISO (single precision, inertia)")
     m = 20
-    lam1 = 2 - 2 * np.cos(np.arange(1, m + 1) * np.pi / (m + 1))
-    eig = (lam1[:, None, None] + lam1[None, :, None] + lam1[None, None, :]).ravel()
+    L, eig = _grid_laplacian(m)
     levels = np.unique(np.round(eig, 10))  # the grid's symmetry repeats eigenvalues
     sigma = 0.5 * (levels[9] + levels[10])  # between two distinct ones, far from both
     assert levels[10] - levels[9] > 1e-2
-    T = sp.diags([-np.ones(m - 1), 2 * np.ones(m), -np.ones(m - 1)], [-1, 0, 1])
-    eye = sp.identity(m)
-    L = sp.kron(sp.kron(T, eye), eye) + sp.kron(sp.kron(eye, T), eye) + sp.kron(sp.kron(eye, eye), T)
     A = sp.csr_matrix(L - sigma * sp.identity(m**3))
     upper = sp.triu(A, format="csr")
     upper.sort_indices()
@@ -367,15 +373,12 @@ def test_cholesky_fails_exactly_on_a_matrix_that_is_not_positive_definite(single
     if "pardiso" not in available_backends():
         pytest.skip("needs PARDISO")
     m = 12
-    lam1 = 2 - 2 * np.cos(np.arange(1, m + 1) * np.pi / (m + 1))
-    low = 3 * lam1[0]
-    T = sp.diags([-np.ones(m - 1), 2 * np.ones(m), -np.ones(m - 1)], [-1, 0, 1])
-    eye = sp.identity(m)
-    L = sp.kron(sp.kron(T, eye), eye) + sp.kron(sp.kron(eye, T), eye) + sp.kron(sp.kron(eye, eye), T)
-    upper = sp.triu(sp.csr_matrix(L), format="csr")
+    L, eig = _grid_laplacian(m)
+    low = eig.min()
+    upper = sp.triu(L, format="csr")
     upper.sort_indices()
     solver = PatternSolver(upper.indptr, upper.indices, spd=True, backend="pardiso", refinement=0, single=single)
-    diag = np.flatnonzero(np.repeat(np.arange(m**3), np.diff(upper.indptr)) == upper.indices)
+    diag = upper.indptr[:-1]  # each row of the sorted upper triangle starts at its diagonal
     for factor, definite in ((0.9, True), (1.1, False), (0.9, True)):
         data = upper.data.copy()
         data[diag] -= factor * low
