@@ -172,7 +172,7 @@ def solvers(repeats: int = REPEATS) -> int:
 
     partial = SOLVERS_OUT.with_suffix(".partial.json")
     saved = json.loads(partial.read_text()) if partial.exists() else {"runs": [], "meta": {}}
-    meta = saved["meta"] or {**_new_meta("python benchmarks/bench_mechanics.py --solvers"), "speed_reference_s": speed_reference()}
+    meta = saved["meta"] or {**_new_meta(f"python benchmarks/bench_mechanics.py --solvers {repeats}"), "speed_reference_s": speed_reference()}
     runs = saved["runs"]
     meta.setdefault("repeats", repeats)
     for i in range(meta["repeats"] * len(SOLVERS)):
