@@ -310,6 +310,30 @@ def test_friction_term_gradient_and_hessian_match_finite_differences():
         np.testing.assert_allclose(H.toarray()[:, i], (gp - gm) / (2 * h), rtol=1e-4, atol=1e-6 * np.abs(H).max())
 
 
+def test_pressure_term_gradient_and_hessian_match_differences():
+    import trimesh
+
+    rng = np.random.default_rng(3)
+    s = trimesh.creation.icosphere(subdivisions=1, radius=1e-2)
+    X = s.vertices + rng.normal(0, 5e-4, s.vertices.shape)  # not a sphere: no symmetry to hide in
+    term = PressureTerm(X, s.faces, pressure=2e3)
+    u = rng.normal(0, 1e-3, X.shape)
+    E, g, H, _ = term.evaluate(u, True)
+    assert -E / term.pressure == pytest.approx(trimesh.Trimesh(X + u, s.faces, process=False).volume, rel=1e-12)
+    # V is cubic in the positions, so the gradient is quadratic and its central difference is
+    # exact (to round-off) for any step; the energy's has an O(h²) error, small at this h
+    h = 1e-4
+    Hd = H.toarray()
+    for i in range(u.size):
+        du = np.zeros(u.size)
+        du[i] = h
+        Ep, gp = term.evaluate(u + du.reshape(u.shape), False)[:2]
+        Em, gm = term.evaluate(u - du.reshape(u.shape), False)[:2]
+        assert g[i] == pytest.approx((Ep - Em) / (2 * h), rel=1e-5, abs=1e-9 * np.abs(g).max())
+        np.testing.assert_allclose(Hd[:, i], (gp - gm) / (2 * h), rtol=1e-9, atol=1e-9 * np.abs(Hd).max())
+    np.testing.assert_array_equal(Hd, Hd.T)
+
+
 def test_a_sliding_sphere_feels_coulomb_friction():
     """A rigid sphere pressed into a block and dragged sideways well past the stick limit: the
     tangential force is μ times the normal force (gross sliding; the normal forces are re-lagged
