@@ -58,6 +58,38 @@ def test_the_kernel_split_over_threads_equals_one_launch(monkeypatch, volumetric
     assert abs(split.hessian - one.hessian).max() <= 1e-14 * abs(one.hessian).max()
 
 
+@pytest.mark.parametrize("threads", [1, 3])
+def test_the_hessian_assembled_into_a_newton_system_equals_its_gather(monkeypatch, threads):
+    """The kernel adding straight into a Newton system's free upper triangle gives the values
+    the system gathers from the Hessian on the mesh's pattern, bit for bit (the same additions
+    in the same order), on the mesh's own pattern and on a wider one; and the system refuses
+    values made for another system."""
+    import scipy.sparse as sp
+
+    import jointsim.mechanics.fem as fem
+    from jointsim.mechanics.newton import SystemValues
+
+    monkeypatch.setattr(fem, "KERNEL_THREADS", threads)
+    monkeypatch.setattr(fem, "MIN_CHUNK", 50)
+    m = P2Mesh.from_linear(box_mesh((1.0, 1.0, 1.0), (3, 3, 3)))
+    term = ElasticTerm(m, Material.neo_hookean(1.0))
+    rng = np.random.default_rng(5)
+    u = 0.02 * rng.standard_normal((m.n_nodes, 3))
+    free = rng.random(3 * m.n_nodes) > 0.2
+    indptr, indices, _ = m.sparsity
+    n = 3 * m.n_nodes
+    wider = sp.csr_matrix((np.ones(len(indices)), indices, indptr), shape=(n, n)) + sp.eye(n, k=n // 2) + sp.eye(n, k=-n // 2)
+    wider.sort_indices()
+    for pattern in ((indptr, indices), (wider.indptr, wider.indices)):
+        system = NewtonSystem(*pattern, free)
+        E, g, H, ok = term.evaluate_into(u, system)
+        assert isinstance(H, SystemValues) and ok
+        np.testing.assert_array_equal(system.data([H]), system.data([term.evaluate(u, True)[2]]))
+        assert (E, list(g)) == (term.evaluate(u, False)[0], list(term.evaluate(u, False)[1]))
+    with pytest.raises(ValueError, match="another Newton system"):
+        NewtonSystem(indptr, indices, free).data([H])
+
+
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
 def test_a_forked_child_runs_the_split_kernel(monkeypatch):
     """A child forked after the kernel threads exist gets threads of its own: the parent's pool

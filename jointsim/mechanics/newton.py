@@ -20,7 +20,7 @@ import scipy.sparse as sp
 
 from ..eit.solver import PatternSolver, available_backends, factorize
 
-__all__ = ["EnergyTerm", "NodalForce", "NewtonResult", "NewtonError", "NewtonSystem", "minimize_energy", "step_to"]
+__all__ = ["EnergyTerm", "SystemValues", "NodalForce", "NewtonResult", "NewtonError", "NewtonSystem", "minimize_energy", "step_to"]
 
 
 class NewtonError(RuntimeError):
@@ -28,8 +28,19 @@ class NewtonError(RuntimeError):
 
 
 class EnergyTerm(Protocol):
+    """A term may also have ``evaluate_into(u, system)``: the same with the Hessian given as
+    that :class:`NewtonSystem`'s values (:class:`SystemValues`), which Newton then uses."""
+
     def evaluate(self, u: np.ndarray, hessian: bool) -> tuple[float, np.ndarray, sp.spmatrix | None, bool]:
         """(energy, gradient (3n,), Hessian (3n, 3n) or None, admissible)."""
+
+
+@dataclass(frozen=True, eq=False)
+class SystemValues:
+    """A Hessian given as ``system``'s free upper-triangle values, in its pattern's order."""
+
+    system: "NewtonSystem"
+    values: np.ndarray
 
 
 class NodalForce:
@@ -125,10 +136,26 @@ class NewtonSystem:
         self.tangent: PatternSolver = self.full  # the solver holding it
         self._placements: dict[int, tuple[np.ndarray, ...]] = {}  # see _placement
 
+    def pattern_slots(self, indptr: np.ndarray, indices: np.ndarray) -> np.ndarray:
+        """The slot in :meth:`data`'s values of each stored entry of a matrix with the CSR
+        pattern ``(indptr, indices)``: −1 for entries on fixed components or below the diagonal."""
+        if np.array_equal(indptr, self._indptr) and np.array_equal(indices, self._cols):
+            return self.slot.copy()
+        pos = find_keys(self.keys, csr_rows(indptr) * self.n + np.asarray(indices, np.int64))
+        if pos is None:
+            raise ValueError("pattern: entries outside the system's sparsity pattern")
+        return self.slot[pos]
+
     def data(self, matrices: list) -> np.ndarray:
-        """The free upper-triangle values of Σ matrices, in the pattern's order."""
+        """The free upper-triangle values of Σ matrices, in the pattern's order (a
+        :class:`SystemValues` of this system counts as its values)."""
         out = np.zeros(self.n_kept)
         for i, H in enumerate(matrices):
+            if isinstance(H, SystemValues):
+                if H.system is not self:
+                    raise ValueError("matrices: values of another Newton system")
+                out += H.values
+                continue
             if H is None or H.nnz == 0:
                 continue
             H = sp.csr_matrix(H)
@@ -157,7 +184,7 @@ class NewtonSystem:
     def factor_tangent(self, terms: list, u: np.ndarray) -> None:
         """Factor the full Hessian of ``terms`` at ``u`` as the last Newton iteration there
         would have (restoring a checkpoint bit for bit)."""
-        _, _, Hs, ok = _total(terms, u, True)
+        _, _, Hs, ok = _total(terms, u, True, self)
         if not ok:
             raise ValueError("factor_tangent: the displacement inverts elements")
         self.factor_hessian(self.data(Hs), u)
@@ -268,11 +295,13 @@ def _projected_step(terms, u, free, g, system) -> np.ndarray:
         return -solve(g[free])
 
 
-def _total(terms, u, hessian):
-    """(energy, gradient, [each term's Hessian] or None, admissible)."""
+def _total(terms, u, hessian, system: NewtonSystem | None = None):
+    """(energy, gradient, [each term's Hessian] or None, admissible); with a ``system``, the
+    Hessians of terms that can give them so as that system's values."""
     E, g, Hs, ok = 0.0, None, [], True
     for t in terms:
-        e, gi, Hi, oki = t.evaluate(u, hessian)
+        into = hessian and system is not None and hasattr(t, "evaluate_into")
+        e, gi, Hi, oki = t.evaluate_into(u, system) if into else t.evaluate(u, hessian)
         ok &= oki
         E += e
         g = gi if g is None else g + gi
@@ -342,7 +371,7 @@ def minimize_energy(
     # with a term that re-linearises when its Hessian is taken (lagged contact points): its
     # gradient after that is the one convergence is judged on
     eager = any(getattr(t, "RELINEARISES", False) for t in terms)
-    E, g, Hs, ok = _total(terms, u, eager)
+    E, g, Hs, ok = _total(terms, u, eager, system)
     if not ok:
         raise NewtonError("the initial state has inverted elements")
     r0 = np.linalg.norm(g[free])
@@ -353,7 +382,7 @@ def minimize_energy(
         if r <= tol or r == 0.0:
             return NewtonResult(u, E, g, it, r, history)
         if Hs is None:
-            _, _, Hs, _ = _total(terms, u, True)
+            _, _, Hs, _ = _total(terms, u, True, system)
         # the full-Hessian step converges quadratically near equilibrium. Where the free Hessian
         # is positive definite (LDLᵀ inertia) it is a descent direction and is line-searched;
         # otherwise it is taken only when the whole step lowers the energy, and a positive
@@ -386,7 +415,7 @@ def minimize_energy(
         u, E, g = u_new
         Hs = None
         if eager:
-            E, g, Hs, _ = _total(terms, u, True)
+            E, g, Hs, _ = _total(terms, u, True, system)
         history.append(float(np.linalg.norm(g[free])))
     if history[-1] <= tol:  # converged by the last iteration allowed
         return NewtonResult(u, E, g, max_iter, history[-1], history)
