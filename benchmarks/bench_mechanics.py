@@ -11,6 +11,8 @@ and the rest.
     python benchmarks/bench_mechanics.py --report   # rewrites the .md from the .json
     python benchmarks/bench_mechanics.py --solvers [N]  # the solver settings on one mesh, N runs each:
                                                     # results/mechanics_solvers.{md,json}
+    python benchmarks/bench_mechanics.py --assembly [N]  # one iteration's Hessian by both assembly
+                                                    # routes, N times: results/mechanics_assembly.{md,json}
 
 Each mesh runs in its own process; finished rows are kept in results/mechanics_benchmark.partial.json,
 so an interrupted run resumes where it stopped (delete that file to start over).
@@ -140,6 +142,8 @@ def main() -> int:
     if len(sys.argv) > 1 and sys.argv[1] == "--one":
         print(json.dumps(run(int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]), sys.argv[5], *sys.argv[6:7])))
         return 0
+    if len(sys.argv) > 1 and sys.argv[1] == "--assembly":
+        return assembly(int(sys.argv[2]) if len(sys.argv) > 2 else 10)
     if len(sys.argv) > 1 and sys.argv[1] == "--solvers":
         return solvers(int(sys.argv[2]) if len(sys.argv) > 2 else REPEATS)
     import subprocess
@@ -227,6 +231,57 @@ def write_solvers(runs: list[dict], meta: dict) -> None:
     atomic_write(SOLVERS_OUT.with_suffix(".json"), json.dumps({"meta": meta, "runs": runs}, indent=2))
     atomic_write(SOLVERS_OUT.with_suffix(".md"), "\n".join(lines) + "\n")
     print("\n".join(lines))
+
+
+def assembly(repeats: int) -> int:
+    """One Newton iteration's Hessian values on SOLVER_MESH pressed 1 mm (``--assembly N``), by
+    the two routes, interleaved N times (a few seconds apart, so the machine's drift falls on
+    both alike): the element kernel adding into the Newton system, and the kernel assembling the
+    matrix on the mesh's pattern for the system to gather from. Each route includes the pressure
+    and contact terms. results/mechanics_assembly.{md,json}."""
+    from dataclasses import replace
+
+    import jointsim.mechanics.newton as newton
+    from jointsim.geometry import isotropic_cap
+    from jointsim.mechanics.dome import MembraneModel
+    from jointsim.scene import load_scene
+
+    n_rim, layers, _, volumetric = SOLVER_MESH
+    scene = load_scene(ROOT / "scenes" / "paper_sensor.toml")
+    scene = replace(scene, membrane=replace(scene.membrane, layers=layers, volumetric=volumetric))
+    c = scene.chamber
+    model = MembraneModel.from_scene(scene, 7.5e-3, dome=isotropic_cap(c.base_radius, c.dome_height, n_rim))
+    top = model.first_contact_height((0.0, 0.0))
+    for d in (0.5e-3, 1e-3):
+        model.press(np.array([0.0, 0.0, top - d]))
+    u, terms, system = model.u, model.terms, model.system
+    routes = {"into the system": lambda: system.data(newton._total(terms, u, True, system)[2]),
+              "matrix, gathered": lambda: system.data(newton._total(terms, u, True)[2])}
+    same = bool(np.array_equal(*(f() for f in routes.values())))
+    times = {k: [] for k in routes}
+    for _ in range(repeats):
+        for k, f in routes.items():
+            t0 = time.perf_counter()
+            f()
+            times[k].append(time.perf_counter() - t0)
+    meta = {**_new_meta(f"python benchmarks/bench_mechanics.py --assembly {repeats}"), "speed_reference_s": speed_reference()}
+    meta["load_average_start_end"][1] = os.getloadavg()[0]
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    base = med["into the system"]
+    lines = ["# Mechanics: assembling one Newton iteration's Hessian", "", f"Command: `{meta['command']}`  ",
+             f"Machine: {meta['machine']}; run {meta['date']}; speed_reference {meta['speed_reference_s']:.3f} s (`benchmarks/_machine.py`); "
+             f"the element kernel in {meta['kernel_threads']} chunks.  ",
+             f"The {_label({'n_rim': n_rim, 'layers': layers, 'apex_mm': 0.0, 'volumetric': volumetric})} membrane pressed 1 mm by the "
+             "rigid 15 mm target; the values of the elastic, pressure and contact Hessians in the Newton system's free upper triangle, by "
+             f"each route, {repeats} times interleaved. Both routes give the same values bit for bit: {same}.", "",
+             "| route | median ms | min ms | ratio of medians |", "|---|---|---|---|"]
+    for k, v in times.items():
+        lines.append(f"| {k} | {med[k] * 1e3:.1f} | {min(v) * 1e3:.1f} | {med[k] / base:.2f} |")
+    out = ROOT / "results" / "mechanics_assembly"
+    atomic_write(out.with_suffix(".json"), json.dumps({"meta": meta, "times_s": times, "bitwise_equal": same}, indent=2))
+    atomic_write(out.with_suffix(".md"), "\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return 0 if same else 1
 
 
 def _new_meta(command: str) -> dict:
