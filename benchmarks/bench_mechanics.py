@@ -312,7 +312,7 @@ def write(rows: list[dict], meta: dict) -> None:
              "P2 tetrahedra (isoparametric, on the true spheres) in prism layers through the 2 mm thickness, the volumetric energy",
              "pointwise (the scene default; validated on this dome against an axisymmetric reference in results/dome_apex_load.md).",
              f"Kernel s: the Warp element kernel's calls ({meta.get('kernel_threads', 1)} chunks launched from as many threads), which include "
-             "the elastic Hessian's assembly into its sparse pattern; factorise+solve s: PARDISO's, in single precision, each Hessian by "
+             "the elastic Hessian's assembly into the Newton system's values; factorise+solve s: PARDISO's, in single precision, each Hessian by "
              "Cholesky first and by LDLᵀ where that fails (jointsim/mechanics/newton.py SINGLE_PRECISION, CHOLESKY_FIRST).",
              f"Errors: against the last row ({_label(ref)}: rim vertices / layers).  ",
              f"1-min load average {meta['load_average_start_end'][0]:.1f} at the start, {meta['load_average_start_end'][1]:.1f} at the end "
