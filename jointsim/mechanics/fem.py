@@ -528,7 +528,7 @@ class ElasticTerm:
     def evaluate_into(self, u: np.ndarray, system: NewtonSystem):
         """As :meth:`evaluate` with the Hessian, given as ``system``'s values: the kernel adds
         straight into them, which on the 92/2 membrane makes a Newton iteration's Hessian values
-        1.28× faster than the matrix on the mesh's pattern and the system's gather from it
+        1.32× faster than the matrix on the mesh's pattern and the system's gather from it
         (results/mechanics_assembly.md, medians of 10 interleaved)."""
         target = self._targets.get(system)
         if target is None:
