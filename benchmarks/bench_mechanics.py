@@ -56,9 +56,6 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
     import jointsim.eit.solver as solver
     import jointsim.mechanics.fem as fem
     import jointsim.mechanics.newton as newton
-    from jointsim.geometry import isotropic_cap
-    from jointsim.mechanics.dome import MembraneModel
-    from jointsim.scene import load_scene
 
     newton.SINGLE_PRECISION, newton.PIVOT_2X2, newton.CHOLESKY_FIRST, threads, into = SOLVERS[linear]
     fem.KERNEL_THREADS = threads or fem.KERNEL_THREADS
@@ -80,15 +77,7 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
     solver.PatternSolver.factor = timed("factorise+solve", solver.PatternSolver.factor)
     solver.PatternSolver.solve = timed("factorise+solve", solver.PatternSolver.solve)
 
-    from dataclasses import replace
-
-    scene = load_scene(ROOT / "scenes" / "paper_sensor.toml")
-    scene = replace(scene, membrane=replace(scene.membrane, layers=layers, volumetric=volumetric))
-    c = scene.chamber
-    dome = isotropic_cap(c.base_radius, c.dome_height, n_rim, apex_mm * 1e-3 if apex_mm else None)
-    t0 = time.perf_counter()
-    model = MembraneModel.from_scene(scene, 7.5e-3, dome=dome)
-    setup = time.perf_counter() - t0
+    model, setup = _membrane(n_rim, layers, apex_mm, volumetric)
     top = model.first_contact_height((0.0, 0.0))
     steps = []
     for d in np.array(DEPTHS_MM) * 1e-3:
@@ -101,6 +90,24 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
                       "force_mN": st.force[2] * 1e3, "displaced_mm3": st.displaced_volume * 1e9, "penetration_um": st.penetration * 1e6})
     return {"n_rim": n_rim, "layers": layers, "apex_mm": apex_mm, "volumetric": volumetric, "linear": linear, "p2_nodes": model.mesh.n_nodes, "tets": model.mesh.n_tets,
             "setup_s": setup, "steps": steps}
+
+
+def _membrane(n_rim: int, layers: int, apex_mm: float, volumetric: str):
+    """The paper's membrane on a cap of ``n_rim`` rim vertices under the 15 mm target, and the
+    seconds MembraneModel.from_scene took (meshing, inflation)."""
+    from dataclasses import replace
+
+    from jointsim.geometry import isotropic_cap
+    from jointsim.mechanics.dome import MembraneModel
+    from jointsim.scene import load_scene
+
+    scene = load_scene(ROOT / "scenes" / "paper_sensor.toml")
+    scene = replace(scene, membrane=replace(scene.membrane, layers=layers, volumetric=volumetric))
+    c = scene.chamber
+    dome = isotropic_cap(c.base_radius, c.dome_height, n_rim, apex_mm * 1e-3 if apex_mm else None)
+    t0 = time.perf_counter()
+    model = MembraneModel.from_scene(scene, 7.5e-3, dome=dome)
+    return model, time.perf_counter() - t0
 
 
 def _at(r: dict, depth: float, key: str = "force_mN") -> float:
@@ -239,18 +246,9 @@ def assembly(repeats: int) -> int:
     both alike): the element kernel adding into the Newton system, and the kernel assembling the
     matrix on the mesh's pattern for the system to gather from. Each route includes the pressure
     and contact terms. results/mechanics_assembly.{md,json}."""
-    from dataclasses import replace
-
     import jointsim.mechanics.newton as newton
-    from jointsim.geometry import isotropic_cap
-    from jointsim.mechanics.dome import MembraneModel
-    from jointsim.scene import load_scene
 
-    n_rim, layers, _, volumetric = SOLVER_MESH
-    scene = load_scene(ROOT / "scenes" / "paper_sensor.toml")
-    scene = replace(scene, membrane=replace(scene.membrane, layers=layers, volumetric=volumetric))
-    c = scene.chamber
-    model = MembraneModel.from_scene(scene, 7.5e-3, dome=isotropic_cap(c.base_radius, c.dome_height, n_rim))
+    model, _ = _membrane(*SOLVER_MESH)
     top = model.first_contact_height((0.0, 0.0))
     for d in (0.5e-3, 1e-3):
         model.press(np.array([0.0, 0.0, top - d]))
@@ -271,7 +269,7 @@ def assembly(repeats: int) -> int:
     lines = ["# Mechanics: assembling one Newton iteration's Hessian", "", f"Command: `{meta['command']}`  ",
              f"Machine: {meta['machine']}; run {meta['date']}; speed_reference {meta['speed_reference_s']:.3f} s (`benchmarks/_machine.py`); "
              f"the element kernel in {meta['kernel_threads']} chunks.  ",
-             f"The {_label({'n_rim': n_rim, 'layers': layers, 'apex_mm': 0.0, 'volumetric': volumetric})} membrane pressed 1 mm by the "
+             f"The {_label(dict(zip(('n_rim', 'layers', 'apex_mm', 'volumetric'), SOLVER_MESH)))} membrane pressed 1 mm by the "
              "rigid 15 mm target; the values of the elastic, pressure and contact Hessians in the Newton system's free upper triangle, by "
              f"each route, {repeats} times interleaved. Both routes give the same values bit for bit: {same}.", "",
              "| route | median ms | min ms | ratio of medians |", "|---|---|---|---|"]

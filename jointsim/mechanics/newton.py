@@ -143,7 +143,7 @@ class NewtonSystem:
             return self.slot.copy()
         pos = find_keys(self.keys, csr_rows(indptr) * self.n + np.asarray(indices, np.int64))
         if pos is None:
-            raise ValueError("pattern: entries outside the system's sparsity pattern")
+            raise RuntimeError("a Hessian term has entries outside the system's sparsity pattern")
         return self.slot[pos]
 
     def data(self, matrices: list) -> np.ndarray:
@@ -173,10 +173,7 @@ class NewtonSystem:
         hit = self._placements.get(i)
         if hit is not None and np.array_equal(hit[0], H.indptr) and np.array_equal(hit[1], H.indices):
             return hit[2], hit[3]
-        pos = find_keys(self.keys, csr_rows(H.indptr) * self.n + H.indices)
-        if pos is None:
-            raise RuntimeError("a Hessian term has entries outside the system's sparsity pattern")
-        slot = self.slot[pos]
+        slot = self.pattern_slots(H.indptr, H.indices)
         entries = np.flatnonzero(slot >= 0)
         self._placements[i] = (H.indptr.copy(), H.indices.copy(), entries, slot[entries])
         return entries, slot[entries]
