@@ -58,10 +58,13 @@ def membrane(n_rim: int):
 def free_upper(cells: np.ndarray, nodes: np.ndarray) -> sp.csr_matrix:
     """An SPD matrix on the free upper triangle of the element pattern of ``cells`` (the nodes on
     the base plane fixed, as the bonded rim)."""
-    k = cells.shape[1]
-    dof = (3 * cells[:, :, None] + np.arange(3)).reshape(-1, 3 * k).astype(np.int64)
+    from jointsim.eit.solver import csr_pattern
+
+    k = 3 * cells.shape[1]
+    dof = (3 * cells[:, :, None] + np.arange(3)).reshape(-1, k)
     n = 3 * len(nodes)
-    A = sp.csr_matrix((np.ones(dof.shape[0] * (3 * k) ** 2), (np.repeat(dof, 3 * k, axis=1).ravel(), np.tile(dof, (1, 3 * k)).ravel())), shape=(n, n))
+    indptr, indices, _ = csr_pattern(np.repeat(dof, k, axis=1).ravel(), np.tile(dof, (1, k)).ravel(), n)
+    A = sp.csr_matrix((np.ones(len(indices)), indices, indptr), shape=(n, n))
     free = np.repeat(np.abs(nodes[:, 2]) > 1e-9 * np.ptp(nodes), 3)
     A = A[free][:, free].tocsr()
     A.data = -np.random.default_rng(0).uniform(0.5, 1.0, A.nnz)

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _machine import atomic_write, machine, speed_reference
+from _machine import atomic_write, machine, speed_reference, write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 # (rim vertices, layers through the thickness, apex edge mm or 0 for uniform, volumetric form);
@@ -235,8 +235,7 @@ def write_solvers(runs: list[dict], meta: dict) -> None:
                      f"{mean(rs, 'factorise+solve_s') / mean(base, 'factorise+solve_s'):.2f} | {mean(rs, 'kernel_s'):.2f} | "
                      f"{mean(rs, 'kernel_s') / mean(base, 'kernel_s'):.2f} | {mean(rs, 'iterations'):.1f} | "
                      + " / ".join(f"{_at(rs[0], d):.2f}" for d in (1.0, 2.0, 3.0)) + " |")
-    atomic_write(SOLVERS_OUT.with_suffix(".json"), json.dumps({"meta": meta, "runs": runs}, indent=2))
-    atomic_write(SOLVERS_OUT.with_suffix(".md"), "\n".join(lines) + "\n")
+    write_pair(SOLVERS_OUT, {"meta": meta, "runs": runs}, "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
@@ -276,8 +275,7 @@ def assembly(repeats: int) -> int:
     for k, v in times.items():
         lines.append(f"| {k} | {med[k] * 1e3:.1f} | {min(v) * 1e3:.1f} | {med[k] / base:.2f} |")
     out = ROOT / "results" / "mechanics_assembly"
-    atomic_write(out.with_suffix(".json"), json.dumps({"meta": meta, "times_s": times, "bitwise_equal": same}, indent=2))
-    atomic_write(out.with_suffix(".md"), "\n".join(lines) + "\n")
+    write_pair(out, {"meta": meta, "times_s": times, "bitwise_equal": same}, "\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0 if same else 1
 
@@ -355,8 +353,7 @@ def write(rows: list[dict], meta: dict) -> None:
                   + f". The errors above are against a {ref['layers']}-layer reference, so they leave out this through-thickness "
                   "part: against a mesh refined in both directions a mesh's force is that much further off (pointwise P2 at "
                   "κ = 1000 μ stiffens a little on fewer layers; results/dome_apex_load.md)."]
-    atomic_write(OUT.with_suffix(".json"), json.dumps({"meta": meta, "rows": rows}, indent=2))
-    atomic_write(OUT.with_suffix(".md"), "\n".join(lines) + "\n")
+    write_pair(OUT, {"meta": meta, "rows": rows}, "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

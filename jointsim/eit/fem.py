@@ -28,6 +28,7 @@ import scipy.sparse as sp
 
 from ..mesh.electrodes import FACE_EDGES, ElectrodePatch
 from ..mesh.tetmesh import KEAST_POINTS, TET_EDGES, TetMesh, unique_edges
+from .solver import csr_pattern
 
 __all__ = ["CEMAssembler", "ORDERS", "Dofs", "dofs", "element_stiffness", "p2_gradients"]
 
@@ -131,15 +132,13 @@ class CEMAssembler:
                 cols += [np.full(f.size, n + j), f.ravel(), [n + j]]
         r, c = np.concatenate(rows), np.concatenate(cols)
         N = n + L
-        key = r.astype(np.int64) * N + c
-        uniq, slot = np.unique(key, return_inverse=True)
-        indptr = np.searchsorted(uniq // N, np.arange(N + 1))
+        indptr, indices, slot = csr_pattern(r, c, N)
         object.__setattr__(self, "dofs", d)
         object.__setattr__(self, "_face_dofs", face_dofs)
         object.__setattr__(self, "_shape", (N, N))
-        object.__setattr__(self, "_indices", (uniq % N).astype(np.int32))
+        object.__setattr__(self, "_indices", indices)
         object.__setattr__(self, "_indptr", indptr.astype(np.int32))
-        object.__setattr__(self, "_slot", slot.ravel())
+        object.__setattr__(self, "_slot", slot)
         object.__setattr__(self, "_k_local", element_stiffness(self.mesh, self.order).ravel())
 
     @property

@@ -18,7 +18,15 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-__all__ = ["Factorization", "PatternSolver", "factorize", "available_backends", "default_backend"]
+__all__ = ["Factorization", "PatternSolver", "factorize", "available_backends", "default_backend", "csr_pattern"]
+
+
+def csr_pattern(rows: np.ndarray, cols: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The CSR pattern of the n × n matrix with entries at (``rows``, ``cols``), duplicates
+    merged: (indptr (int64), indices (int32), slot), ``slot`` the position of each given entry in
+    it, so that the values are ``np.bincount(slot, weights=entries, minlength=len(indices))``."""
+    uniq, slot = np.unique(np.asarray(rows, np.int64) * n + np.asarray(cols, np.int64), return_inverse=True)
+    return np.searchsorted(uniq // n, np.arange(n + 1)), (uniq % n).astype(np.int32), slot.ravel()
 
 
 def available_backends() -> list[str]:

@@ -43,6 +43,7 @@ import scipy.sparse as sp
 import warp as wp
 from threadpoolctl import threadpool_limits
 
+from ..eit.solver import csr_pattern
 from ..mesh.tetmesh import KEAST_POINTS, TET_EDGES, TetMesh, unique_edges
 from .materials import Material, first_piola, strain_energy, tangent_with_pressure
 from .newton import NewtonSystem, SystemValues
@@ -142,10 +143,7 @@ class P2Mesh:
         dof = (3 * self.tets[:, :, None] + np.arange(3)).reshape(-1, 30).astype(np.int64)
         rows = np.repeat(dof, 30, axis=1).ravel()
         cols = np.tile(dof, (1, 30)).ravel()
-        n = 3 * self.n_nodes
-        uniq, slot = np.unique(rows * n + cols, return_inverse=True)
-        indptr = np.searchsorted(uniq // n, np.arange(n + 1))
-        return indptr.astype(np.int64), (uniq % n).astype(np.int32), slot.ravel()
+        return csr_pattern(rows, cols, 3 * self.n_nodes)
 
 
 _Mat30 = wp.types.matrix(shape=(30, 30), dtype=wp.float64)

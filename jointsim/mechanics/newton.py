@@ -229,7 +229,7 @@ def _descent(d: np.ndarray, g_free: np.ndarray) -> bool:
 
 def _full_step(u, Hs, free, g, system, data=None) -> tuple[np.ndarray | None, bool]:
     """The Newton step with the full Hessian (None when it is not a descent direction), and
-    whether the free Hessian is known to be positive definite (from the LDLᵀ inertia).
+    whether the free Hessian is known to be positive definite (Cholesky succeeded, or the LDLᵀ inertia).
     ``data``: the system's values of Σ Hs when already gathered."""
     try:
         if system is not None:
@@ -381,7 +381,7 @@ def minimize_energy(
         if Hs is None:
             _, _, Hs, _ = _total(terms, u, True, system)
         # the full-Hessian step converges quadratically near equilibrium. Where the free Hessian
-        # is positive definite (LDLᵀ inertia) it is a descent direction and is line-searched;
+        # is positive definite (Cholesky, or LDLᵀ inertia) it is a descent direction and is line-searched;
         # otherwise it is taken only when the whole step lowers the energy, and a positive
         # definite modification's step is line-searched instead (active-set changes in contact,
         # large increments)

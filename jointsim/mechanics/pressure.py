@@ -8,6 +8,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from ..eit.solver import csr_pattern
+
 __all__ = ["PressureTerm", "linear_subtriangles", "enclosed_volume"]
 
 
@@ -52,9 +54,8 @@ class PressureTerm:
         rows = np.repeat(dof, 9, axis=1).ravel()
         cols = np.tile(dof, (1, 9)).ravel()
         # the Hessian's pattern is fixed by the triangles
-        keys, slot = np.unique(rows * n + cols, return_inverse=True)
-        self._indices = (keys % n).astype(np.int32)
-        self._indptr = np.searchsorted(keys // n, np.arange(n + 1)).astype(np.int32)
+        indptr, self._indices, slot = csr_pattern(rows, cols, n)
+        self._indptr = indptr.astype(np.int32)
         self._n = n
         self._gradient_dof = dof.ravel()
         # ∂²V/∂x² is linear in the positions (V is cubic), so its values on that pattern are a
@@ -72,7 +73,7 @@ class PressureTerm:
             cols_l.append(3 * t[nz[0], c // 3] + c % 3)
             vals_l.append(entries[nz])
         self._hessian_map = sp.csr_matrix(
-            (np.concatenate(vals_l), (np.concatenate(rows_l), np.concatenate(cols_l))), shape=(len(keys), n)
+            (np.concatenate(vals_l), (np.concatenate(rows_l), np.concatenate(cols_l))), shape=(len(self._indices), n)
         )
 
     def volume(self, u: np.ndarray) -> float:
@@ -90,7 +91,7 @@ class PressureTerm:
     def evaluate(self, u: np.ndarray, hessian: bool):
         x = self.X + u
         p = x[self.tris]
-        V = self.sign / 6 * float(np.einsum("ti,ti->t", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum())
+        V = enclosed_volume(x, self.tris, self.sign)
         g = self._volume_gradient(p)
         H = None
         if hessian:
