@@ -5,6 +5,7 @@ import os
 
 import numpy as np
 import pytest
+import warp as wp
 
 from jointsim.mechanics.fem import ElasticTerm, ElementKernel, P2Mesh, assemble_gradient, assemble_hessian
 from jointsim.mechanics.materials import Material
@@ -123,6 +124,46 @@ def test_a_forked_child_runs_the_split_kernel(monkeypatch):
     os.close(read)
     assert ready, "the forked child's kernel call did not return within 60 s"
     assert float(answer) == expected
+
+
+def test_a_device_warp_does_not_have_is_refused_by_name():
+    """The element kernel's device is checked where it is given: a name Warp does not know, or a
+    CUDA device on a machine without one, is a ValueError that names the parameter and the
+    devices there are, not Warp's driver error from the first launch."""
+    from jointsim.mechanics.fem import warp_device
+
+    m = P2Mesh.from_linear(box_mesh((1.0, 1.0, 1.0), (1, 1, 1)))
+    with pytest.raises(ValueError, match=r"device = 'gpu': not a Warp device on this machine \(available: 'cpu'"):
+        ElementKernel(m, Material.neo_hookean(1.0), device="gpu")
+    with pytest.raises(ValueError, match="--device = 7"):
+        warp_device(7, "--device")
+    missing = "cuda:0" if not wp.is_cuda_available() else f"cuda:{wp.get_cuda_device_count()}"
+    with pytest.raises(ValueError, match=f"device = '{missing}'"):
+        ElasticTerm(m, Material.neo_hookean(1.0), device=missing)
+    assert warp_device("cpu") == "cpu"
+
+
+@pytest.mark.skipif(not wp.is_cuda_available(), reason="no CUDA device on this machine")
+@pytest.mark.parametrize("volumetric", ["mean_dilatation", "pointwise"])
+def test_the_kernel_on_cuda_equals_the_cpu(volumetric):
+    """Where a GPU is: the element kernel on Warp's CUDA device gives the CPU's energies,
+    gradients and Hessians (the Hessian into a Newton system too), to round-off (another
+    compiler's contractions, atomic additions in another order)."""
+    import scipy.sparse as sp
+
+    m = P2Mesh.from_linear(box_mesh((1.0, 1.0, 1.0), (3, 3, 3)))
+    mat = Material.yeoh(9.8e3, 0.91e3, -0.16e3)
+    cpu, gpu = (ElasticTerm(m, mat, volumetric=volumetric, device=d) for d in ("cpu", "cuda"))
+    u = 0.02 * np.random.default_rng(6).standard_normal((m.n_nodes, 3))
+    a, b = cpu.kernel(u, True, elements=True), gpu.kernel(u, True, elements=True)
+    scale = np.abs(a.element_hessians).max()
+    np.testing.assert_allclose(b.energy, a.energy, rtol=1e-12, atol=1e-14 * np.abs(a.energy).max())
+    np.testing.assert_allclose(b.grad, a.grad, rtol=0, atol=1e-12 * np.abs(a.grad).max())
+    np.testing.assert_allclose(b.element_hessians, a.element_hessians, rtol=0, atol=1e-12 * scale)
+    assert abs(sp.csr_matrix(b.hessian) - a.hessian).max() <= 1e-12 * scale
+    indptr, indices, _ = m.sparsity
+    system = NewtonSystem(indptr, indices, np.ones(3 * m.n_nodes, bool))
+    np.testing.assert_allclose(system.data([gpu.evaluate_into(u, system)[2]]), system.data([cpu.evaluate_into(u, system)[2]]), rtol=0, atol=1e-12 * scale)
 
 
 def test_cholesky_first_reaches_the_equilibrium_ldlt_reaches(monkeypatch):

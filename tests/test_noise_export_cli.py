@@ -90,6 +90,20 @@ def test_cli_rejects_a_bad_scene_with_the_key(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_cli_refuses_a_device_warp_lacks_before_any_work(tmp_path, capsys):
+    """`--device` of the FEM commands: a name Warp does not have here is one line naming the flag
+    and the devices there are, before the membrane is built or anything written."""
+    from jointsim.cli import main as cli
+
+    for command in ("indent", "palpate"):
+        out = tmp_path / command
+        assert cli.main([command, "--device", "gpu", "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert "--device = 'gpu': not a Warp device on this machine (available: 'cpu'" in err
+        assert "Traceback" not in err
+        assert not out.exists()
+
+
 def test_cli_forward_writes_its_outputs(test_chamber, tmp_path):
     import os
 

@@ -18,6 +18,7 @@ from tqdm import tqdm
 from .. import __version__
 from ..io.export import atomic_path, write_npz, write_vtu
 from ..mechanics.dome import MembraneModel
+from ..mechanics.fem import warp_device
 from ..mesh.tetmesh import TetMesh
 from .common import add_scene_arguments, add_target_size_arguments, scene_from_args, target_radius_mm
 
@@ -34,10 +35,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--step-mm", type=float, default=0.5, help="step (default 0.5: one 50 Hz frame at 25 mm/s)")
     p.add_argument("--dome-rim", type=int, help="membrane resolution: vertices on the rim (default: the scene's membrane.rim_vertices)")
     p.add_argument("--layers", type=int, help="element layers through the thickness (default: the scene's)")
+    p.add_argument("--device", default="cpu", help="Warp device of the element kernel: cpu (default) or cuda / cuda:N where a GPU is")
 
 
 def run(args: argparse.Namespace) -> int:
     scene = scene_from_args(args)
+    device = warp_device(args.device, "--device")
     radius = target_radius_mm(args, scene.target.radius * 1e3)
     if not 0 < args.step_mm <= args.depth_mm:
         raise ValueError(f"--step-mm = {args.step_mm}: must be in (0, --depth-mm = {args.depth_mm}]")
@@ -50,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--layers = {args.layers}: must be in [1, 8]")
         scene = replace(scene, membrane=replace(scene.membrane, layers=args.layers))
     c = scene.chamber
-    model = MembraneModel.from_scene(scene, radius * 1e-3)
+    model = MembraneModel.from_scene(scene, radius * 1e-3, device=device)
     xy = np.array([args.x_mm, args.y_mm]) * 1e-3
     top = model.first_contact_height(xy)
     depths = np.arange(1, int(round(args.depth_mm / args.step_mm)) + 1) * args.step_mm

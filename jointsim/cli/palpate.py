@@ -18,6 +18,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..io.store import open_records, open_store
+from ..mechanics.fem import warp_device
 from ..palpation import Palpation, program_params, run_palpation
 from ..palpation.report import VtuSeries, summarise, write_pvd, write_report, write_setup
 from ..scene import PALPATION_MODES, scene_toml
@@ -39,6 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, help="noise seed (default: the scene's [noise] seed)")
     p.add_argument("--membrane-rim", type=int, help="membrane resolution: vertices on its rim (default: the scene's)")
     p.add_argument("--membrane-layers", type=int, help="membrane element layers through the thickness (default: the scene's)")
+    p.add_argument("--device", default="cpu", help="Warp device of the membrane's element kernel: cpu (default) or cuda / cuda:N where a GPU is")
     p.add_argument("--vtu-every", type=int, default=1, help="write the VTU series every N frames of each target (0: none; default 1)")
     p.add_argument("--calibration", type=Path, metavar="MAP",
                    help="calibration map (jointsim calibrate): adds calibrated position, depth, size and stiffness per frame "
@@ -113,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
     # frames an uninterrupted one gives. Read by MKL when it first runs, i.e. after this line.
     os.environ.setdefault("MKL_CBWR", "AUTO")
     scene = configure(args)
+    device = warp_device(args.device, "--device")
     cmap = None
     if args.calibration is not None:  # refused before any work when built for another sensor
         from ..calibration import load_map
@@ -133,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"{h5} holds a finished run with other settings; remove it or use another --out")
         print(f"  {h5} is complete ({len(rec)} frames): reports rewritten from it")
     else:
-        pal = Palpation(scene, spec)
+        pal = Palpation(scene, spec, device=device)
         print("  set-up: " + ", ".join(f"{k} {v:.1f} s" for k, v in pal.setup_timings.items())
               + f"; chamber {pal.reference.mesh.n_tets:,} tets, membrane {pal.membrane_nodes:,} P2 nodes, "
               f"{pal.grid.n_cells:,} voxels, lambda {pal.reconstructor.lam:.3g}")

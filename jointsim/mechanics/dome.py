@@ -200,6 +200,7 @@ class MembraneModel:
         closed: bool = False,
         volumetric: str = "pointwise",
         isoparametric: bool = True,
+        device: str = "cpu",
     ):
         # converged when the out-of-balance nodal force is below force_tol (N): by default
         # 1e-6·μ·t², a millionth of the force that strains a membrane-thick cube by one
@@ -214,7 +215,9 @@ class MembraneModel:
         place = None if centre is None else on_spheres(centre, 1e-9 * np.ptp(lin.nodes))
         self.mesh = P2Mesh.from_linear(lin, place)
         X = self.mesh.nodes
-        self.elastic = ElasticTerm(self.mesh, material, volumetric=volumetric)
+        # device: where Warp runs the element kernel ("cpu", or "cuda:0" where a GPU is); the
+        # contact, pressure and sparse solves stay on the host
+        self.elastic = ElasticTerm(self.mesh, material, volumetric=volumetric, device=device)
         bf = self.mesh.boundary_faces
         n = self.n_surface
         on_inner = np.all(bf[:, :3] < n, axis=1)
@@ -261,6 +264,7 @@ class MembraneModel:
         target_modulus: float | None = None,
         target_poisson: float | None = None,
         contact_slave: str | None = None,
+        device: str = "cpu",
     ) -> "MembraneModel":
         """The membrane of ``scene`` (its [membrane] and [target] sections and chamber); the
         target's radius may be overridden by ``target_radius`` m; ``dome`` defaults to the
@@ -268,7 +272,7 @@ class MembraneModel:
         target ([target] kind = "soft", or any ``target_modulus`` Pa given) gives a
         :class:`~jointsim.mechanics.soft_target.SoftTargetModel` with that Young's modulus and
         ``target_poisson`` (default the scene's), and ``contact_slave`` passed on to it (None:
-        its rule, the softer body's nodes)."""
+        its rule, the softer body's nodes). ``device``: the Warp device of the element kernels."""
         from ..geometry import isotropic_cap
 
         m = scene.membrane
@@ -297,6 +301,7 @@ class MembraneModel:
             friction=t.friction,
             closed=m.chamber == "closed",
             volumetric=m.volumetric,
+            device=device,
             **kw,
         )
 

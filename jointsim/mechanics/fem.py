@@ -48,7 +48,7 @@ from ..mesh.tetmesh import KEAST_POINTS, TET_EDGES, TetMesh, unique_edges
 from .materials import Material, first_piola, strain_energy, tangent_with_pressure
 from .newton import NewtonSystem, SystemValues
 
-__all__ = ["P2Mesh", "ElementState", "HessianTarget", "ElementKernel", "ElasticTerm", "project_psd", "assemble_hessian", "assemble_gradient"]
+__all__ = ["P2Mesh", "ElementState", "HessianTarget", "ElementKernel", "ElasticTerm", "project_psd", "assemble_hessian", "assemble_gradient", "warp_device"]
 
 # the element loops are short but deeply nested: unrolling them makes compile times explode,
 # and no adjoint kernels are needed (derivatives are formed explicitly)
@@ -72,6 +72,20 @@ def _pool() -> ThreadPoolExecutor:
     if _POOL is None or _POOL[0] != os.getpid():
         _POOL = (os.getpid(), ThreadPoolExecutor(max_workers=KERNEL_THREADS, thread_name_prefix="jointsim-kernel"))
     return _POOL[1]
+
+
+def warp_device(device: str, name: str = "device") -> str:
+    """``device`` when Warp can run the element kernel there ("cpu", "cuda", "cuda:0", …), else a
+    ValueError naming the parameter (``name``) and the devices this machine has (Warp's own
+    error for a missing CUDA driver says neither)."""
+    if not isinstance(device, str):
+        raise ValueError(f"{name} = {device!r}: a Warp device name such as 'cpu' or 'cuda:0'")
+    try:
+        wp.get_device(device)
+    except (RuntimeError, ValueError):
+        have = ", ".join(repr(d.alias) for d in wp.get_devices())
+        raise ValueError(f"{name} = {device!r}: not a Warp device on this machine (available: {have})") from None
+    return device
 
 
 # the element quadrature: Keast's 4-point degree-2 rule (barycentric points, weights summing to 1)
@@ -393,7 +407,7 @@ class ElementKernel:
         if volumetric not in VOLUMETRIC:
             raise ValueError(f"volumetric = {volumetric!r}: allowed values are {VOLUMETRIC}")
         self.mesh = mesh
-        self.device = device
+        self.device = warp_device(device)
         self.volumetric = volumetric
         mats = [materials] if isinstance(materials, Material) else list(materials)
         idx = np.zeros(mesh.n_tets, int) if material_of is None else np.asarray(material_of)
@@ -439,15 +453,16 @@ class ElementKernel:
         chunks = max(1, min(KERNEL_THREADS, m // MIN_CHUNK)) if cpu else 1
         bounds = np.linspace(0, m, chunks + 1).astype(int)
         data = [self._empty1] * chunks
+        host: list[np.ndarray] = []
         if hessian:
             # fresh buffers per call: the returned matrix must not change under a caller that
             # keeps it while another Hessian is evaluated. On the CPU the kernel writes straight
-            # into numpy's (lazily zeroed) memory
-            host = [np.zeros(to.size) for _ in range(chunks)]
+            # into numpy's (lazily zeroed) memory; on a GPU into one device buffer, copied back
             if cpu:
+                host = [np.zeros(to.size) for _ in range(chunks)]
                 data = [wp.array(h, dtype=wp.float64, device=self.device, copy=False) for h in host]
             else:
-                data = [wp.zeros(len(host[0]), dtype=wp.float64, device=self.device)]
+                data = [wp.zeros(to.size, dtype=wp.float64, device=self.device)]
         hess = wp.zeros((m, 30, 30), dtype=wp.float64, device=self.device) if elements else self._empty3
         fixed = [self._X, uw, self._tets, self._params, self._qb, self._qw, mode, int(self.volumetric == "mean_dilatation"), to.slot]
 

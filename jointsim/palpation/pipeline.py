@@ -54,6 +54,7 @@ from ..eit.protocol import Protocol, skip_protocol
 from ..geometry import DomeSurface
 from ..io.store import Field, RecordStore, Schema
 from ..mechanics.dome import MembraneModel, MembraneState, UnreachablePose
+from ..mechanics.fem import warp_device
 from ..mechanics.geometric import indent_dome
 from ..mesh.chamber import ChamberMesh, chamber_mesh, mesh_chamber
 from ..mesh.tetmesh import TetMesh
@@ -237,6 +238,8 @@ class Palpation:
     spec : the palpation program (default ``scene.palpation``)
     rig_path : MJCF of the bench (default ``scenes/bench_rig.xml``)
     chamber : a ready reference chamber mesh of ``scene`` (default: :func:`chamber_mesh`)
+    device : the Warp device of the membrane's element kernel ("cpu", or "cuda:0" where a GPU
+        is); the frames agree to round-off
 
     Attributes used per frame: ``protocol`` (skip-N, all electrodes against ground),
     ``v_ref`` (256,) clean reference voltages, ``v_ref_measured`` (256,) the reference as
@@ -246,8 +249,9 @@ class Palpation:
     """
 
     def __init__(self, scene: Scene, spec: PalpationSpec | None = None, *, rig_path: str | Path | None = None,
-                 chamber: ChamberMesh | None = None):
+                 chamber: ChamberMesh | None = None, device: str = "cpu"):
         self.scene = scene
+        self.device = warp_device(device)
         self.spec = spec = scene.palpation if spec is None else spec
         self.rig_path = rig_path
         self.frame_rate = scene.noise.frame_rate_hz
@@ -310,7 +314,7 @@ class Palpation:
 
     def membrane(self, radius: float) -> MembraneModel:
         """A fresh membrane (inflated by the reservoir, untouched) for a target of ``radius`` m."""
-        return MembraneModel.from_scene(self.scene, target_radius=radius)
+        return MembraneModel.from_scene(self.scene, target_radius=radius, device=self.device)
 
     def voltages(self, chamber: ChamberMesh) -> np.ndarray:
         """Clean voltages (256,) V of ``chamber`` filled with the scene's saline; with
