@@ -13,6 +13,9 @@ and the rest.
                                                     # results/mechanics_solvers.{md,json}
     python benchmarks/bench_mechanics.py --assembly [N]  # one iteration's Hessian by both assembly
                                                     # routes, N times: results/mechanics_assembly.{md,json}
+    python benchmarks/bench_mechanics.py --one 92 2 0 pointwise [SETTING] [--device cuda:0]
+                                                    # one mesh's press, printed as JSON (the element
+                                                    # kernel on that Warp device; default cpu)
 
 Each mesh runs in its own process; finished rows are kept in results/mechanics_benchmark.partial.json,
 so an interrupted run resumes where it stopped (delete that file to start over).
@@ -52,7 +55,7 @@ GOAL_S, CONVERGED = 1.0, 0.02  # the issue's goal: ≤ 1 s per step at a mesh wi
 DEPTHS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 
 
-def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatation", linear: str = "default") -> dict:
+def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatation", linear: str = "default", device: str = "cpu") -> dict:
     import jointsim.eit.solver as solver
     import jointsim.mechanics.fem as fem
     import jointsim.mechanics.newton as newton
@@ -77,7 +80,7 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
     solver.PatternSolver.factor = timed("factorise+solve", solver.PatternSolver.factor)
     solver.PatternSolver.solve = timed("factorise+solve", solver.PatternSolver.solve)
 
-    model, setup = _membrane(n_rim, layers, apex_mm, volumetric)
+    model, setup = _membrane(n_rim, layers, apex_mm, volumetric, device)
     top = model.first_contact_height((0.0, 0.0))
     steps = []
     for d in np.array(DEPTHS_MM) * 1e-3:
@@ -88,13 +91,14 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
         wall = time.perf_counter() - t0
         steps.append({"depth_mm": d * 1e3, "wall_s": wall, "iterations": st.iterations, **{f"{k}_s": v for k, v in timers.items()},
                       "force_mN": st.force[2] * 1e3, "displaced_mm3": st.displaced_volume * 1e9, "penetration_um": st.penetration * 1e6})
-    return {"n_rim": n_rim, "layers": layers, "apex_mm": apex_mm, "volumetric": volumetric, "linear": linear, "p2_nodes": model.mesh.n_nodes, "tets": model.mesh.n_tets,
+    return {"n_rim": n_rim, "layers": layers, "apex_mm": apex_mm, "volumetric": volumetric, "linear": linear, "device": device,
+            "p2_nodes": model.mesh.n_nodes, "tets": model.mesh.n_tets,
             "setup_s": setup, "steps": steps}
 
 
-def _membrane(n_rim: int, layers: int, apex_mm: float, volumetric: str):
-    """The paper's membrane on a cap of ``n_rim`` rim vertices under the 15 mm target, and the
-    seconds MembraneModel.from_scene took (meshing, inflation)."""
+def _membrane(n_rim: int, layers: int, apex_mm: float, volumetric: str, device: str = "cpu"):
+    """The paper's membrane on a cap of ``n_rim`` rim vertices under the 15 mm target (its element
+    kernel on the Warp ``device``), and the seconds MembraneModel.from_scene took (meshing, inflation)."""
     from dataclasses import replace
 
     from jointsim.geometry import isotropic_cap
@@ -106,7 +110,7 @@ def _membrane(n_rim: int, layers: int, apex_mm: float, volumetric: str):
     c = scene.chamber
     dome = isotropic_cap(c.base_radius, c.dome_height, n_rim, apex_mm * 1e-3 if apex_mm else None)
     t0 = time.perf_counter()
-    model = MembraneModel.from_scene(scene, 7.5e-3, dome=dome)
+    model = MembraneModel.from_scene(scene, 7.5e-3, dome=dome, device=device)
     return model, time.perf_counter() - t0
 
 
@@ -147,7 +151,13 @@ def main() -> int:
             write_solvers(saved["runs"], saved["meta"])
         return 0
     if len(sys.argv) > 1 and sys.argv[1] == "--one":
-        print(json.dumps(run(int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]), sys.argv[5], *sys.argv[6:7])))
+        args = sys.argv[2:]
+        device = "cpu"
+        if "--device" in args:
+            i = args.index("--device")
+            device = args[i + 1]
+            del args[i : i + 2]
+        print(json.dumps(run(int(args[0]), int(args[1]), float(args[2]), args[3], *args[4:5], device=device)))
         return 0
     if len(sys.argv) > 1 and sys.argv[1] == "--assembly":
         return assembly(int(sys.argv[2]) if len(sys.argv) > 2 else 10)
