@@ -93,6 +93,38 @@ def test_the_hessian_assembled_into_a_newton_system_equals_its_gather(monkeypatc
         NewtonSystem(indptr, indices, free).data([H])
 
 
+def test_a_newton_systems_values_are_the_free_upper_triangle_of_the_summed_hessians():
+    """NewtonSystem.data of several terms (the elastic values, a matrix on the mesh's pattern, and
+    a sparse term with duplicate entries, entries below the diagonal and on fixed components, as
+    a contact or pressure term gives) is the free upper triangle of their dense sum."""
+    import scipy.sparse as sp
+
+    m = P2Mesh.from_linear(box_mesh((1.0, 1.0, 1.0), (2, 2, 2)))
+    term = ElasticTerm(m, Material.neo_hookean(1.0))
+    rng = np.random.default_rng(8)
+    u = 0.02 * rng.standard_normal((m.n_nodes, 3))
+    n = 3 * m.n_nodes
+    free = rng.random(n) > 0.2
+    indptr, indices, _ = m.sparsity
+    system = NewtonSystem(indptr, indices, free)
+    values = term.evaluate_into(u, system)[2]
+    H = term.evaluate(u, True)[2]
+    # a symmetric term on a few nodal 3 × 3 blocks (on the mesh's pattern), each entry given twice
+    nodes = rng.choice(m.n_nodes, 6, replace=False)
+    r = (3 * nodes[:, None, None] + np.arange(3)[None, :, None] + 0 * np.arange(3)).ravel()
+    c = (3 * nodes[:, None, None] + 0 * np.arange(3)[:, None] + np.arange(3)).ravel()
+    w = rng.standard_normal(len(r))
+    block = sp.coo_matrix((np.concatenate([w, w]), (np.concatenate([r, c]), np.concatenate([c, r]))), shape=(n, n))
+    once = block.tocsr()
+    # each row's entries stored twice over: a CSR matrix that is not in canonical form
+    twice = sp.csr_matrix((np.repeat(once.data, 2), np.repeat(once.indices, 2), 2 * once.indptr), shape=(n, n))
+    assert not twice.has_canonical_format
+    dense = 2 * H.toarray() + 2 * block.toarray()
+    expected = sp.triu(sp.csr_matrix(dense[free][:, free]), format="csr")
+    got = sp.csr_matrix((system.data([values, H, twice]), system.projected.indices, system.projected.indptr), shape=expected.shape)
+    assert abs(got - expected).max() <= 1e-13 * np.abs(dense).max()
+
+
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
 def test_a_forked_child_runs_the_split_kernel(monkeypatch):
     """A child forked after the kernel threads exist gets threads of its own: the parent's pool

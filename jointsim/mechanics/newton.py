@@ -149,22 +149,30 @@ class NewtonSystem:
     def data(self, matrices: list) -> np.ndarray:
         """The free upper-triangle values of Σ matrices, in the pattern's order (a
         :class:`SystemValues` of this system counts as its values)."""
-        out = np.zeros(self.n_kept)
+        out = None  # the first full-length term's values start the sum (no zeros to add to)
         for i, H in enumerate(matrices):
             if isinstance(H, SystemValues):
                 if H.system is not self:
                     raise ValueError("matrices: values of another Newton system")
-                out += H.values
+                out = H.values.copy() if out is None else np.add(out, H.values, out=out)
                 continue
             if H is None or H.nnz == 0:
                 continue
             H = sp.csr_matrix(H)
             if H.nnz == len(self._cols) and np.array_equal(H.indptr, self._indptr) and np.array_equal(H.indices, self._cols):
-                out += H.data[self._kept]  # assembled on the pattern itself (the elastic term)
+                kept = H.data[self._kept]  # assembled on the pattern itself (the elastic term)
+                out = kept if out is None else np.add(out, kept, out=out)
                 continue
+            if not H.has_canonical_format:  # duplicate entries would share a slot below
+                H = H.copy()
+                H.sum_duplicates()
             entries, where = self._placement(i, H)
-            out += np.bincount(where, weights=H.data[entries], minlength=self.n_kept)
-        return out
+            if out is None:
+                out = np.zeros(self.n_kept)
+            # distinct entries of a canonical matrix have distinct slots: a scatter-add in place,
+            # instead of a full-length bincount added after (the pressure's and contact's terms)
+            out[where] += H.data[entries]
+        return np.zeros(self.n_kept) if out is None else out
 
     def _placement(self, i: int, H: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
         """(entries of H.data kept, their slots) for the ``i``-th matrix, cached while its
