@@ -125,6 +125,24 @@ def test_a_newton_systems_values_are_the_free_upper_triangle_of_the_summed_hessi
     assert abs(got - expected).max() <= 1e-13 * np.abs(dense).max()
 
 
+def test_the_reported_peak_strain_is_the_largest_principal_green_strain():
+    """The peak strain a membrane state reports: under a homogeneous deformation every element's
+    F is exact, so a uniaxial stretch λ with lateral contraction gives (λ² − 1)/2, and a large
+    rigid rotation of it the same (Green–Lagrange strain is frame-invariant); undeformed, 0."""
+    from scipy.spatial.transform import Rotation
+
+    from jointsim.mechanics.dome import _peak_green_strain
+
+    m = P2Mesh.from_linear(box_mesh((2.0, 1.0, 0.5), (3, 2, 2)))
+    lam = 1.3
+    F = np.diag([lam, lam**-0.5, lam**-0.5])
+    u = m.nodes @ F.T - m.nodes
+    assert _peak_green_strain(m, u) == pytest.approx(0.5 * (lam**2 - 1), rel=1e-12)
+    R = Rotation.from_rotvec([0.4, -1.1, 0.7]).as_matrix()
+    assert _peak_green_strain(m, m.nodes @ (R @ F).T - m.nodes) == pytest.approx(0.5 * (lam**2 - 1), rel=1e-12)
+    assert abs(_peak_green_strain(m, np.zeros_like(m.nodes))) <= 1e-15
+
+
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
 def test_a_forked_child_runs_the_split_kernel(monkeypatch):
     """A child forked after the kernel threads exist gets threads of its own: the parent's pool
