@@ -540,7 +540,7 @@ class MembraneModel:
 
 def _peak_green_strain(mesh: P2Mesh, u: np.ndarray) -> float:
     """Largest principal Green–Lagrange strain at the element centroids (corner-node gradient)."""
-    x = mesh.nodes[mesh.tets[:, :4]] + u[mesh.tets[:, :4]]
+    x = (mesh.nodes + u)[mesh.tets[:, :4]]
     Ds = np.swapaxes(x[:, 1:] - x[:, :1], 1, 2)
     F = Ds @ mesh.corner_gradient_map
     Egl = 0.5 * (np.swapaxes(F, 1, 2) @ F - np.eye(3))
