@@ -33,6 +33,7 @@ __all__ = [
     "scene_toml",
     "scene_from_dict",
     "MESH_PRESETS",
+    "MEMBRANE_RIM_VERTICES",
 ]
 
 MM = 1e-3
@@ -89,7 +90,8 @@ class Membrane:
     (``yeoh_c``), ``bulk_ratio`` κ/μ, prism ``layers`` through the thickness, and the
     reservoir's hydrostatic ``reservoir_pressure`` on the inner surface (Pa); ``chamber``
     "open" (the reservoir takes the displaced saline) or "closed" (the saline volume is held by
-    the pressure); ``rim_vertices`` sets the membrane mesh (edge ≈ 2π·base radius / rim_vertices);
+    the pressure); ``rim_vertices`` sets the membrane mesh (edge ≈ 2π·base radius / rim_vertices;
+    by default the mesh preset's, :data:`MEMBRANE_RIM_VERTICES`);
     ``volumetric``: how the P2 elements integrate the volumetric energy, "pointwise" or
     "mean_dilatation" (jointsim/mechanics/fem.py)."""
 
@@ -137,6 +139,12 @@ MESH_PRESETS: dict[str, dict[str, float]] = {
     # convergence checks only (~1 M tets; minutes per mesh and per solve on 2 cores)
     "fine": {"max_edge_mm": 0.75, "electrode_refinement": 10.0},
 }
+# the membrane mesh (rim vertices, 2 layers) each fidelity gets unless [membrane] rim_vertices
+# is given: 92, the coarsest within 2 % of the 160/2 mesh in force at 1-3 mm
+# (results/mechanics_benchmark.md); at the dataset fidelity (and in tests) 64, 2.4-5.8 % stiff
+# but ~2x faster per step, so a coupled frame stays within its 1 s goal there. "custom" (a
+# chamber tuned by hand) gets the converged one
+MEMBRANE_RIM_VERTICES: dict[str, int] = {"test": 64, "dataset": 64, "paper": 92, "fine": 92, "custom": 92}
 
 
 @dataclass(frozen=True)
@@ -172,6 +180,8 @@ class Scene:
     dataset: "DatasetSpec" = field(default_factory=lambda: DatasetSpec())
 
     def with_mesh_preset(self, preset: str) -> "Scene":
+        """The scene at fidelity ``preset``: that preset's chamber mesh sizes and membrane rim
+        vertices, replacing what the scene gave for them."""
         if preset not in MESH_PRESETS:
             raise SceneError(f"mesh.preset = {preset!r}: allowed values are {sorted(MESH_PRESETS)}")
         p = MESH_PRESETS[preset]
@@ -183,6 +193,8 @@ class Scene:
                 max_edge=p["max_edge_mm"] * MM,
                 electrode_refinement=p["electrode_refinement"],
             ),
+            # a fidelity sets the membrane's mesh with the chamber's (MEMBRANE_RIM_VERTICES)
+            membrane=replace(self.membrane, rim_vertices=MEMBRANE_RIM_VERTICES[preset]),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -374,7 +386,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     layers = t.integer("layers", 2, 1, 8)
     p_res = t.number("reservoir_pressure_pa", 0.0, -1e4, 1e5)
     closed = t.choice("chamber", "open", ("open", "closed"))
-    rim_vertices = t.integer("rim_vertices", 64, 16, 1024)
+    rim_vertices = t.integer("rim_vertices", MEMBRANE_RIM_VERTICES[preset], 16, 1024)
     volumetric = t.choice("volumetric", "pointwise", ("pointwise", "mean_dilatation"))
     t.finish()
 
