@@ -15,7 +15,7 @@ import trimesh
 
 from .scene import Scene
 
-__all__ = ["DomeSurface", "ElectrodeLayout", "spherical_cap", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
+__all__ = ["DomeSurface", "ElectrodeLayout", "spherical_cap", "isotropic_cap", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
 
 
 @dataclass(frozen=True)
@@ -143,6 +143,16 @@ def isotropic_cap(base_radius: float, height: float, n_rim: int = 96, apex_edge:
     last = start[n_rings - 1] + np.arange(counts[-1])
     faces.append(np.column_stack([last, np.roll(last, -1), np.full(counts[-1], len(verts) - 1)]))
     return DomeSurface(verts, np.vstack(faces).astype(np.int64), np.arange(n_rim))
+
+
+def flat_disc(base_radius: float, n_rim: int = 96) -> DomeSurface:
+    """A flat disc of radius ``base_radius`` in the base plane, triangulated as
+    :func:`isotropic_cap` in its limit of zero height (the same rings and symmetry): the inner
+    surface of a membrane moulded flat, before it is inflated into a dome."""
+    cap = isotropic_cap(base_radius, 1e-9 * base_radius, n_rim)
+    v = cap.vertices.copy()
+    v[:, 2] = 0.0
+    return DomeSurface(v, cap.faces, cap.rim)
 
 
 def _stitch_rings(s0: int, n0: int, o0: int, s1: int, n1: int, o1: int) -> np.ndarray:

@@ -93,7 +93,9 @@ class Membrane:
     the pressure); ``rim_vertices`` sets the membrane mesh (edge ≈ 2π·base radius / rim_vertices;
     by default the mesh preset's, :data:`MEMBRANE_RIM_VERTICES`);
     ``volumetric``: how the P2 elements integrate the volumetric energy, "pointwise" or
-    "mean_dilatation" (jointsim/mechanics/fem.py)."""
+    "mean_dilatation" (jointsim/mechanics/fem.py); ``moulding``: the stress-free shape, "cap" (moulded
+    as the dome, inflated by the reservoir pressure) or "flat" (a flat sheet inflated until its
+    apex reaches the dome height; the pressure that takes replaces ``reservoir_pressure``)."""
 
     law: str = "neo-hookean"
     shear_modulus: float = 22e3
@@ -104,6 +106,7 @@ class Membrane:
     chamber: str = "open"
     rim_vertices: int = 64
     volumetric: str = "pointwise"
+    moulding: str = "cap"
 
     def scaled(self, factor: float) -> "Membrane":
         """The same membrane with its moduli (either law's) multiplied by ``factor``."""
@@ -144,6 +147,7 @@ MESH_PRESETS: dict[str, dict[str, float]] = {
 # (results/mechanics_benchmark.md); at the dataset fidelity (and in tests) 64, 2.4-5.8 % stiff
 # but ~2x faster per step, so a coupled frame stays within its 1 s goal there. "custom" (a
 # chamber tuned by hand) gets the converged one
+MOULDINGS = ("cap", "flat")  # [membrane] moulding: the membrane's stress-free shape
 MEMBRANE_RIM_VERTICES: dict[str, int] = {"test": 64, "dataset": 64, "paper": 92, "fine": 92, "custom": 92}
 
 
@@ -388,6 +392,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     closed = t.choice("chamber", "open", ("open", "closed"))
     rim_vertices = t.integer("rim_vertices", MEMBRANE_RIM_VERTICES[preset], 16, 1024)
     volumetric = t.choice("volumetric", "pointwise", ("pointwise", "mean_dilatation"))
+    moulding = t.choice("moulding", "cap", MOULDINGS)
     t.finish()
 
     target = _target(data.get("target", {}), base_r)
@@ -400,7 +405,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         drive=Drive(current * 1e-6, freqs, skip),
         noise=Noise(snr, seed, drift, rate),
         mesh=MeshSpec(preset, max_edge * MM, refine, zone * MM, grading, eps, stop_energy, max_opt_iter, element_order),
-        membrane=Membrane(law, mu * 1e3, tuple(c * 1e3 for c in yc), bulk_ratio, layers, p_res, closed, rim_vertices, volumetric),
+        membrane=Membrane(law, mu * 1e3, tuple(c * 1e3 for c in yc), bulk_ratio, layers, p_res, closed, rim_vertices, volumetric, moulding),
         target=target,
         palpation=_palpation(data.get("palpation", {}), base_r, height, thick, zf is not None),
         dataset=_dataset(data.get("dataset", {}), base_r, height, ring, diam, count, zone),

@@ -41,7 +41,7 @@ SENSOR_KEYS: dict[str, tuple[str, ...]] = {
 }
 # values that define the sensor only where they differ from the default they had before they
 # existed, so maps and datasets recorded without them still match the scenes they were built for
-OPTIONAL_KEYS: dict[str, Any] = {"mesh.element_order": 1}
+OPTIONAL_KEYS: dict[str, Any] = {"mesh.element_order": 1, "membrane.moulding": "cap"}
 _REL_TOL = 1e-9  # mm → m conversions of the same text agree far better than this
 
 

@@ -173,6 +173,11 @@ def dataset_schema(n_electrodes: int, n_meas: int, n_cells: int | None) -> Schem
     return Schema(tuple(fields), name=SCHEMA_NAME, version=SCHEMA_VERSION)
 
 
+# scene values added after stores were first written, with the behaviour before they existed:
+# recorded only where they differ from it, so a store written before still resumes
+LATER_KEYS: dict[tuple[str, str], object] = {("membrane", "moulding"): "cap"}
+
+
 def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str) -> dict[str, Any]:
     """What shapes the data beyond the scene file's text: the effective scene (after
     command-line overrides: sampling spec, mesh, membrane, noise, reconstruction settings),
@@ -180,6 +185,9 @@ def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str) -> dict[st
     on the same mesh). JSON-ready; the store's identity."""
     d = scene.to_dict()
     d.pop("name", None)
+    for (section, key), before in LATER_KEYS.items():
+        if d[section].get(key) == before:
+            del d[section][key]
     return {"scene": d, "n_samples": int(n_samples), "chamber_sha256": chamber_sha256}
 
 

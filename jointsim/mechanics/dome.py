@@ -56,9 +56,16 @@ def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     return vn / np.linalg.norm(vn, axis=1, keepdims=True)
 
 
+def is_flat(dome: DomeSurface) -> bool:
+    """Whether ``dome`` lies in the base plane: a membrane moulded flat (:func:`~jointsim.geometry.flat_disc`)."""
+    return not np.any(np.asarray(dome.vertices)[:, 2])
+
+
 def sphere_centre(dome: DomeSurface, rtol: float = 1e-6) -> np.ndarray | None:
     """The centre of the sphere the dome's vertices lie on (to ``rtol`` of its radius), or None
     when they do not (an inflated or otherwise deformed surface)."""
+    if is_flat(dome):  # a plane: a sphere of infinite radius
+        return None
     v = np.asarray(dome.vertices, float)
     # |v|² = 2 c·v + (R² − |c|²): linear in c and the constant
     A = np.column_stack([2 * v, np.ones(len(v))])
@@ -89,6 +96,22 @@ def on_spheres(centre: np.ndarray, base_tol: float) -> Callable[[np.ndarray], np
     return place
 
 
+def on_rim_circle(radius: float) -> Callable[[np.ndarray], np.ndarray]:
+    """Midside-node placement for a membrane moulded flat (for ``P2Mesh.from_linear``): edge
+    midpoints, except on the edge face, where edges between two nodes on the cylinder of
+    ``radius`` get their node on it: the sheet is a true disc, and the whole face is bonded (a
+    node left on a chord inside it would be free and let the clamp rotate: +7-9 % deflection of
+    a clamped plate, converging slowly)."""
+
+    def place(ends: np.ndarray) -> np.ndarray:
+        mid = ends.mean(axis=1)
+        on = np.all(np.hypot(ends[:, :, 0], ends[:, :, 1]) >= radius * (1 - 1e-9), axis=1)
+        mid[on, :2] *= radius / np.hypot(mid[on, 0], mid[on, 1])[:, None]
+        return mid
+
+    return place
+
+
 def membrane_mesh(dome: DomeSurface, thickness: float, layers: int = 2, centre: np.ndarray | None = None) -> tuple[TetMesh, int]:
     """Tetrahedra of the membrane: ``layers`` prism layers from the inner surface ``dome``
     outward by ``thickness`` along the vertex normals — radial from ``centre`` when the dome is a
@@ -101,8 +124,9 @@ def membrane_mesh(dome: DomeSurface, thickness: float, layers: int = 2, centre: 
     v, f = np.asarray(dome.vertices, float), np.asarray(dome.faces)
     n = len(v)
     normal = _vertex_normals(v, f) if centre is None else (v - centre) / np.linalg.norm(v - centre, axis=1, keepdims=True)
-    normal[dome.rim, 2] = 0.0  # the rim grows outward in the base plane
-    normal[dome.rim] /= np.linalg.norm(normal[dome.rim], axis=1, keepdims=True)
+    if not is_flat(dome):  # a flat sheet's edge stands upright through its thickness
+        normal[dome.rim, 2] = 0.0  # the rim grows outward in the base plane
+        normal[dome.rim] /= np.linalg.norm(normal[dome.rim], axis=1, keepdims=True)
     offsets = (np.arange(layers + 1) / layers * thickness)[:, None] * np.ones(n)  # (layer, vertex)
     if centre is not None:
         # a shell of concentric spheres cut by the base plane: the rim's layer l sits where the
@@ -201,6 +225,7 @@ class MembraneModel:
         volumetric: str = "pointwise",
         isoparametric: bool = True,
         device: str = "cpu",
+        inflate_to: float | None = None,
     ):
         # converged when the out-of-balance nodal force is below force_tol (N): by default
         # 1e-6·μ·t², a millionth of the force that strains a membrane-thick cube by one
@@ -212,7 +237,9 @@ class MembraneModel:
         # spheres (isoparametric P2) instead of faceted chords
         centre = sphere_centre(dome) if isoparametric else None
         lin, self.n_surface = membrane_mesh(dome, thickness, layers, centre)
-        place = None if centre is None else on_spheres(centre, 1e-9 * np.ptp(lin.nodes))
+        flat = is_flat(dome)
+        rim_radius = float(np.hypot(*dome.vertices[dome.rim, :2].T).min())
+        place = on_rim_circle(rim_radius) if flat else None if centre is None else on_spheres(centre, 1e-9 * np.ptp(lin.nodes))
         self.mesh = P2Mesh.from_linear(lin, place)
         X = self.mesh.nodes
         # device: where Warp runs the element kernel ("cpu", or "cuda:0" where a GPU is); the
@@ -238,11 +265,17 @@ class MembraneModel:
         self.friction = SphereFriction(self.contact, friction, slip=1e-3 * h) if friction > 0 else None
         self.closed = bool(closed)
         self.fixed = np.zeros_like(X, bool)
-        self.fixed[np.abs(X[:, 2]) < 1e-9 * np.ptp(X)] = True  # the bonded rim
+        if flat:  # a flat sheet bonded at its edge face, through its thickness
+            self.fixed[np.hypot(X[:, 0], X[:, 1]) >= rim_radius * (1 - 1e-9)] = True
+        else:  # the bonded rim
+            self.fixed[np.abs(X[:, 2]) < 1e-9 * np.ptp(X)] = True
         self.u = np.zeros_like(X)
         indptr, indices, _ = self.mesh.sparsity
         self.system = NewtonSystem(indptr, indices, ~self.fixed.ravel())
-        if pressure != 0.0:
+        if inflate_to is not None:
+            # deployed by inflation (a membrane moulded flat): the pressure is what it takes
+            self._inflate(float(inflate_to), material.mu)
+        elif pressure != 0.0:
             # the reservoir head inflates the stress-free dome before any contact
             self.u = minimize_energy([self.elastic, self.pressure], self.u, self.fixed, system=self.system).u
         # displaced volume is counted from the pressurised, untouched dome; a closed chamber is
@@ -250,6 +283,48 @@ class MembraneModel:
         self.V0 = self.pressure.volume(self.u)
         self._history: list[tuple[np.ndarray, np.ndarray]] = []
         self._compliance: float | None = None  # dV/dp of the chamber, for the closed-chamber secant
+
+    def _inflate(self, height: float, mu: float, rtol: float = 1e-4, max_iter: int = 30) -> None:
+        """Raise the saline pressure until the inner surface's apex (its node nearest the axis)
+        stands ``height`` above the base, to ``rtol``; the model is left there, at that pressure."""
+        X = self.mesh.nodes[: self.n_surface]
+        a = float(np.hypot(*self.dome.vertices[self.dome.rim, :2].T).min())
+        if not 0 < height < a:
+            raise ValueError(f"inflate_to = {height}: must be in (0, {a:.4g}) m, a dome no higher than the rim's radius")
+        apex = int(np.argmin(np.hypot(X[:, 0], X[:, 1])))
+        z0 = float(X[apex, 2])
+        if height <= z0:
+            raise ValueError(f"inflate_to = {height}: must exceed the apex's moulded height {z0:.4g} m")
+        # start from a thin membrane's estimate: the target cap stretched equibiaxially by its
+        # arc over its chord, tension μt(1 − λ⁻⁶), p = 2T/R; then secant steps on log z(log p)
+        # (z ∝ p^⅓ for a membrane), each equilibrium warm-started from the last
+        R = (a * a + height * height) / (2 * height)
+        lam = R * np.arcsin(a / R) / a
+        p_est = 2 * mu * self.thickness * (1 - lam**-6) / R
+
+        def apex_at(p: float) -> float:
+            self.pressure.pressure = p
+            res = minimize_energy([self.elastic, self.pressure], self.u, self.fixed, rtol=0.0, atol=self.force_tol, system=self.system)
+            self.u = res.u
+            return float(X[apex, 2] + self.u[apex, 2])
+
+        # a ramp from a plate-like deflection: a flat sheet under the full pressure at once is
+        # far from equilibrium; steps of 4x in pressure (~1.6x in height) converge
+        pts = []
+        for p in p_est * 4.0 ** np.arange(-3, 1):
+            pts.append((np.log(p), np.log(apex_at(p) - z0)))
+        target = np.log(height - z0)
+        for _ in range(max_iter):
+            (p0, z0_), (p1, z1) = pts[-2], pts[-1]
+            if abs(np.exp(z1) - (height - z0)) <= rtol * height:
+                return
+            slope = (z1 - z0_) / (p1 - p0) if p1 != p0 else 1 / 3
+            step = (target - z1) / max(slope, 0.05)
+            p = p1 + float(np.clip(step, -np.log(4.0), np.log(4.0)))
+            pts.append((p, np.log(apex_at(np.exp(p)) - z0)))
+        last = (z0 + np.exp(pts[-1][1])) * 1e3
+        raise NewtonError(f"inflation to an apex height of {height * 1e3:.4g} mm: not reached in {max_iter} pressure steps "
+                          f"(last {last:.4g} mm at {np.exp(pts[-1][0]):.4g} Pa)")
 
     @property
     def terms(self) -> list:
@@ -268,12 +343,15 @@ class MembraneModel:
     ) -> "MembraneModel":
         """The membrane of ``scene`` (its [membrane] and [target] sections and chamber); the
         target's radius may be overridden by ``target_radius`` m; ``dome`` defaults to the
-        scene's undeformed dome, meshed isotropically with [membrane] rim_vertices. A soft
+        scene's undeformed dome, meshed isotropically with [membrane] rim_vertices, or with
+        [membrane] moulding = "flat" a flat disc inflated until its apex reaches the dome
+        height (the reservoir then holds the pressure that takes; reservoir_pressure_pa is not
+        used). A soft
         target ([target] kind = "soft", or any ``target_modulus`` Pa given) gives a
         :class:`~jointsim.mechanics.soft_target.SoftTargetModel` with that Young's modulus and
         ``target_poisson`` (default the scene's), and ``contact_slave`` passed on to it (None:
         its rule, the softer body's nodes). ``device``: the Warp device of the element kernels."""
-        from ..geometry import isotropic_cap
+        from ..geometry import flat_disc, isotropic_cap
 
         m = scene.membrane
         material = membrane_material(m)
@@ -291,12 +369,17 @@ class MembraneModel:
             kw["contact_slave"] = contact_slave
         elif contact_slave is not None:
             raise ValueError(f"contact_slave = {contact_slave!r}: only for a soft target (give target_modulus)")
+        flat = m.moulding == "flat"
+        if dome is None:
+            dome = flat_disc(c.base_radius, m.rim_vertices) if flat else isotropic_cap(c.base_radius, c.dome_height, m.rim_vertices)
+        if flat:
+            kw["inflate_to"] = c.dome_height
         return cls(
-            isotropic_cap(c.base_radius, c.dome_height, m.rim_vertices) if dome is None else dome,
+            dome,
             c.membrane_thickness,
             material,
             m.layers,
-            m.reservoir_pressure,
+            0.0 if flat else m.reservoir_pressure,
             t.radius if target_radius is None else target_radius,
             friction=t.friction,
             closed=m.chamber == "closed",
