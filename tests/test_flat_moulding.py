@@ -88,3 +88,15 @@ def test_bad_moulding_and_inflation_height_are_rejected():
         scene_from_dict({"membrane": {"moulding": "bent"}})
     with pytest.raises(ValueError, match="inflate_to"):
         MembraneModel(flat_disc(0.02, 16), 2e-3, layers=1, inflate_to=0.025)
+
+
+def test_palpation_and_datasets_refuse_a_flat_moulding_by_name(tmp_path):
+    from jointsim.dataset.runner import generate_dataset
+    from jointsim.palpation import Palpation
+
+    scene = scene_from_dict({"membrane": {"moulding": "flat"}})
+    with pytest.raises(ValueError, match="membrane.moulding"):
+        Palpation(scene)
+    with pytest.raises(ValueError, match="membrane.moulding"):
+        generate_dataset(scene, 6, tmp_path / "d.h5")
+    assert not any(tmp_path.iterdir())  # nothing written
