@@ -142,12 +142,12 @@ MESH_PRESETS: dict[str, dict[str, float]] = {
     # convergence checks only (~1 M tets; minutes per mesh and per solve on 2 cores)
     "fine": {"max_edge_mm": 0.75, "electrode_refinement": 10.0},
 }
+MOULDINGS = ("cap", "flat")  # [membrane] moulding: the membrane's stress-free shape
 # the membrane mesh (rim vertices, 2 layers) each fidelity gets unless [membrane] rim_vertices
 # is given: 92, the coarsest within 2 % of the 160/2 mesh in force at 1-3 mm
 # (results/mechanics_benchmark.md); at the dataset fidelity (and in tests) 64, 2.4-5.8 % stiff
 # but ~2x faster per step, so a coupled frame stays within its 1 s goal there. "custom" (a
 # chamber tuned by hand) gets the converged one
-MOULDINGS = ("cap", "flat")  # [membrane] moulding: the membrane's stress-free shape
 MEMBRANE_RIM_VERTICES: dict[str, int] = {"test": 64, "dataset": 64, "paper": 92, "fine": 92, "custom": 92}
 
 

@@ -54,6 +54,7 @@ from ..io.store import RecordStore, attach, open_records, open_store
 from ..mesh.chamber import ChamberMesh, chamber_mesh
 from ..mesh.electrodes import disc_patches
 from ..mesh.tetmesh import TetMesh
+from ..palpation.pipeline import check_moulding
 from ..scene import Scene
 from .generate import DatasetSetup, dataset_params, dataset_schema, group_indices
 
@@ -255,9 +256,7 @@ def generate_dataset(
     seed = scene.noise.seed if seed is None else seed
     if not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed = {seed!r}: must be an integer >= 0")
-    if scene.membrane.moulding != "cap":  # before any store is written (Palpation refuses it too)
-        raise ValueError(f"membrane.moulding = {scene.membrane.moulding!r}: datasets take only \"cap\" so far "
-                         "(the flat moulding runs in the mechanics alone: MembraneModel, jointsim indent)")
+    check_moulding(scene)  # before any store is written (the workers' Palpation would refuse it later)
     workers = default_workers() if workers is None else workers
     if not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ValueError(f"workers = {workers!r}: must be an integer >= 1")

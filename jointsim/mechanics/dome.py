@@ -274,7 +274,7 @@ class MembraneModel:
         self.system = NewtonSystem(indptr, indices, ~self.fixed.ravel())
         if inflate_to is not None:
             # deployed by inflation (a membrane moulded flat): the pressure is what it takes
-            self._inflate(float(inflate_to), material.mu)
+            self._inflate(float(inflate_to), material.mu, rim_radius)
         elif pressure != 0.0:
             # the reservoir head inflates the stress-free dome before any contact
             self.u = minimize_energy([self.elastic, self.pressure], self.u, self.fixed, system=self.system).u
@@ -284,17 +284,17 @@ class MembraneModel:
         self._history: list[tuple[np.ndarray, np.ndarray]] = []
         self._compliance: float | None = None  # dV/dp of the chamber, for the closed-chamber secant
 
-    def _inflate(self, height: float, mu: float, rtol: float = 1e-4, max_iter: int = 30) -> None:
+    def _inflate(self, height: float, mu: float, a: float, rtol: float = 1e-4, max_iter: int = 30) -> None:
         """Raise the saline pressure until the inner surface's apex (its node nearest the axis)
-        stands ``height`` above the base, to ``rtol``; the model is left there, at that pressure."""
+        stands ``height`` above the base (rim radius ``a``), to ``rtol``; the model is left there,
+        at that pressure."""
         X = self.mesh.nodes[: self.n_surface]
-        a = float(np.hypot(*self.dome.vertices[self.dome.rim, :2].T).min())
         if not 0 < height < a:
             raise ValueError(f"inflate_to = {height}: must be in (0, {a:.4g}) m, a dome no higher than the rim's radius")
         apex = int(np.argmin(np.hypot(X[:, 0], X[:, 1])))
-        z0 = float(X[apex, 2])
-        if height <= z0:
-            raise ValueError(f"inflate_to = {height}: must exceed the apex's moulded height {z0:.4g} m")
+        moulded = float(X[apex, 2])
+        if height <= moulded:
+            raise ValueError(f"inflate_to = {height}: must exceed the apex's moulded height {moulded:.4g} m")
         # start from a thin membrane's estimate: the target cap stretched equibiaxially by its
         # arc over its chord, tension μt(1 − λ⁻⁶), p = 2T/R; then secant steps on log z(log p)
         # (z ∝ p^⅓ for a membrane), each equilibrium warm-started from the last
@@ -309,20 +309,19 @@ class MembraneModel:
             return float(X[apex, 2] + self.u[apex, 2])
 
         # a ramp from a plate-like deflection: a flat sheet under the full pressure at once is
-        # far from equilibrium; steps of 4x in pressure (~1.6x in height) converge
-        pts = []
-        for p in p_est * 4.0 ** np.arange(-3, 1):
-            pts.append((np.log(p), np.log(apex_at(p) - z0)))
-        target = np.log(height - z0)
+        # far from equilibrium; steps of 4x in pressure (~1.6x in height) converge.
+        # pts: (log pressure, log rise of the apex)
+        pts = [(np.log(p), np.log(apex_at(p) - moulded)) for p in p_est * 4.0 ** np.arange(-3, 1)]
+        target = np.log(height - moulded)
         for _ in range(max_iter):
-            (p0, z0_), (p1, z1) = pts[-2], pts[-1]
-            if abs(np.exp(z1) - (height - z0)) <= rtol * height:
+            (lp0, lz0), (lp1, lz1) = pts[-2], pts[-1]
+            if abs(np.exp(lz1) - (height - moulded)) <= rtol * height:
                 return
-            slope = (z1 - z0_) / (p1 - p0) if p1 != p0 else 1 / 3
-            step = (target - z1) / max(slope, 0.05)
-            p = p1 + float(np.clip(step, -np.log(4.0), np.log(4.0)))
-            pts.append((p, np.log(apex_at(np.exp(p)) - z0)))
-        last = (z0 + np.exp(pts[-1][1])) * 1e3
+            slope = (lz1 - lz0) / (lp1 - lp0) if lp1 != lp0 else 1 / 3
+            step = (target - lz1) / max(slope, 0.05)
+            lp = lp1 + float(np.clip(step, -np.log(4.0), np.log(4.0)))
+            pts.append((lp, np.log(apex_at(np.exp(lp)) - moulded)))
+        last = (moulded + np.exp(pts[-1][1])) * 1e3
         raise NewtonError(f"inflation to an apex height of {height * 1e3:.4g} mm: not reached in {max_iter} pressure steps "
                           f"(last {last:.4g} mm at {np.exp(pts[-1][0]):.4g} Pa)")
 

@@ -224,6 +224,15 @@ class _InnerSurface:
 # ---------------------------------------------------------------------------------------------
 
 
+def check_moulding(scene: Scene) -> None:
+    """Refuse a membrane moulding the coupled pipeline cannot take yet: its chamber mesh and
+    morph start from the moulded dome, and a flat moulding's chamber would have to be meshed on
+    the inflated surface instead."""
+    if scene.membrane.moulding != "cap":
+        raise ValueError(f"membrane.moulding = {scene.membrane.moulding!r}: palpation and datasets take only \"cap\" "
+                         "so far (the flat moulding runs in the mechanics alone: MembraneModel, jointsim indent)")
+
+
 class Palpation:
     """Everything a palpation run shares, built once from ``scene`` (its [palpation] section
     unless ``spec`` is given): the chamber mesh and its morpher onto the membrane's dome, the
@@ -258,11 +267,7 @@ class Palpation:
         self.seed = int(scene.noise.seed)
         self.setup_timings: dict[str, float] = {}
         t = self.setup_timings
-        if scene.membrane.moulding != "cap":
-            # the chamber mesh and its morph start from the moulded dome; a flat moulding's
-            # chamber would have to be meshed on the inflated surface instead (not done yet)
-            raise ValueError(f"membrane.moulding = {scene.membrane.moulding!r}: palpation and datasets take only \"cap\" "
-                             "so far (the flat moulding runs in the mechanics alone: MembraneModel, jointsim indent)")
+        check_moulding(scene)
         if spec.fdm_contact_impedance and scene.electrodes.contact_impedance_by_freq is None:
             raise ValueError("palpation.fdm_contact_impedance = true: needs electrodes.contact_impedance_by_freq_ohm_m2")
         self.segments = _segments(spec, self.frame_rate)
