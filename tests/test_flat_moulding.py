@@ -1,6 +1,8 @@
 """A membrane moulded flat: the clamped sheet against plate theory, and its inflation into the
 deployed dome."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -47,7 +49,9 @@ def flat_and_cap():
     kw = {"membrane": {"rim_vertices": 32, "layers": 1}}
     flat = scene_from_dict({"membrane": {"rim_vertices": 32, "layers": 1, "moulding": "flat"}})
     cap = scene_from_dict(kw)
-    return MembraneModel.from_scene(flat), MembraneModel.from_scene(cap), flat
+    flat_model = MembraneModel.from_scene(flat)
+    # (flat, cap, scene, the flat model's inflated displacement: the tests press the models)
+    return flat_model, MembraneModel.from_scene(cap), flat, flat_model.u.copy()
 
 
 def test_a_flat_moulding_is_inflated_to_the_dome_height(flat_and_cap):
@@ -57,7 +61,7 @@ def test_a_flat_moulding_is_inflated_to_the_dome_height(flat_and_cap):
     stretched uniformly (more at the apex, bent at the bond), hence the 15 % band (measured +4 %). The chamber
     it encloses is smaller than the spherical cap's (the sheet meets the bond at a steeper,
     bent edge and is flatter at the top; measured 0.8 of it)."""
-    flat, _, scene = flat_and_cap
+    flat, _, scene, _ = flat_and_cap
     st = flat.state()
     h, a = scene.chamber.dome_height, scene.chamber.base_radius
     assert st.dome.vertices[:, 2].max() == pytest.approx(h, rel=2e-4)
@@ -75,7 +79,7 @@ def test_the_inflated_flat_moulding_is_stiffer_to_a_press_than_the_cap(flat_and_
     """The tension the inflation leaves (its ~2 kPa; the cap here carries none: scene_from_dict's
     reservoir default is 0 Pa) stiffens the dome against a target: the same 1 mm press from
     first contact on the axis takes more force. Measured 2.1x on these coarse meshes."""
-    flat, cap, _ = flat_and_cap
+    flat, cap, _, _ = flat_and_cap
     forces = []
     for m in (flat, cap):
         z = m.first_contact_height(np.zeros(2))
@@ -90,13 +94,85 @@ def test_bad_moulding_and_inflation_height_are_rejected():
         MembraneModel(flat_disc(0.02, 16), 2e-3, layers=1, inflate_to=0.025)
 
 
-def test_palpation_and_datasets_refuse_a_flat_moulding_by_name(tmp_path):
-    from jointsim.dataset.runner import generate_dataset
+def test_a_membrane_inflated_from_an_earlier_one_needs_no_ramp(flat_and_cap):
+    """A later model of the same flat moulding (another target, moduli scaled by 1.3, as a
+    dataset's draws) starts its inflation from the first one's displacement: the shape is the
+    same (the equilibrium scales with the moduli), the pressure 1.3x to the inflation's 1e-4."""
+    flat, _, scene, inflated = flat_and_cap
+    p = flat.pressure.pressure  # the open reservoir holds the inflation's pressure through the presses
+    scaled = replace(scene, membrane=scene.membrane.scaled(1.3))
+    again = MembraneModel.from_scene(scaled, target_radius=4e-3, inflate_from=inflated)
+    assert np.abs(again.u - inflated).max() <= 1e-4 * scene.chamber.dome_height
+    assert again.pressure.pressure / p == pytest.approx(1.3, rel=1e-4)
+    with pytest.raises(ValueError, match="inflate_from"):
+        MembraneModel.from_scene(scene, inflate_from=inflated[:-1])
+    with pytest.raises(ValueError, match="inflate_from"):
+        MembraneModel.from_scene(scene_from_dict({}), inflate_from=inflated)
+
+
+@pytest.fixture(scope="module")
+def flat_pal(paper_scene):
+    """Palpation of the paper's sensor moulded flat: test chamber resolution, the 32-rim
+    one-layer membrane, one 15 mm target pressed 0, 1, 2, 1, 0 mm."""
     from jointsim.palpation import Palpation
 
-    scene = scene_from_dict({"membrane": {"moulding": "flat"}})
-    with pytest.raises(ValueError, match="membrane.moulding"):
-        Palpation(scene)
-    with pytest.raises(ValueError, match="membrane.moulding"):
-        generate_dataset(scene, 6, tmp_path / "d.h5")
-    assert not any(tmp_path.iterdir())  # nothing written
+    scene = paper_scene.with_mesh_preset("test")
+    scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=32, layers=1, moulding="flat"))
+    spec = replace(scene.palpation, target_radii=(7.5e-3,), depth=2e-3, speed=50e-3, hold=0.0, cells=1000)
+    pal = Palpation(scene, spec)
+    yield pal
+    pal.free()
+
+
+def test_a_flat_moulded_sensor_is_palpated_on_the_chamber_of_its_inflated_membrane(flat_pal, tmp_path):
+    """The chamber is meshed on the inflated membrane's inner surface (its dome within
+    fTetWild's envelope of it: measured 5 µm) and holds the FEM's saline; a frame at zero
+    indentation gives δV = 0 exactly; a pressed chamber loses the saline the FEM displaces
+    (measured within 0.15 %: the chamber is meshed on the triangles the FEM's volume is
+    integrated over, so only the envelope differs; 1 % allowed, as the cap's 3 % allows its
+    coarser dome)."""
+    from jointsim.io.store import open_records, open_store
+    from jointsim.palpation import run_palpation
+
+    pal = flat_pal
+    assert pal.inflated_u is not None
+    assert pal.morpher.surface_gap < 0.01 * pal.scene.chamber.membrane_thickness
+    model = pal.membrane(7.5e-3)
+    assert pal.reference_volume == pytest.approx(model.V0, rel=0.01)
+    path = tmp_path / "flat.h5"
+    store = open_store(path, pal.schema(), scene_toml="", seed=pal.seed, n_records=pal.n_records, params=pal.params())
+    frames = list(run_palpation(pal, store))
+    store.finalize()
+    rec = open_records(path)
+    pressed = rec["displaced_volume"] != 0
+    assert not pressed[0] and pressed[1:4].all()  # 0, 1, 2, 1 mm (the rig leaves the last frame touching, or not)
+    np.testing.assert_allclose(rec["chamber_volume_change"][pressed], rec["displaced_volume"][pressed], rtol=0.01)
+    assert (rec["chamber_volume_change"][~pressed] == 0).all()
+    assert all(np.all(f.dv_clean == 0) for f, p in zip(frames, pressed) if not p)
+    peak = [np.abs(f.dv_clean).max() for f in frames]
+    assert peak[2] > 1.5 * peak[1] > 0  # 2 mm against 1 mm
+
+
+def test_a_dataset_of_a_flat_moulded_sensor(flat_pal):
+    """A dataset group of the flat moulding: each draw's membrane (its moduli scaled) inflates
+    from the set-up's, and its samples press deeper with the saline displaced growing."""
+    from jointsim.dataset.generate import DatasetSetup
+
+    setup = DatasetSetup(flat_pal.scene, flat_pal.chamber, seed=3)
+    try:
+        records, _ = setup.group(0, 2)
+    finally:
+        setup.free()
+    assert len(records) == 2
+    assert 0 < records[0]["displaced_volume"] < records[1]["displaced_volume"]
+    assert 0 < records[0]["depth"] < records[1]["depth"]
+
+
+def test_a_chamber_not_on_the_membrane_is_refused(paper_scene, test_chamber):
+    """The cap's chamber under a membrane moulded flat lies 1.5 mm off its inflated surface."""
+    from jointsim.palpation import Palpation
+
+    scene, chamber = test_chamber
+    flat = replace(scene, membrane=replace(scene.membrane, rim_vertices=16, layers=1, moulding="flat"))
+    with pytest.raises(ValueError, match="chamber: its dome lies"):
+        Palpation(flat, chamber=chamber)

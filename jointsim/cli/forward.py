@@ -16,7 +16,6 @@ from ..eit.jacobian import jacobian
 from ..eit.noise import add_noise, noise_std
 from ..eit.protocol import skip_protocol
 from ..io.export import atomic_path, write_mat, write_npz, write_vtu
-from ..mesh.chamber import chamber_mesh
 from ..reconstruction.grid import ChamberGrid
 from .common import add_scene_arguments, scene_from_args, stage
 
@@ -42,8 +41,11 @@ def run(args: argparse.Namespace) -> int:
     out: Path = args.out
     t: dict[str, float] = {}
     print(f"jointsim forward: scene {scene.name}, mesh preset {scene.mesh.preset}, P{scene.mesh.element_order} elements, skip-{skip}")
-    with stage("chamber mesh (cached after the first run)", t):
-        ch = chamber_mesh(scene)
+    from ..palpation.pipeline import deployed_chamber  # here: it loads MuJoCo and the FEM
+
+    flat = scene.membrane.moulding == "flat"
+    with stage("chamber mesh (cached after the first run)" + (", on the flat moulding inflated" if flat else ""), t):
+        ch = deployed_chamber(scene)
     print("  " + ch.quality().summary())
     protocol = skip_protocol(scene.electrodes.count, skip, scene.drive.current)
     model = ForwardModel.from_chamber(ch, scene, backend=args.solver)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..mesh.chamber import cache_dir, chamber_mesh
+from ..mesh.chamber import cache_dir
 from .common import add_scene_arguments, scene_from_args, stage
 
 HELP = "mesh a scene's chamber and report its quality"
@@ -20,8 +20,11 @@ def run(args: argparse.Namespace) -> int:
     scene = scene_from_args(args)
     t: dict[str, float] = {}
     print(f"scene {scene.name}, mesh preset {scene.mesh.preset} (cache: {cache_dir()})")
-    with stage("mesh", t):
-        ch = chamber_mesh(scene)
+    from ..palpation.pipeline import deployed_chamber  # here: it loads MuJoCo and the FEM
+
+    flat = scene.membrane.moulding == "flat"
+    with stage("inflate the flat-moulded membrane, mesh its chamber" if flat else "mesh", t):
+        ch = deployed_chamber(scene)
     print("  " + ch.quality().summary())
     areas = [e.total_area * 1e6 for e in ch.electrodes]
     print(f"  electrode areas {min(areas):.4f}-{max(areas):.4f} mm^2 (ring), ground {areas[ch.ground]:.4f} mm^2")

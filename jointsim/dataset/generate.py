@@ -294,7 +294,8 @@ class DatasetSetup:
         scaled = replace(self.scene, membrane=self.scene.membrane.scaled(draw.membrane_scale),
                          target=replace(self.scene.target, kind="rigid"))
         soft = math.isfinite(draw.modulus)
-        return MembraneModel.from_scene(scaled, target_radius=draw.radius, target_modulus=draw.modulus if soft else None)
+        return MembraneModel.from_scene(scaled, target_radius=draw.radius, target_modulus=draw.modulus if soft else None,
+                                        inflate_from=self.pal.inflated_u)
 
     def _patches(self, mesh, jitter: np.ndarray) -> list[ElectrodePatch]:
         """Electrode patches of ``mesh`` with the ring electrodes moved by ``jitter`` (n_el, 2)."""

@@ -51,10 +51,10 @@ import numpy as np
 
 from ..geometry import electrode_layout
 from ..io.store import RecordStore, attach, open_records, open_store
-from ..mesh.chamber import ChamberMesh, chamber_mesh
+from ..mesh.chamber import ChamberMesh
 from ..mesh.electrodes import disc_patches
 from ..mesh.tetmesh import TetMesh
-from ..palpation.pipeline import check_moulding
+from ..palpation.pipeline import deployed_chamber
 from ..scene import Scene
 from .generate import DatasetSetup, dataset_params, dataset_schema, group_indices
 
@@ -256,7 +256,6 @@ def generate_dataset(
     seed = scene.noise.seed if seed is None else seed
     if not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed = {seed!r}: must be an integer >= 0")
-    check_moulding(scene)  # before any store is written (the workers' Palpation would refuse it later)
     workers = default_workers() if workers is None else workers
     if not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ValueError(f"workers = {workers!r}: must be an integer >= 1")
@@ -274,7 +273,7 @@ def generate_dataset(
 
     k = scene.dataset.samples_per_press
     if not (partial / CHAMBER_FILE).exists():
-        _save_chamber_once(partial, chamber_mesh(scene))
+        _save_chamber_once(partial, deployed_chamber(scene))
     chamber, sha = _load_chamber(partial, scene)
     n_cells = None
     if scene.dataset.images:  # the image's length is the nominal voxel grid's

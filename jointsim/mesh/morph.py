@@ -172,8 +172,8 @@ class ChamberMorpher:
         :func:`jointsim.eit.solver.factorize`
 
     Built once: the dome nodes' closest points on ``dome`` as barycentric weights (n_top, 3)
-    on triangles (n_top, 3), the interior Laplacian factorised, and its coupling to the dome
-    nodes. ``free()`` (or a ``with`` block) releases the factor now; garbage collection
+    on triangles (n_top, 3) (``surface_gap``: their largest distance, m), the interior
+    Laplacian factorised, and its coupling to the dome nodes. ``free()`` (or a ``with`` block) releases the factor now; garbage collection
     releases it otherwise.
     """
 
@@ -183,7 +183,8 @@ class ChamberMorpher:
         self.min_dihedral_deg = _check_dihedral(min_dihedral_deg)
         mesh = chamber.mesh
         self.top = dome_nodes(mesh)
-        tri, self._bary, _ = closest_on_surface(dome.vertices, dome.faces, mesh.nodes[self.top])
+        tri, self._bary, dist = closest_on_surface(dome.vertices, dome.faces, mesh.nodes[self.top])
+        self.surface_gap = float(dist.max()) if len(dist) else 0.0  # m: how far the chamber's dome lies off ``dome``
         self._corners = np.asarray(dome.faces)[tri]  # (n_top, 3) dome vertex indices
         self._free = np.ones(mesh.n_nodes, bool)
         self._free[np.unique(mesh.boundary_faces)] = False

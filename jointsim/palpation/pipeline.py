@@ -21,7 +21,8 @@ One frame k of a target's program, in order:
 
 The reference is the **inflated, untouched** membrane: the reservoir pressure inflates the
 dome when the membrane model is built, so the reference chamber is the chamber mesh morphed to
-that state, and the Jacobian, the voxel grid and the reconstruction matrix are built on it. A
+that state (a membrane moulded flat is inflated to the dome's height instead, and the chamber
+is meshed on that inflated surface: :func:`deployed_chamber`), and the Jacobian, the voxel grid and the reconstruction matrix are built on it. A
 frame at zero indentation therefore gives the reference mesh bit for bit and δV = 0 exactly on
 the morph path (its mesh-noise floor is zero). A remeshed frame (``mesh_path``) takes its change
 between the remesh and the same tetrahedra pulled back onto the reference chamber
@@ -39,7 +40,7 @@ from __future__ import annotations
 import math
 import time
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -51,7 +52,7 @@ from ..eit.forward import ForwardModel
 from ..eit.jacobian import jacobian
 from ..eit.noise import gain_drift, noise_std
 from ..eit.protocol import Protocol, skip_protocol
-from ..geometry import DomeSurface
+from ..geometry import DomeSurface, chamber_surface, electrode_layout
 from ..io.store import Field, RecordStore, Schema
 from ..mechanics.dome import MembraneModel, MembraneState, UnreachablePose
 from ..mechanics.fem import warp_device
@@ -72,6 +73,7 @@ __all__ = [
     "Frame",
     "Palpation",
     "run_palpation",
+    "deployed_chamber",
     "force_profile",
     "program_params",
     "metric_fields",
@@ -81,6 +83,10 @@ STAGES = ("mujoco", "mechanics", "mesh", "forward", "reconstruction")
 MESH_PATHS = ("morph", "remesh")
 MIN_CHAMBER_GAP = 0.2e-3  # m: inner surface to base; closer, the chamber cannot be meshed over the electrodes
 MIN_QUALITY_RATIO = 0.05  # as deform_chamber's default (results/mesh_step_benchmark.md)
+# × membrane thickness: how far the chamber's dome may lie off the membrane's inner surface.
+# Measured: the coarsest membrane (16 rim vertices) lies 0.12 mm inside the cap's chamber, the
+# 32-rim one 0.05 mm; the cap's chamber under a membrane moulded flat is 1.5 mm off
+CHAMBER_FIT = 0.25
 LAMBDA_REPEATS = 10  # noisy copies of the representative press pooled for the choice of λ
 SCHEMA_VERSION = 1
 
@@ -191,29 +197,41 @@ class _InnerSurface:
     ``faces`` (m, 3) into them (normals out of the chamber), ``rim`` (k,) anticlockwise, and the
     reference positions ``X`` (n, 3) with the rim's edge midpoints moved onto the base circle
     (they never move). The chamber follows this surface, so its volume change matches the
-    FEM's displaced volume; the vertex-only ``MembraneState.dome`` drops the midside nodes."""
+    FEM's displaced volume; the vertex-only ``MembraneState.dome`` drops the midside nodes.
+
+    The reference is the moulded surface (the moulded cap; the morph then takes the chamber to
+    the reservoir's inflation), or, for a membrane moulded flat, the inflated one: ``u0`` (n, 3)
+    is the membrane's displacement included in ``X`` (zero for the cap)."""
 
     nodes: np.ndarray
     faces: np.ndarray
     rim: np.ndarray
     X: np.ndarray
+    u0: np.ndarray
 
     @classmethod
-    def of(cls, model: MembraneModel, base_radius: float) -> "_InnerSurface":
+    def of(cls, model: MembraneModel, base_radius: float, inflated: bool = False) -> "_InnerSurface":
+        """The inner surface of ``model``; ``inflated``: its reference is the model's current
+        (inflated, untouched) state instead of the moulded one."""
         # reads the model's inner sub-triangles (the pressure term's surface)
         tris = np.asarray(model.inner_tris)
         nodes, local = np.unique(tris, return_inverse=True)
         faces = local.reshape(-1, 3)[:, ::-1]  # the FEM's point into the chamber; a DomeSurface's out
-        X = model.mesh.nodes[nodes].copy()
-        rim = np.flatnonzero(np.abs(X[:, 2]) <= 1e-9 * np.ptp(X))
+        u0 = model.u[nodes] if inflated else np.zeros((len(nodes), 3))
+        X = model.mesh.nodes[nodes] + u0
+        # the rim: the surface's boundary, the edges of one triangle only (a flat sheet's whole
+        # inner surface lies in the base plane, so the plane cannot tell it)
+        edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+        uniq, count = np.unique(edges, axis=0, return_counts=True)
+        rim = np.unique(uniq[count == 1])
         rim = rim[np.argsort(np.arctan2(X[rim, 1], X[rim, 0]))]
         X[rim, :2] *= base_radius / np.hypot(X[rim, 0], X[rim, 1])[:, None]
         X[rim, 2] = 0.0
-        return cls(nodes, np.ascontiguousarray(faces), rim, X)
+        return cls(nodes, np.ascontiguousarray(faces), rim, X, u0)
 
     def dome(self, u: np.ndarray | None) -> DomeSurface:
-        """The surface displaced by the membrane's ``u`` (n_P2, 3) (None: undeformed)."""
-        v = self.X if u is None else self.X + u[self.nodes]
+        """The surface displaced by the membrane's ``u`` (n_P2, 3) (None: the reference)."""
+        v = self.X.copy() if u is None else self.X + (u[self.nodes] - self.u0)
         if u is not None:
             v[self.rim] = self.X[self.rim]  # bonded: zero displacement, kept bit-exact
         return DomeSurface(v, self.faces, self.rim)
@@ -224,13 +242,18 @@ class _InnerSurface:
 # ---------------------------------------------------------------------------------------------
 
 
-def check_moulding(scene: Scene) -> None:
-    """Refuse a membrane moulding the coupled pipeline cannot take yet: its chamber mesh and
-    morph start from the moulded dome, and a flat moulding's chamber would have to be meshed on
-    the inflated surface instead."""
-    if scene.membrane.moulding != "cap":
-        raise ValueError(f"membrane.moulding = {scene.membrane.moulding!r}: palpation and datasets take only \"cap\" "
-                         "so far (the flat moulding runs in the mechanics alone: MembraneModel, jointsim indent)")
+def deployed_chamber(scene: Scene, dome: DomeSurface | None = None, **kw) -> ChamberMesh:
+    """The chamber mesh of ``scene``'s sensor before any press. Moulded as a cap: the scene's
+    dome (:func:`~jointsim.mesh.chamber.chamber_mesh`; the reservoir's inflation is a morph of
+    it). Moulded flat: the membrane's inflated inner surface ``dome`` (default: a membrane of
+    the scene built and inflated here), since the flat shape holds no chamber to morph from.
+    ``kw`` goes to :func:`~jointsim.mesh.chamber.mesh_chamber` (``use_cache``)."""
+    if scene.membrane.moulding == "cap":
+        return chamber_mesh(scene, **kw)
+    if dome is None:
+        model = MembraneModel.from_scene(replace(scene, target=replace(scene.target, kind="rigid")))  # the target is not touched
+        dome = _InnerSurface.of(model, scene.chamber.base_radius, inflated=True).dome(None)
+    return mesh_chamber(chamber_surface(dome), electrode_layout(scene), scene.mesh, **kw)
 
 
 class Palpation:
@@ -246,7 +269,9 @@ class Palpation:
         the SNR, seed and frame rate, [drive] the current and skip
     spec : the palpation program (default ``scene.palpation``)
     rig_path : MJCF of the bench (default ``scenes/bench_rig.xml``)
-    chamber : a ready reference chamber mesh of ``scene`` (default: :func:`chamber_mesh`)
+    chamber : a ready reference chamber mesh of ``scene`` (default: :func:`deployed_chamber`);
+        its dome must lie on the membrane's inner surface (within ``CHAMBER_FIT`` × the
+        membrane's thickness), or it is refused
     device : the Warp device of the membrane's element kernel ("cpu", or "cuda:0" where a GPU
         is); the frames agree to round-off
 
@@ -267,24 +292,35 @@ class Palpation:
         self.seed = int(scene.noise.seed)
         self.setup_timings: dict[str, float] = {}
         t = self.setup_timings
-        check_moulding(scene)
         if spec.fdm_contact_impedance and scene.electrodes.contact_impedance_by_freq is None:
             raise ValueError("palpation.fdm_contact_impedance = true: needs electrodes.contact_impedance_by_freq_ohm_m2")
         self.segments = _segments(spec, self.frame_rate)
         self.n_records = self.segments[-1].start + self.segments[-1].n_frames
 
+        flat = scene.membrane.moulding == "flat"
+        #: the membrane's inflated displacement where it was moulded flat (each later membrane
+        #: starts its inflation there), else None
+        self.inflated_u: np.ndarray | None = None
         with timed(t, "membrane"):
-            # the reservoir inflates the dome when the model is built: the reference is that state
+            # the membrane is inflated when the model is built (by the reservoir, or to the dome
+            # height when moulded flat): the reference is that state
             model = self.membrane(spec.target_radii[0])
-            self._surface = _InnerSurface.of(model, scene.chamber.base_radius)
-            self.membrane_dome = self._surface.dome(None)  # the undeformed inner surface the morpher maps from
+            if flat:
+                self.inflated_u = model.u[: model.mesh.n_nodes].copy()
+            self._surface = _InnerSurface.of(model, scene.chamber.base_radius, inflated=flat)
+            self.membrane_dome = self._surface.dome(None)  # the inner surface the morpher maps from
             self.reference_dome = self._surface.dome(model.u)
             self.membrane_nodes = model.mesh.n_nodes
             # the membrane's corner tetrahedra (the P2 mesh without midside nodes), for export
             self.membrane_mesh = TetMesh(model.mesh.nodes, model.mesh.tets[:, :4])
         with timed(t, "chamber"):
-            self.chamber = chamber_mesh(scene) if chamber is None else chamber
+            self.chamber = deployed_chamber(scene, self.membrane_dome) if chamber is None else chamber
             self.morpher = ChamberMorpher(self.chamber, self.membrane_dome)
+            gap, allowed = self.morpher.surface_gap, CHAMBER_FIT * scene.chamber.membrane_thickness
+            if gap > allowed:
+                raise ValueError(f"chamber: its dome lies up to {gap * 1e3:.3g} mm off the membrane's inner surface (allowed "
+                                 f"{allowed * 1e3:.3g} mm); mesh it with deployed_chamber(scene) (membrane.moulding = "
+                                 f"{scene.membrane.moulding!r})")
             self.reference = self.morpher(self.reference_dome)
             self.reference_volume = float(self.reference.mesh.volumes.sum())
             self._reference_min_shape = self.morpher.reference_quality.min_shape
@@ -324,7 +360,7 @@ class Palpation:
 
     def membrane(self, radius: float) -> MembraneModel:
         """A fresh membrane (inflated by the reservoir, untouched) for a target of ``radius`` m."""
-        return MembraneModel.from_scene(self.scene, target_radius=radius, device=self.device)
+        return MembraneModel.from_scene(self.scene, target_radius=radius, device=self.device, inflate_from=self.inflated_u)
 
     def voltages(self, chamber: ChamberMesh) -> np.ndarray:
         """Clean voltages (256,) V of ``chamber`` filled with the scene's saline; with

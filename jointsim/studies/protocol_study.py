@@ -120,6 +120,10 @@ def _fields(chamber: ChamberMesh, scene: Scene):
 
 def run_protocol_study(scene: Scene, config: StudyConfig = StudyConfig(), progress=None) -> StudyResult:
     """Run the study; ``progress(n)`` (optional) is called as steps complete (a tqdm update)."""
+    if scene.membrane.moulding != "cap":
+        # the study indents the moulded cap geometrically; a flat moulding's deployed dome is
+        # the FEM's inflated shape, which it does not compute
+        raise ValueError(f"membrane.moulding = {scene.membrane.moulding!r}: the protocol study takes the moulded cap only (\"cap\")")
     tick = progress or (lambda n=1: None)
     n_el = scene.electrodes.count
     ch = chamber_mesh(scene)
