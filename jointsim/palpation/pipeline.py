@@ -22,8 +22,8 @@ One frame k of a target's program, in order:
 The reference is the **inflated, untouched** membrane: the reservoir pressure inflates the
 dome when the membrane model is built, so the reference chamber is the chamber mesh morphed to
 that state (a membrane moulded flat is inflated to the dome's height instead, and the chamber
-is meshed on that inflated surface: :func:`deployed_chamber`), and the Jacobian, the voxel grid and the reconstruction matrix are built on it. A
-frame at zero indentation therefore gives the reference mesh bit for bit and δV = 0 exactly on
+is meshed on that inflated surface: :func:`deployed_chamber`), and the Jacobian, the voxel
+grid and the reconstruction matrix are built on it. A frame at zero indentation therefore gives the reference mesh bit for bit and δV = 0 exactly on
 the morph path (its mesh-noise floor is zero). A remeshed frame (``mesh_path``) takes its change
 between the remesh and the same tetrahedra pulled back onto the reference chamber
 (:func:`~jointsim.mesh.morph.pull_back`), which cancels the remeshing floor (~40 dB re the
