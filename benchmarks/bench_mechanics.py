@@ -8,12 +8,14 @@ mesh size, wall time per step, Newton iterations, and the split between the Warp
 and the rest.
 
     python benchmarks/bench_mechanics.py            # writes results/mechanics_benchmark.{md,json}
-    python benchmarks/bench_mechanics.py --report   # rewrites the .md from the .json
+    python benchmarks/bench_mechanics.py --flat     # the same study of the membrane moulded flat and
+                                                    # inflated: results/mechanics_flat_benchmark.{md,json}
+    python benchmarks/bench_mechanics.py --report   # rewrites the .md files from the .json
     python benchmarks/bench_mechanics.py --solvers [N]  # the solver settings on one mesh, N runs each:
                                                     # results/mechanics_solvers.{md,json}
     python benchmarks/bench_mechanics.py --assembly [N]  # one iteration's Hessian by both assembly
                                                     # routes, N times: results/mechanics_assembly.{md,json}
-    python benchmarks/bench_mechanics.py --one 92 2 0 pointwise [SETTING] [--device cuda:0]
+    python benchmarks/bench_mechanics.py --one 92 2 0 pointwise [SETTING] [--device cuda:0] [--moulding flat]
                                                     # one mesh's press, printed as JSON (the element
                                                     # kernel on that Warp device; default cpu)
 
@@ -51,11 +53,16 @@ SOLVERS = {"default": (True, True, True, 0, True), "LDLᵀ only": (True, True, F
            "double precision": (False, True, True, 0, True), "Hessian gathered from a matrix": (True, True, True, 0, False),
            "LDLᵀ only, one kernel thread": (True, True, False, 1, True)}
 SOLVER_MESH, REPEATS = (92, 2, 0.0, "pointwise"), 2
+# `--flat`: the same press on the membrane moulded flat and inflated to the dome ([membrane]
+# moulding = "flat"); the last is the reference
+FLAT_RESOLUTIONS = [(32, 2, 0.0, "pointwise"), (48, 2, 0.0, "pointwise"), (64, 2, 0.0, "pointwise"), (92, 2, 0.0, "pointwise"),
+                    (64, 3, 0.0, "pointwise"), (128, 2, 0.0, "pointwise")]
 GOAL_S, CONVERGED = 1.0, 0.02  # the issue's goal: ≤ 1 s per step at a mesh within 2 % in force
 DEPTHS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 
 
-def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatation", linear: str = "default", device: str = "cpu") -> dict:
+def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatation", linear: str = "default", device: str = "cpu",
+        moulding: str = "cap") -> dict:
     import jointsim.eit.solver as solver
     import jointsim.mechanics.fem as fem
     import jointsim.mechanics.newton as newton
@@ -80,7 +87,7 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
     solver.PatternSolver.factor = timed("factorise+solve", solver.PatternSolver.factor)
     solver.PatternSolver.solve = timed("factorise+solve", solver.PatternSolver.solve)
 
-    model, setup = _membrane(n_rim, layers, apex_mm, volumetric, device)
+    model, setup = _membrane(n_rim, layers, apex_mm, volumetric, device, moulding)
     top = model.first_contact_height((0.0, 0.0))
     steps = []
     for d in np.array(DEPTHS_MM) * 1e-3:
@@ -92,23 +99,27 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
         steps.append({"depth_mm": d * 1e3, "wall_s": wall, "iterations": st.iterations, **{f"{k}_s": v for k, v in timers.items()},
                       "force_mN": st.force[2] * 1e3, "displaced_mm3": st.displaced_volume * 1e9, "penetration_um": st.penetration * 1e6})
     return {"n_rim": n_rim, "layers": layers, "apex_mm": apex_mm, "volumetric": volumetric, "linear": linear, "device": device,
-            "p2_nodes": model.mesh.n_nodes, "tets": model.mesh.n_tets,
-            "setup_s": setup, "steps": steps}
+            "moulding": moulding, "p2_nodes": model.mesh.n_nodes, "tets": model.mesh.n_tets, "setup_s": setup,
+            "pressure_pa": model.pressure.pressure, "chamber_mm3": model.V0 * 1e9, "steps": steps}
 
 
-def _membrane(n_rim: int, layers: int, apex_mm: float, volumetric: str, device: str = "cpu"):
+def _membrane(n_rim: int, layers: int, apex_mm: float, volumetric: str, device: str = "cpu", moulding: str = "cap"):
     """The paper's membrane on a cap of ``n_rim`` rim vertices under the 15 mm target (its element
-    kernel on the Warp ``device``), and the seconds MembraneModel.from_scene took (meshing, inflation)."""
+    kernel on the Warp ``device``), and the seconds MembraneModel.from_scene took (meshing, inflation).
+    ``moulding`` "flat": a flat disc of ``n_rim`` rim vertices inflated to the dome's height."""
     from dataclasses import replace
 
-    from jointsim.geometry import isotropic_cap
+    from jointsim.geometry import flat_disc, isotropic_cap
     from jointsim.mechanics.dome import MembraneModel
     from jointsim.scene import load_scene
 
     scene = load_scene(ROOT / "scenes" / "paper_sensor.toml")
-    scene = replace(scene, membrane=replace(scene.membrane, layers=layers, volumetric=volumetric))
+    scene = replace(scene, membrane=replace(scene.membrane, layers=layers, volumetric=volumetric, moulding=moulding))
     c = scene.chamber
-    dome = isotropic_cap(c.base_radius, c.dome_height, n_rim, apex_mm * 1e-3 if apex_mm else None)
+    if moulding == "flat":
+        dome = flat_disc(c.base_radius, n_rim)
+    else:
+        dome = isotropic_cap(c.base_radius, c.dome_height, n_rim, apex_mm * 1e-3 if apex_mm else None)
     t0 = time.perf_counter()
     model = MembraneModel.from_scene(scene, 7.5e-3, dome=dome, device=device)
     return model, time.perf_counter() - t0
@@ -144,35 +155,47 @@ def extrapolate(h: list[float], f: list[float]) -> tuple[float, float] | None:
 
 def main() -> int:
     if len(sys.argv) > 1 and sys.argv[1] == "--report":
-        saved = json.loads(OUT.with_suffix(".json").read_text())
-        write(saved["rows"], saved["meta"])
+        for out in (OUT, FLAT_OUT):
+            if out.with_suffix(".json").exists():
+                saved = json.loads(out.with_suffix(".json").read_text())
+                write(saved["rows"], saved["meta"], out)
         if SOLVERS_OUT.with_suffix(".json").exists():
             saved = json.loads(SOLVERS_OUT.with_suffix(".json").read_text())
             write_solvers(saved["runs"], saved["meta"])
         return 0
     if len(sys.argv) > 1 and sys.argv[1] == "--one":
         args = sys.argv[2:]
-        device = "cpu"
-        if "--device" in args:
-            i = args.index("--device")
-            device = args[i + 1]
-            del args[i : i + 2]
-        print(json.dumps(run(int(args[0]), int(args[1]), float(args[2]), args[3], *args[4:5], device=device)))
+        opts = {"device": "cpu", "moulding": "cap"}
+        for name in opts:
+            if f"--{name}" in args:
+                i = args.index(f"--{name}")
+                opts[name] = args[i + 1]
+                del args[i : i + 2]
+        print(json.dumps(run(int(args[0]), int(args[1]), float(args[2]), args[3], *args[4:5], **opts)))
         return 0
     if len(sys.argv) > 1 and sys.argv[1] == "--assembly":
         return assembly(int(sys.argv[2]) if len(sys.argv) > 2 else 10)
     if len(sys.argv) > 1 and sys.argv[1] == "--solvers":
         return solvers(int(sys.argv[2]) if len(sys.argv) > 2 else REPEATS)
+    if len(sys.argv) > 1 and sys.argv[1] == "--flat":
+        return study(FLAT_RESOLUTIONS, FLAT_OUT, "flat", "python benchmarks/bench_mechanics.py --flat")
+    return study(RESOLUTIONS, OUT, "cap", "python benchmarks/bench_mechanics.py")
+
+
+def study(resolutions: list[tuple], out: Path, moulding: str, command: str) -> int:
+    """The press on each mesh of ``resolutions`` (one process each), written to ``out``.{md,json};
+    finished rows kept in its .partial.json (an interrupted run resumes)."""
     import subprocess
 
-    partial = OUT.with_suffix(".partial.json")
+    partial = out.with_suffix(".partial.json")
     saved = json.loads(partial.read_text()) if partial.exists() else {"rows": [], "meta": {}}
-    meta = saved["meta"] or {**_new_meta("python benchmarks/bench_mechanics.py"), "speed_reference_s_start_end": [speed_reference(), None]}
+    meta = saved["meta"] or {**_new_meta(command), "moulding": moulding, "speed_reference_s_start_end": [speed_reference(), None]}
     rows = saved["rows"]
-    for n_rim, layers, apex, volumetric in RESOLUTIONS:
+    for n_rim, layers, apex, volumetric in resolutions:
         if any((r["n_rim"], r["layers"], r["apex_mm"], r["volumetric"]) == (n_rim, layers, apex, volumetric) for r in rows):
             continue
-        r = subprocess.run([sys.executable, __file__, "--one", str(n_rim), str(layers), str(apex), volumetric], capture_output=True, text=True)
+        r = subprocess.run([sys.executable, __file__, "--one", str(n_rim), str(layers), str(apex), volumetric, "--moulding", moulding],
+                           capture_output=True, text=True)
         if r.returncode:
             print(r.stderr[-2000:], file=sys.stderr)
             return 1
@@ -182,14 +205,15 @@ def main() -> int:
         print(f"{n_rim} rim, {layers} layers, apex {apex} mm, {volumetric}: {np.mean([x['wall_s'] for x in s[1:]]):.2f} s/step, F(3 mm) {s[-1]['force_mN']:.2f} mN", flush=True)
     meta["load_average_start_end"][1] = os.getloadavg()[0]
     meta["speed_reference_s_start_end"][1] = speed_reference()
-    order = {k: i for i, k in enumerate(RESOLUTIONS)}
+    order = {k: i for i, k in enumerate(resolutions)}
     rows.sort(key=lambda r: order.get((r["n_rim"], r["layers"], r["apex_mm"], r["volumetric"]), -1))
-    write(rows, meta)
+    write(rows, meta, out)
     partial.unlink()
     return 0
 
 
 OUT = ROOT / "results" / "mechanics_benchmark"
+FLAT_OUT = ROOT / "results" / "mechanics_flat_benchmark"
 SOLVERS_OUT = ROOT / "results" / "mechanics_solvers"
 
 
@@ -298,8 +322,10 @@ def _new_meta(command: str) -> dict:
             "load_average_start_end": [os.getloadavg()[0], None]}
 
 
-def write(rows: list[dict], meta: dict) -> None:
-    """results/mechanics_benchmark.{json,md} from the measured rows (``--report``: from the JSON)."""
+def write(rows: list[dict], meta: dict, out: Path = OUT) -> None:
+    """``out``.{json,md} (results/mechanics_benchmark, or mechanics_flat_benchmark for the flat
+    moulding) from the measured rows (``--report``: from the JSON)."""
+    flat = meta.get("moulding", "cap") == "flat"
     ref = rows[-1]
     depths = (1.0, 2.0, 3.0)
     per_step = {_label(r): np.mean([x["wall_s"] for x in r["steps"][1:]]) for r in rows}
@@ -311,12 +337,23 @@ def write(rows: list[dict], meta: dict) -> None:
             e = extrapolate([1 / a["n_rim"], 1 / b["n_rim"], 1 / c["n_rim"]], [_at(a, d), _at(b, d), _at(c, d)])
             if e is not None:
                 limit[d] = e
-    lines = ["# Mechanics benchmark and mesh convergence", "", f"Command: `{meta['command']}`  ", f"Machine: {meta['machine']}; run {meta['date']}.  ",
-             "Rigid 15 mm sphere pressed on the axis of the paper's dome (neo-Hookean μ 22 kPa, κ = 1000 μ, 50 Pa reservoir), 0.5 mm steps",
-             "to 3 mm, each warm-started from the previous (tangent predictor). Per-step means exclude the first step (first contact,",
-             "no predictor yet). Membrane meshes: the inner surface as a uniform isotropic cap of edge 2π·20 mm / rim vertices,",
-             "P2 tetrahedra (isoparametric, on the true spheres) in prism layers through the 2 mm thickness, the volumetric energy",
-             "pointwise (the scene default; validated on this dome against an axisymmetric reference in results/dome_apex_load.md).",
+    if flat:
+        setting = ["Rigid 15 mm sphere pressed on the axis of the paper's dome **moulded flat** ([membrane] moulding = \"flat\": a 2 mm",
+                   "sheet bonded at its edge face, inflated until its inner apex stands 10 mm above the base; the reservoir then holds",
+                   "that pressure), neo-Hookean μ 22 kPa, κ = 1000 μ; 0.5 mm steps to 3 mm, each warm-started from the previous",
+                   "(tangent predictor). Per-step means exclude the first step. Membrane meshes: the flat disc triangulated as the",
+                   "isotropic cap's limit (edge 2π·20 mm / rim vertices), P2 tetrahedra in prism layers through the thickness, the",
+                   "volumetric energy pointwise. Deploy pressure and chamber volume: the inflated, untouched state.",
+                   "Setup s includes the inflation."]
+    else:
+        setting = ["Rigid 15 mm sphere pressed on the axis of the paper's dome (neo-Hookean μ 22 kPa, κ = 1000 μ, 50 Pa reservoir), 0.5 mm steps",
+                   "to 3 mm, each warm-started from the previous (tangent predictor). Per-step means exclude the first step (first contact,",
+                   "no predictor yet). Membrane meshes: the inner surface as a uniform isotropic cap of edge 2π·20 mm / rim vertices,",
+                   "P2 tetrahedra (isoparametric, on the true spheres) in prism layers through the 2 mm thickness, the volumetric energy",
+                   "pointwise (the scene default; validated on this dome against an axisymmetric reference in results/dome_apex_load.md)."]
+    title = "Mechanics benchmark and mesh convergence" + (": the membrane moulded flat" if flat else "")
+    lines = ["# " + title, "", f"Command: `{meta['command']}`  ", f"Machine: {meta['machine']}; run {meta['date']}.  ",
+             *setting,
              f"Kernel s: the Warp element kernel's calls ({meta.get('kernel_threads', 1)} chunks launched from as many threads), which include "
              "the elastic Hessian's assembly into the Newton system's values; factorise+solve s: PARDISO's, in single precision, each Hessian by "
              "Cholesky first and by LDLᵀ where that fails (jointsim/mechanics/newton.py SINGLE_PRECISION, CHOLESKY_FIRST).",
@@ -326,15 +363,17 @@ def write(rows: list[dict], meta: dict) -> None:
              "Reference workload (`benchmarks/_machine.py` speed_reference, a fixed sparse factorisation): "
              f"{meta['speed_reference_s_start_end'][0]:.3f} s at the start, {meta['speed_reference_s_start_end'][1]:.3f} s at the end; "
              "to compare with a run of another day, scale by the ratio of this figure.", "",
-             "| rim / layers | P2 nodes | s / step | Newton its / step | kernel s | factorise+solve s | F 1 / 2 / 3 mm, mN | force error 1 / 2 / 3 mm | displaced mm³ at 3 mm | its error |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| rim / layers | P2 nodes | s / step | Newton its / step | kernel s | factorise+solve s | F 1 / 2 / 3 mm, mN | force error 1 / 2 / 3 mm | displaced mm³ at 3 mm | its error |"
+             + (" setup s | deploy pressure Pa | chamber mm³ |" if flat else ""),
+             "|---|---|---|---|---|---|---|---|---|---|" + ("---|---|---|" if flat else "")]
     for r in rows:
         s = r["steps"][1:]
         err = " / ".join(f"{100 * (_at(r, d) / _at(ref, d) - 1):+.1f} %" for d in depths)
         vol = _at(r, 3.0, "displaced_mm3")
         lines.append(f"| {_label(r)} | {r['p2_nodes']:,} | {per_step[_label(r)]:.2f} | {np.mean([x['iterations'] for x in s]):.1f} | "
                      f"{np.mean([x['kernel_s'] for x in s]):.2f} | {np.mean([x['factorise+solve_s'] for x in s]):.2f} | "
-                     + " / ".join(f"{_at(r, d):.2f}" for d in depths) + f" | {err} | {vol:.1f} | {100 * (vol / _at(ref, 3.0, 'displaced_mm3') - 1):+.1f} % |")
+                     + " / ".join(f"{_at(r, d):.2f}" for d in depths) + f" | {err} | {vol:.1f} | {100 * (vol / _at(ref, 3.0, 'displaced_mm3') - 1):+.1f} % |"
+                     + (f" {r['setup_s']:.0f} | {r['pressure_pa']:.1f} | {r['chamber_mm3']:.0f} |" if flat else ""))
     if len(limit) == len(depths):
         a, b, c = two[-3:]
         lines += ["", f"Extrapolated to zero mesh size from {_label(a)}, {_label(b)} and {_label(c)} (f = f∞ + C·hᵖ through the three, h the edge): "
@@ -363,7 +402,7 @@ def write(rows: list[dict], meta: dict) -> None:
                   + f". The errors above are against a {ref['layers']}-layer reference, so they leave out this through-thickness "
                   "part: against a mesh refined in both directions a mesh's force is that much further off (pointwise P2 at "
                   "κ = 1000 μ stiffens a little on fewer layers; results/dome_apex_load.md)."]
-    write_pair(OUT, {"meta": meta, "rows": rows}, "\n".join(lines) + "\n")
+    write_pair(out, {"meta": meta, "rows": rows}, "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
