@@ -56,7 +56,7 @@ SOLVER_MESH, REPEATS = (92, 2, 0.0, "pointwise"), 2
 # `--flat`: the same press on the membrane moulded flat and inflated to the dome ([membrane]
 # moulding = "flat"); the last is the reference
 FLAT_RESOLUTIONS = [(32, 2, 0.0, "pointwise"), (48, 2, 0.0, "pointwise"), (64, 2, 0.0, "pointwise"), (92, 2, 0.0, "pointwise"),
-                    (64, 3, 0.0, "pointwise"), (128, 2, 0.0, "pointwise")]
+                    (64, 3, 0.0, "pointwise"), (128, 2, 0.0, "pointwise"), (160, 2, 0.0, "pointwise")]
 GOAL_S, CONVERGED = 1.0, 0.02  # the goal: ≤ 1 s per step at a mesh within 2 % in force
 DEPTHS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 
@@ -387,7 +387,15 @@ def write(rows: list[dict], meta: dict, out: Path = OUT) -> None:
         target = {d: _at(ref, d) for d in depths}
         against = "the reference"
     ok = [r for r in rows if r is not ref and all(abs(_at(r, d) / target[d] - 1) <= CONVERGED for d in depths)]
-    if ok:
+    if flat:
+        # the goal's "converged to 2 %" does not apply: the force does not converge monotonically
+        # (the contact's discretisation scatters it) and the deployed state is still moving
+        fine = [r for r in rows if r is not ref and r["n_rim"] >= 48]
+        spread = max(abs(_at(r, d) / _at(ref, d) - 1) for r in fine for d in depths) if fine else float("nan")
+        lines += ["", f"Force: from 48 rim vertices on, every mesh is within {100 * spread:.1f} % of the finest at 1, 2 and 3 mm, without a "
+                  "monotone trend (the contact's discretisation scatters it): no mesh is shown converged to 2 %, and the deployed state "
+                  "below still moves by more than that."]
+    elif ok:
         best = min(ok, key=lambda r: per_step[_label(r)])
         lines += ["", f"Within {CONVERGED:.0%} of {against} at 1, 2 and 3 mm: "
                   + ", ".join(f"{_label(r)} ({per_step[_label(r)]:.2f} s/step)" for r in ok)
@@ -395,6 +403,17 @@ def write(rows: list[dict], meta: dict, out: Path = OUT) -> None:
                   + ("meets" if per_step[_label(best)] <= GOAL_S else "misses") + f" the {GOAL_S:g} s goal."]
     else:
         lines += ["", f"No mesh is within {CONVERGED:.0%} of {against} at 1, 2 and 3 mm."]
+    if flat and len(two) >= 3:
+        a, b, c = two[-3:]
+        h = [1 / a["n_rim"], 1 / b["n_rim"], 1 / c["n_rim"]]
+        deploy = {k: extrapolate(h, [a[k], b[k], c[k]]) for k in ("pressure_pa", "chamber_mm3")}
+        if all(deploy.values()):
+            (p_inf, p_order), (v_inf, v_order) = deploy["pressure_pa"], deploy["chamber_mm3"]
+            lines += ["", f"The inflated state converges smoothly but slowly, at an order near 1 (the sheet bends sharply at its bonded edge): extrapolated from "
+                      f"{_label(a)}, {_label(b)} and {_label(c)}, the deploy pressure is {p_inf:.0f} Pa (order {p_order:.1f}) and the chamber "
+                      f"{v_inf:.0f} mm³ (order {v_order:.1f}); per mesh: "
+                      + ", ".join(f"{_label(r)} {100 * (r['pressure_pa'] / p_inf - 1):+.1f} % / {100 * (r['chamber_mm3'] / v_inf - 1):+.1f} %"
+                                  for r in two) + " (pressure / chamber)."]
     layered = [(r, q) for r in rows for q in rows if r["n_rim"] == q["n_rim"] and q["layers"] > r["layers"] and not r["apex_mm"] and not q["apex_mm"]]
     if layered:
         lines += ["", "Layers through the thickness, same in-plane mesh (force at 3 mm): "
