@@ -94,6 +94,28 @@ def test_bad_moulding_and_inflation_height_are_rejected():
         MembraneModel(flat_disc(0.02, 16), 2e-3, layers=1, inflate_to=0.025)
 
 
+def test_where_newton_cannot_go_straight_to_the_estimate_the_inflation_ramps(monkeypatch):
+    """The inflation's first solve goes from the flat sheet straight to the thin-membrane
+    pressure; should that fail, it restarts from flat on a ramp and still reaches the height."""
+    import jointsim.mechanics.dome as dome
+    from jointsim.mechanics.newton import NewtonError
+
+    calls = []
+    solve = dome.minimize_energy
+
+    def failing_first(*a, **k):
+        calls.append(k.get("system"))
+        if len(calls) == 1:
+            raise NewtonError("simulated: no descent")
+        return solve(*a, **k)
+
+    monkeypatch.setattr(dome, "minimize_energy", failing_first)
+    m = MembraneModel(flat_disc(0.02, 16), 2e-3, layers=1, inflate_to=0.01)
+    apex = int(np.argmin(np.hypot(*m.mesh.nodes[: m.n_surface, :2].T)))
+    assert m.u[apex, 2] == pytest.approx(0.01, rel=1e-4)
+    assert len(calls) >= 5  # the failed one, then the ramp's four
+
+
 def test_a_membrane_inflated_from_an_earlier_one_needs_no_ramp(flat_and_cap):
     """A later model of the same flat moulding (another target, moduli scaled by 1.3, as a
     dataset's draws) starts its inflation from the first one's displacement: the shape is the
