@@ -173,8 +173,8 @@ class ChamberMorpher:
 
     Built once: the dome nodes' closest points on ``dome`` as barycentric weights (n_top, 3)
     on triangles (n_top, 3) (``surface_gap``: their largest distance, m), the interior
-    Laplacian factorised, and its coupling to the dome nodes. ``free()`` (or a ``with`` block) releases the factor now; garbage collection
-    releases it otherwise.
+    Laplacian factorised, and its coupling to the dome nodes. ``free()`` (or a ``with`` block)
+    releases the factor now; garbage collection releases it otherwise.
     """
 
     def __init__(self, chamber: ChamberMesh, dome: DomeSurface, *, min_dihedral_deg: float = 1.0, backend: str = "auto"):
