@@ -291,8 +291,9 @@ class MembraneModel:
         stands ``height`` above the base (rim radius ``a``), to ``rtol``; the model is left there,
         at that pressure. ``start``: a displacement (n_nodes, 3) of this mesh already inflated to
         about that height (an earlier model's, its moduli scaled or its target another); the
-        search then starts from it at the pressure that best balances it, instead of ramping up
-        from the flat sheet (one equilibrium instead of ~8: 1 s instead of 15 s at 64/2)."""
+        search then starts from it at the pressure that best balances it, instead of from the
+        flat sheet (one equilibrium, no Newton iteration, instead of ~4: 0.6 s against 11.6 s at
+        64/2)."""
         X = self.mesh.nodes[: self.n_surface]
         if not 0 < height < a:
             raise ValueError(f"inflate_to = {height}: must be in (0, {a:.4g}) m, a dome no higher than the rim's radius")

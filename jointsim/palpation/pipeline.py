@@ -23,9 +23,10 @@ The reference is the **inflated, untouched** membrane: the reservoir pressure in
 dome when the membrane model is built, so the reference chamber is the chamber mesh morphed to
 that state (a membrane moulded flat is inflated to the dome's height instead, and the chamber
 is meshed on that inflated surface: :func:`deployed_chamber`), and the Jacobian, the voxel
-grid and the reconstruction matrix are built on it. A frame at zero indentation therefore gives the reference mesh bit for bit and δV = 0 exactly on
-the morph path (its mesh-noise floor is zero). A remeshed frame (``mesh_path``) takes its change
-between the remesh and the same tetrahedra pulled back onto the reference chamber
+grid and the reconstruction matrix are built on it. A frame at zero indentation therefore
+gives the reference mesh bit for bit and δV = 0 exactly on the morph path (its mesh-noise
+floor is zero). A remeshed frame (``mesh_path``) takes its change between the remesh and the
+same tetrahedra pulled back onto the reference chamber
 (:func:`~jointsim.mesh.morph.pull_back`), which cancels the remeshing floor (~40 dB re the
 standing voltage at the dataset resolution against the reference mesh; results/mesh_step_benchmark.md).
 
@@ -219,11 +220,9 @@ class _InnerSurface:
         faces = local.reshape(-1, 3)[:, ::-1]  # the FEM's point into the chamber; a DomeSurface's out
         u0 = model.u[nodes] if inflated else np.zeros((len(nodes), 3))
         X = model.mesh.nodes[nodes] + u0
-        # the rim: the surface's boundary, the edges of one triangle only (a flat sheet's whole
-        # inner surface lies in the base plane, so the plane cannot tell it)
-        edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-        uniq, count = np.unique(edges, axis=0, return_counts=True)
-        rim = np.unique(uniq[count == 1])
+        # the rim: the surface's nodes the model bonds (by the base plane for a cap, by the rim
+        # circle for a flat sheet, whose whole inner surface lies in the base plane)
+        rim = np.flatnonzero(model.fixed[nodes, 0])
         rim = rim[np.argsort(np.arctan2(X[rim, 1], X[rim, 0]))]
         X[rim, :2] *= base_radius / np.hypot(X[rim, 0], X[rim, 1])[:, None]
         X[rim, 2] = 0.0
