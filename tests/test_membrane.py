@@ -269,8 +269,9 @@ def test_regularised_newton_and_tangent_predictor_reach_the_projected_equilibriu
 
 
 def test_a_long_move_is_split_into_steps_and_reaches_the_same_equilibrium(monkeypatch, pressed):
-    # one 1 mm press is split into ceil(1 / 0.75) = 2 steps of 0.5 mm, the fixture's path, and
-    # lands on its equilibrium (each step converged to FORCE_RTOL of the contact force)
+    # one 1 mm press is split into ceil(1 / 0.75) = 2 steps of 0.5 mm, the fixture's path, the
+    # first of them at FIRST_CONTACT × thickness past the touch, and lands on its equilibrium
+    # (each step converged to FORCE_RTOL of the contact force)
     import jointsim.mechanics.dome as dome_mod
 
     model, (_, b) = pressed
@@ -279,9 +280,35 @@ def test_a_long_move_is_split_into_steps_and_reaches_the_same_equilibrium(monkey
     solve = dome_mod.MembraneModel._solve_step
     monkeypatch.setattr(dome_mod.MembraneModel, "_solve_step", lambda self, c: steps.append(c) or solve(self, c))
     st = other.press(np.array([0.0, 0.0, top - 1.0e-3]))
-    assert len(steps) == 2
+    assert top - np.array(steps)[:, 2] == pytest.approx([dome_mod.FIRST_CONTACT * 2e-3, 0.5e-3, 1.0e-3], rel=1e-6)
     assert st.force[2] == pytest.approx(b.force[2], rel=1e-5)
     np.testing.assert_allclose(st.u, b.u, atol=1e-9)
+
+
+def test_the_first_contact_is_solved_just_past_the_touch_and_changes_no_equilibrium(monkeypatch, pressed):
+    # a move into contact is solved first FIRST_CONTACT × thickness past the touch, where no node
+    # can be deeper in the target than that (it moved no further), then with the tangent
+    # predictor; the equilibria are the single steps' to the Newton stop (1e-3 of the force)
+    import jointsim.mechanics.dome as dome_mod
+
+    _, states = pressed
+    model, top = _fresh_model()
+    eps = dome_mod.FIRST_CONTACT * model.thickness
+    frm, to = np.array([0.0, 0.0, top]), np.array([0.0, 0.0, top - 0.5e-3])
+    touch = model._touch_step(frm, to)
+    assert touch == pytest.approx(frm - [0, 0, eps], abs=1e-12)
+    model.contact.centre = touch
+    assert 0 < model.contact.penetration(model.u) <= eps
+    # from 1 mm above, the target travels the 1 mm gap first; a move too short to gain is not split
+    assert model._touch_step(frm + [0, 0, 1e-3], to)[2] == pytest.approx(top - eps, abs=1e-9)
+    assert model._touch_step(frm, frm - [0, 0, 1.5 * eps]) is None
+    model.contact.centre = np.array([0.0, 0.0, 1e3])
+    monkeypatch.setattr(dome_mod, "FIRST_CONTACT", 1e3)  # never split
+    single, _ = _fresh_model()
+    for st, d in zip(states, (0.5e-3, 1.0e-3)):
+        one = single.press(np.array([0.0, 0.0, top - d]))
+        assert st.force[2] == pytest.approx(one.force[2], rel=1e-3)
+        assert st.displaced_volume == pytest.approx(one.displaced_volume, rel=1e-3)
 
 
 def test_a_failing_step_is_halved_and_retried(monkeypatch, pressed):
