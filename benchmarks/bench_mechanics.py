@@ -15,6 +15,10 @@ and the rest.
                                                     # results/mechanics_solvers.{md,json}
     python benchmarks/bench_mechanics.py --assembly [N]  # one iteration's Hessian by both assembly
                                                     # routes, N times: results/mechanics_assembly.{md,json}
+    python benchmarks/bench_mechanics.py --first-contact [N]  # the first 0.5 mm frame solved with and without
+                                                    # the touch sub-step (dome.FIRST_CONTACT), 3 target
+                                                    # radii × 5 positions on 64/2, N rounds interleaved:
+                                                    # results/mechanics_first_contact.{md,json}
     python benchmarks/bench_mechanics.py --one 92 2 0 pointwise [SETTING] [--device cuda:0] [--moulding flat]
                                                     # one mesh's press, printed as JSON (the element
                                                     # kernel on that Warp device; default cpu)
@@ -103,8 +107,8 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
             "pressure_pa": model.pressure.pressure, "chamber_mm3": model.V0 * 1e9, "steps": steps}
 
 
-def _membrane(n_rim: int, layers: int, apex_mm: float, volumetric: str, device: str = "cpu", moulding: str = "cap"):
-    """The paper's membrane on a cap of ``n_rim`` rim vertices under the 15 mm target (its element
+def _membrane(n_rim: int, layers: int, apex_mm: float, volumetric: str, device: str = "cpu", moulding: str = "cap", radius: float = 7.5e-3):
+    """The paper's membrane on a cap of ``n_rim`` rim vertices under the 15 mm target (or one of ``radius``; its element
     kernel on the Warp ``device``), and the seconds MembraneModel.from_scene took (meshing, inflation).
     ``moulding`` "flat": a flat disc of ``n_rim`` rim vertices inflated to the dome's height."""
     from dataclasses import replace
@@ -121,7 +125,7 @@ def _membrane(n_rim: int, layers: int, apex_mm: float, volumetric: str, device: 
     else:
         dome = isotropic_cap(c.base_radius, c.dome_height, n_rim, apex_mm * 1e-3 if apex_mm else None)
     t0 = time.perf_counter()
-    model = MembraneModel.from_scene(scene, 7.5e-3, dome=dome, device=device)
+    model = MembraneModel.from_scene(scene, radius, dome=dome, device=device)
     return model, time.perf_counter() - t0
 
 
@@ -175,6 +179,8 @@ def main() -> int:
         return 0
     if len(sys.argv) > 1 and sys.argv[1] == "--assembly":
         return assembly(int(sys.argv[2]) if len(sys.argv) > 2 else 10)
+    if len(sys.argv) > 1 and sys.argv[1] == "--first-contact":
+        return first_contact(int(sys.argv[2]) if len(sys.argv) > 2 else 2)
     if len(sys.argv) > 1 and sys.argv[1] == "--solvers":
         return solvers(int(sys.argv[2]) if len(sys.argv) > 2 else REPEATS)
     if len(sys.argv) > 1 and sys.argv[1] == "--flat":
@@ -270,6 +276,86 @@ def write_solvers(runs: list[dict], meta: dict) -> None:
                      f"{mean(rs, 'kernel_s') / mean(base, 'kernel_s'):.2f} | {mean(rs, 'iterations'):.1f} | "
                      + " / ".join(f"{_at(rs[0], d):.2f}" for d in (1.0, 2.0, 3.0)) + " |")
     write_pair(SOLVERS_OUT, {"meta": meta, "runs": runs}, "\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+# `--first-contact`: the mesh, target radii (m) and positions (x, y mm) of the first-frame comparison
+CONTACT_MESH, CONTACT_RADII = (64, 2, 0.0, "pointwise"), (4e-3, 7.5e-3, 12e-3)
+CONTACT_XY = ((0, 0), (5, 0), (0, 8), (-6, 6), (10, 3))
+
+
+def first_contact(rounds: int) -> int:
+    """The first 0.5 mm frame of a press from the touch, on CONTACT_MESH for every target radius
+    and position, solved with the touch sub-step (the package's) and in one step
+    (dome.FIRST_CONTACT out of reach), the two alternating ``rounds`` times on the same models:
+    factorisations, Newton iterations, wall time and the force each reaches.
+    results/mechanics_first_contact.{md,json}."""
+    import jointsim.eit.solver as solver
+    import jointsim.mechanics.dome as dome_mod
+
+    factors = [0]
+    factor = solver.PatternSolver.factor
+
+    def counted(*a, **k):
+        factors[0] += 1
+        return factor(*a, **k)
+
+    solver.PatternSolver.factor = counted
+    split = dome_mod.FIRST_CONTACT
+    meta = {**_new_meta(f"python benchmarks/bench_mechanics.py --first-contact {rounds}"), "speed_reference_s_start_end": [speed_reference(), None],
+            "first_contact": split, "rounds": rounds}
+    models = {}
+    for R in CONTACT_RADII:  # one model per radius, its untouched state restored before each press
+        m = _membrane(*CONTACT_MESH, radius=R)[0]
+        models[R] = (m, m.get_state())
+    runs = []
+    for k in range(rounds):
+        for variant, value in (("touch sub-step", split), ("one step", 1e3)):
+            dome_mod.FIRST_CONTACT = value
+            for R, (m, rest) in models.items():
+                for xy in CONTACT_XY:
+                    m.set_state(rest)
+                    m.contact.centre = np.array([0.0, 0.0, 1e3])  # parked: the press starts at the touch
+                    xy_m = np.array(xy, float) * 1e-3
+                    top = m.first_contact_height(xy_m)
+                    factors[0] = 0
+                    t0 = time.perf_counter()
+                    st = m.press(np.array([xy_m[0], xy_m[1], top - 0.5e-3]))
+                    runs.append({"round": k, "variant": variant, "radius_mm": R * 1e3, "xy_mm": list(xy), "wall_s": time.perf_counter() - t0,
+                                 "factorisations": factors[0], "iterations": st.iterations, "force_mN": st.force[2] * 1e3})
+        print(f"round {k + 1}/{rounds}", flush=True)
+    dome_mod.FIRST_CONTACT = split
+    meta["load_average_start_end"][1] = os.getloadavg()[0]
+    meta["speed_reference_s_start_end"][1] = speed_reference()
+    write_first_contact(runs, meta)
+    return 0
+
+
+def write_first_contact(runs: list[dict], meta: dict) -> None:
+    by = {v: [r for r in runs if r["variant"] == v] for v in ("touch sub-step", "one step")}
+    total = lambda rs, key: float(sum(r[key] for r in rs))
+    one = by["one step"]
+    split, whole = (np.array([r["force_mN"] for r in by[v] if r["round"] == 0]) for v in by)
+    lines = ["# Mechanics: the first contact frame", "", f"Command: `{meta['command']}`  ",
+             f"Machine: {meta['machine']}; run {meta['date']}; 1-min load average {meta['load_average_start_end'][0]:.1f} at the start, "
+             f"{meta['load_average_start_end'][1]:.1f} at the end; speed_reference {meta['speed_reference_s_start_end'][0]:.3f} / "
+             f"{meta['speed_reference_s_start_end'][1]:.3f} s at the start / end (`benchmarks/_machine.py`).  ",
+             f"The first 0.5 mm frame of a press from the touch on the {_label(dict(zip(('n_rim', 'layers'), CONTACT_MESH)))} membrane "
+             f"(the dataset fidelity's), rigid targets of radius {', '.join(f'{R * 1e3:g}' for R in CONTACT_RADII)} mm at "
+             f"{len(CONTACT_XY)} positions each ({'; '.join(f'{x}, {y}' for x, y in CONTACT_XY)} mm), {len(CONTACT_RADII) * len(CONTACT_XY)} "
+             f"presses per variant and round, {meta['rounds']} rounds, the variants alternating on the same models. Touch sub-step (the "
+             f"package's): the move solved first {meta['first_contact']:g} × thickness past the touch, then on from there with the tangent "
+             "predictor (`jointsim/mechanics/dome.py` FIRST_CONTACT); one step: the whole 0.5 mm from the untouched state, as before "
+             "2026-11-22. Newton iterations summed over the sub-steps.", "",
+             "| variant | factorisations | ratio | Newton iterations | wall s | ratio |", "|---|---|---|---|---|---|"]
+    for v, rs in by.items():
+        lines.append(f"| {v} | {total(rs, 'factorisations'):.0f} | {total(rs, 'factorisations') / total(one, 'factorisations'):.2f} | "
+                     f"{total(rs, 'iterations'):.0f} | {total(rs, 'wall_s'):.1f} | {total(rs, 'wall_s') / total(one, 'wall_s'):.2f} |")
+    worse = sum(a["factorisations"] > b["factorisations"] for a, b in zip(by["touch sub-step"], one))
+    lines += ["", f"Per press, the sub-step took more factorisations than one step in {worse} of {len(one)}. "
+              f"Forces: the largest difference between the variants is {np.max(np.abs(split - whole) / whole):.1e} of the force "
+              f"(Newton stops at 1e-3 of the contact force); forces {whole.min():.1f}–{whole.max():.1f} mN."]
+    write_pair(ROOT / "results" / "mechanics_first_contact", {"meta": meta, "runs": runs}, "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

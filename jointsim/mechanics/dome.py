@@ -34,9 +34,9 @@ MAX_STEP = 0.75e-3
 # times a step that fails is halved and retried before the failure is reported
 MAX_CUTBACKS = 3
 # a move that brings the target into contact is solved first to this × thickness past the
-# touch, then on from there with the tangent predictor: 12 factorisations against 21 for the
-# first 0.5 mm frame of the 92/2 membrane, 8 against 12 on 64/2 (the axial press of
-# benchmarks/bench_mechanics.py)
+# touch, then on from there with the tangent predictor: over 15 first 0.5 mm frames on 64/2
+# (3 target radii × 5 positions), 0.42× the factorisations and 0.54× the time of one step from
+# the untouched state, the forces the same to 1e-5 (results/mechanics_first_contact.md)
 FIRST_CONTACT = 0.01
 # Newton stops when the out-of-balance force is below this fraction of the contact force at the
 # last equilibrium (or below force_tol). Against a stop at force_tol alone (~1e-7 N), measured
