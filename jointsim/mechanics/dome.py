@@ -180,10 +180,11 @@ class MembraneState:
     """One equilibrium: the deformed inner ``dome``, the contact ``force`` (3,) N the membrane
     exerts on the target, ``contact_area`` m², ``displaced_volume`` m³ (saline pushed out to
     the reservoir), ``peak_strain`` (largest principal Green–Lagrange strain), Newton
-    ``iterations`` (summed over the move's steps) and the last ``residual``, ``penetration`` m (largest, at the surface nodes), the
-    saline ``pressure`` Pa (the reservoir's, or the closed chamber's multiplier), the element
-    quality ``min_jacobian`` (smallest det F over the quadrature points; ≤ 0 would be inverted)
-    and the ``contact_centre`` (3,) m, the contact's centre of pressure on the deformed outer
+    ``iterations`` (summed over the move's steps) and the last step's ``residual``,
+    ``penetration`` m (largest, at the surface nodes), the saline ``pressure`` Pa (the
+    reservoir's, or the closed chamber's multiplier), the element quality ``min_jacobian``
+    (smallest det F over the quadrature points; ≤ 0 would be inverted) and the
+    ``contact_centre`` (3,) m, the contact's centre of pressure on the deformed outer
     surface (NaN without contact): where on the sensor the target presses, which is not
     below the target's centre off the axis (the dome slopes: the contact lies between the
     target's centre and the dome's)."""
