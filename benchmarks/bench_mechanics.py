@@ -303,7 +303,7 @@ def first_contact(rounds: int) -> int:
     solver.PatternSolver.factor = counted
     split = dome_mod.FIRST_CONTACT
     meta = {**_new_meta(f"python benchmarks/bench_mechanics.py --first-contact {rounds}"), "speed_reference_s_start_end": [speed_reference(), None],
-            "first_contact": split, "rounds": rounds}
+            "rounds": rounds}
     models = {}
     for R in CONTACT_RADII:  # one model per radius, its untouched state restored before each press
         m = _membrane(*CONTACT_MESH, radius=R)[0]
@@ -314,8 +314,7 @@ def first_contact(rounds: int) -> int:
             dome_mod.FIRST_CONTACT = value
             for R, (m, rest) in models.items():
                 for xy in CONTACT_XY:
-                    m.set_state(rest)
-                    m.contact.centre = np.array([0.0, 0.0, 1e3])  # parked: the press starts at the touch
+                    m.set_state(rest)  # the target parked: the press starts at the touch
                     xy_m = np.array(xy, float) * 1e-3
                     top = m.first_contact_height(xy_m)
                     factors[0] = 0
@@ -401,11 +400,13 @@ def assembly(repeats: int) -> int:
 
 
 def _new_meta(command: str) -> dict:
-    """A run's provenance: command, machine, date, the load average at the start."""
+    """A run's provenance: command, machine, date, the load average at the start, and the
+    package settings the writers describe (the kernel's threads, the touch sub-step)."""
+    from jointsim.mechanics.dome import FIRST_CONTACT
     from jointsim.mechanics.fem import KERNEL_THREADS
 
     return {"command": command, "machine": machine(), "date": time.strftime("%Y-%m-%d"), "kernel_threads": KERNEL_THREADS,
-            "load_average_start_end": [os.getloadavg()[0], None]}
+            "first_contact": FIRST_CONTACT, "load_average_start_end": [os.getloadavg()[0], None]}
 
 
 def write(rows: list[dict], meta: dict, out: Path = OUT) -> None:
@@ -423,18 +424,23 @@ def write(rows: list[dict], meta: dict, out: Path = OUT) -> None:
             e = extrapolate([1 / a["n_rim"], 1 / b["n_rim"], 1 / c["n_rim"]], [_at(a, d), _at(b, d), _at(c, d)])
             if e is not None:
                 limit[d] = e
+    # runs before the touch sub-step (2026-11-22) record no first_contact: their first step was one solve
+    touch = meta.get("first_contact")
+    first = (f"solved {touch:g} × thickness past the touch, then on from there with the predictor" if touch
+             else "one solve from the untouched state, no predictor")
     if flat:
         setting = ["Rigid 15 mm sphere pressed on the axis of the paper's dome **moulded flat** ([membrane] moulding = \"flat\": a 2 mm",
                    "sheet bonded at its edge face, inflated until its inner apex stands 10 mm above the base; the reservoir then holds",
                    "that pressure), neo-Hookean μ 22 kPa, κ = 1000 μ; 0.5 mm steps to 3 mm, each warm-started from the previous",
-                   "(tangent predictor). Per-step means exclude the first step. Membrane meshes: the flat disc triangulated as the",
+                   f"(tangent predictor). Per-step means exclude the first step (first contact: {first}; its own column).",
+                   "Membrane meshes: the flat disc triangulated as the",
                    "isotropic cap's limit (edge 2π·20 mm / rim vertices), P2 tetrahedra in prism layers through the thickness, the",
                    "volumetric energy pointwise. Deploy pressure and chamber volume: the inflated, untouched state.",
                    "Setup s includes the inflation."]
     else:
         setting = ["Rigid 15 mm sphere pressed on the axis of the paper's dome (neo-Hookean μ 22 kPa, κ = 1000 μ, 50 Pa reservoir), 0.5 mm steps",
                    "to 3 mm, each warm-started from the previous (tangent predictor). Per-step means exclude the first step (first contact:",
-                   "solved 0.02 mm past the touch, then on from there with the predictor; its own column). Membrane meshes: the inner surface as a uniform isotropic cap of edge 2π·20 mm / rim vertices,",
+                   f"{first}; its own column). Membrane meshes: the inner surface as a uniform isotropic cap of edge 2π·20 mm / rim vertices,",
                    "P2 tetrahedra (isoparametric, on the true spheres) in prism layers through the 2 mm thickness, the volumetric energy",
                    "pointwise (the scene default; validated on this dome against an axisymmetric reference in results/dome_apex_load.md)."]
     title = "Mechanics benchmark and mesh convergence" + (": the membrane moulded flat" if flat else "")
