@@ -88,8 +88,11 @@ def test_penetration_is_below_one_percent_of_the_indentation(pressed):
 
 def test_a_target_beside_the_dome_is_rejected(pressed):
     model, _ = pressed
-    with pytest.raises(ValueError, match="misses the dome"):
+    with pytest.raises(ValueError, match="misses the dome") as e:
         model.first_contact_height((0.05, 0.0))
+    # the message gives the reach: the outer rim (20 mm base + the 2 mm wall, splayed) plus R
+    reach = float(str(e.value).split("within ")[1].split(" mm")[0]) * 1e-3
+    assert 0.022 + model.contact.radius <= reach <= 0.023 + model.contact.radius
 
 
 def test_an_indentation_into_the_base_is_rejected(pressed):
@@ -148,6 +151,8 @@ def test_indent_command_writes_the_curve(tmp_path):
     assert (out / "force_indentation.png").is_file() and (out / "membrane_001.vtu").is_file()
     bad = subprocess.run(cmd[:-2] + ["--depth-mm", "50", "--out", str(out)], capture_output=True, text=True)
     assert bad.returncode == 2 and "beyond what the dome can take" in bad.stderr
+    bad = subprocess.run(cmd[:-4] + ["--depth-mm", "-1", "--out", str(out)], capture_output=True, text=True)
+    assert bad.returncode == 2 and "--depth-mm = -1.0: must be > 0" in bad.stderr
 
 
 def test_force_control_settles_at_the_commanded_force():

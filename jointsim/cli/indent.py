@@ -42,6 +42,8 @@ def run(args: argparse.Namespace) -> int:
     scene = scene_from_args(args)
     device = warp_device(args.device, "--device")
     radius = target_radius_mm(args, scene.target.radius * 1e3)
+    if not args.depth_mm > 0:
+        raise ValueError(f"--depth-mm = {args.depth_mm}: must be > 0")
     if not 0 < args.step_mm <= args.depth_mm:
         raise ValueError(f"--step-mm = {args.step_mm}: must be in (0, --depth-mm = {args.depth_mm}]")
     if args.dome_rim is not None:

@@ -474,7 +474,9 @@ class MembraneModel:
         d2 = ((x[:, :2] - np.asarray(xy)) ** 2).sum(axis=1)
         near = d2 < R * R
         if not near.any():
-            raise UnreachablePose(f"target at xy = {np.asarray(xy) * 1e3} mm misses the dome")
+            reach = np.hypot(x[:, 0], x[:, 1]).max() + R  # from the axis, in any direction: the rim is a circle
+            raise UnreachablePose(f"target at xy = {np.asarray(xy) * 1e3} mm misses the dome: a target of radius "
+                                  f"{R * 1e3:.4g} mm must be within {reach * 1e3:.4g} mm of the axis")
         return float((x[near, 2] + np.sqrt(R * R - d2[near])).max()) + TOUCH_CLEARANCE * R
 
     def press(self, centre: np.ndarray, substeps: int = 1) -> MembraneState:
