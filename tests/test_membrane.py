@@ -213,6 +213,31 @@ def test_force_and_shape_converge_under_mesh_refinement():
     assert np.ptp(out[:, 2]) < 0.03 * np.abs(out[:, 2]).max()
 
 
+def test_a_move_below_the_newton_tolerance_is_answered_by_the_membrane_not_the_penalty():
+    """A servo's jitter (~1e-12 m) moves the target too little for a Newton iteration; the
+    membrane must still follow it, so that the force changes with the membrane's stiffness.
+    Here after a one-iteration step (its last factor the regularised one, not the tangent), as
+    at the start of a palpation hold. Without the tangent the membrane stayed put and the force
+    answered with the penalty's stiffness (605 N/m here against 1.95; ~5e4 N/m on the paper's
+    press, where it made the rig's lateral servo loop ring by ×2.4 per frame). The reference:
+    a central difference of ±10 µm moves, each solved by Newton; its curvature error at 10 µm
+    into a 1 mm press is ~1e-4, the jitter's response is linear: 5 % is a wide margin."""
+    model, top = _fresh_model()
+    for d in (0.5e-3, 1.0e-3):
+        model.press(np.array([0.0, 0.0, top - d]))
+    st = model.press(np.array([0.0, 0.0, top - 1.0035e-3]))  # a small move: one iteration
+    assert st.iterations == 1 and not model.system.tangent_ready  # the case this test is about
+    c, dx = model.contact.centre.copy(), 1e-12
+    tiny = model.press(c + [dx, 0.0, 0.0])
+    assert tiny.iterations == 0
+    k_tiny = -(tiny.force[0] - st.force[0]) / dx
+    h = 1e-5
+    a, b = model.press(c + [h, 0.0, 0.0]), model.press(c - [h, 0.0, 0.0])
+    assert a.iterations > 0 and b.iterations > 0
+    k_ref = -(a.force[0] - b.force[0]) / (2 * h)
+    assert k_tiny == pytest.approx(k_ref, rel=0.05)
+
+
 def test_a_restored_state_continues_exactly(pressed):
     """get_state/set_state carry everything the next press depends on (checkpoint/resume)."""
     model, _ = pressed

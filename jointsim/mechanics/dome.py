@@ -640,11 +640,21 @@ class MembraneModel:
         zone grows (measured on the 64-rim membrane, 0.5 mm steps to 3 mm: 4–9 Newton
         iterations per step against 5–8, 41 factorisations per press against 47)."""
         dc = np.asarray(centre, float) - old_centre
-        if not self.system.tangent_ready or not dc.any() or self.friction is not None:
+        if not dc.any() or self.friction is not None:
             return None
         rhs = self.contact.centre_sensitivity(self.u, dc)
         if not rhs.any():
             return None
+        if not self.system.tangent_ready:
+            # the last step ended on a regularised factor (a one-iteration step, as at the start
+            # of a hold). Without the tangent, a move too small to need an iteration (a servo's
+            # jitter, ~1e-12 m) would leave the membrane where it was, and the force would answer
+            # with the penalty's stiffness (~5e4 N/m on the paper's press): the palpation rig's
+            # explicit loop then rings by ×2.4 per frame until Newton steps in (a ±0.3 % force
+            # oscillation in a hold). Factored once, it serves every later frame of the hold
+            self.system.factor_tangent(self.terms, self.u)
+            if not self.system.tangent_ready:
+                return None
         free = self.system.free
         du = np.zeros(self.u.size)
         du[free] = self.system.solve_tangent(rhs[free])
