@@ -5,6 +5,7 @@ import pytest
 
 from jointsim.geometry import chamber_surface, isotropic_cap, spherical_cap
 from jointsim.mechanics.dome import MembraneModel, membrane_mesh
+from jointsim.mechanics.newton import minimize_energy
 from jointsim.mesh.tetmesh import mesh_quality
 
 
@@ -57,9 +58,9 @@ def test_the_soft_targets_mesh_is_conforming():
     assert np.all(on_sphere | on_cut | on_core)
 
 
-def _fresh_model():
+def _fresh_model(**kw):
     dome = spherical_cap(0.02, 0.01, 48)
-    model = MembraneModel(dome, 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3)
+    model = MembraneModel(dome, 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3, **kw)
     return model, model.first_contact_height((0.0, 0.0))
 
 
@@ -187,6 +188,28 @@ def test_a_closed_chamber_holds_its_volume_and_stiffens_the_dome():
     assert abs(s_closed.displaced_volume) <= 1.01e-6 * m_closed.V0
     assert s_closed.pressure > 50.0 and s_open.pressure == 50.0
     assert s_closed.force[2] > 1.1 * s_open.force[2]  # measured 29.0 against 24.8 mN
+
+
+def test_the_iterations_reported_are_every_newton_solve_of_the_press(monkeypatch):
+    """With friction a step is solved 1 + FRICTION_PASSES times (normal forces re-lagged); in a
+    closed chamber once per pressure update. The state's iterations are all of them (they were
+    the last solve's only: 0 for a friction step whose last pass had nothing left to do)."""
+    import jointsim.mechanics.dome as dome_module
+
+    solves = []
+
+    def counted(*a, **k):
+        res = minimize_energy(*a, **k)
+        solves.append(res.iterations)
+        return res
+
+    monkeypatch.setattr(dome_module, "minimize_energy", counted)
+    for kw in ({"friction": 0.3}, {"closed": True}):
+        model, top = _fresh_model(**kw)
+        model.press(np.array([0.0, 0.0, top - 0.5e-3]))
+        solves.clear()
+        st = model.press(np.array([0.0, 0.0, top - 0.6e-3]))
+        assert len(solves) >= 2 and st.iterations == sum(solves) > solves[-1], kw
 
 
 def test_force_and_shape_converge_under_mesh_refinement():

@@ -290,6 +290,7 @@ class MembraneModel:
         self.V0 = self.pressure.volume(self.u)
         self._history: list[tuple[np.ndarray, np.ndarray]] = []
         self._iterations = 0  # Newton iterations of the last press
+        self._step_its = 0  # of the step being solved (_tally)
         self._compliance: float | None = None  # dV/dp of the chamber, for the closed-chamber secant
 
     def _inflate(self, height: float, mu: float, a: float, start: np.ndarray | None = None, rtol: float = 1e-4,
@@ -564,21 +565,28 @@ class MembraneModel:
         guess = self._tangent_guess(old_centre, centre) if self.TANGENT_PREDICTOR else None
         self._step_tol = max(self.force_tol, FORCE_RTOL * float(np.linalg.norm(self.contact.force(self.u))))
         self.contact.centre = centre
+        self._step_its = 0  # over the step's Newton solves: friction passes, pressure updates (_tally)
         res = self._newton(self._extrapolate(centre) if guess is None else guess, predicted=guess is not None)
         for _ in range(FRICTION_PASSES if self.friction is not None else 0):
             self.friction.lag(u_start, old_centre, u_normal=res.u)
             res = self._newton(res.u)
         if self.closed:
             res = self._hold_volume(res)
+        res.iterations = self._step_its
+        return res
+
+    def _tally(self, res):
+        """``res``, its iterations counted into the step's (see :meth:`_solve_step`)."""
+        self._step_its += res.iterations
         return res
 
     def _newton(self, guess: np.ndarray, predicted: bool = False, atol: float | None = None):
         atol = self._step_tol if atol is None else atol
         try:
-            return minimize_energy(self.terms, guess, self.fixed, rtol=0.0, atol=atol, system=self.system, regularise_first=predicted)
+            return self._tally(minimize_energy(self.terms, guess, self.fixed, rtol=0.0, atol=atol, system=self.system, regularise_first=predicted))
         except NewtonError:
             # the extrapolation may have overshot: start from the last equilibrium
-            return minimize_energy(self.terms, self.u, self.fixed, rtol=0.0, atol=atol, system=self.system)
+            return self._tally(minimize_energy(self.terms, self.u, self.fixed, rtol=0.0, atol=atol, system=self.system))
 
     def _hold_volume(self, res, rtol: float = 1e-6, max_iter: int = 20):
         """Closed chamber: the saline pressure p is the multiplier of the constraint V = V0, found

@@ -434,7 +434,7 @@ class SoftTargetModel(MembraneModel):
             its += res.iterations
             if self.contact.surface.covers(res.u):
                 res.iterations = its  # over the re-solves
-                return res
+                return self._tally(res)
             guess = res.u  # a slave's closest triangle left its candidates: solve again
         raise NewtonError("soft target: the contact pairs did not settle in 4 solves")
 
