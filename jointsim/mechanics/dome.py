@@ -441,6 +441,9 @@ class MembraneModel:
             "compliance": np.float64(np.nan if self._compliance is None else self._compliance),
             # where the solver's factor (the next step's tangent predictor) was taken; (0, n, 3): none
             "tangent_u": self._tangent_u(),
+            # friction's stick anchors (SphereFriction.commit): node indices and anchor − centre
+            "friction_nodes": self.friction.anchor_nodes.copy() if self.friction is not None else np.zeros(0, np.int64),
+            "friction_anchors": self.friction.anchors.copy() if self.friction is not None else np.zeros((0, 3)),
         }
 
     def _tangent_u(self) -> np.ndarray:
@@ -459,6 +462,9 @@ class MembraneModel:
         self.pressure.pressure = float(state["pressure"])
         c = float(state.get("compliance", np.nan))
         self._compliance = None if np.isnan(c) else c
+        if self.friction is not None:  # a state saved before the anchors: none held
+            self.friction.anchor_nodes = np.asarray(state.get("friction_nodes", np.zeros(0)), np.int64).copy()
+            self.friction.anchors = np.asarray(state.get("friction_anchors", np.zeros((0, 3))), float).reshape(-1, 3).copy()
         tangent = np.asarray(state.get("tangent_u", np.zeros((0,) + u.shape)), float)
         if self.TANGENT_PREDICTOR and len(tangent):
             self.system.factor_tangent(self.terms, tangent[0])
@@ -549,6 +555,8 @@ class MembraneModel:
                     raise
                 raise NewtonError(f"{e} (nor with the step halved up to {MAX_CUTBACKS} times)") from e
         self._iterations += res.iterations
+        if self.friction is not None:
+            self.friction.commit(res.u)
         self._history.append((to.copy(), res.u.copy()))
         self._history = self._history[-2:]
         self.u = res.u

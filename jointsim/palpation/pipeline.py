@@ -552,7 +552,7 @@ def program_params(scene: Scene, spec: PalpationSpec | None = None, rig_path: st
     }
 
 
-_MEMBRANE_KEYS = ("u", "hist_centre", "hist_u", "centre", "pressure", "compliance", "tangent_u")
+_MEMBRANE_KEYS = ("u", "hist_centre", "hist_u", "centre", "pressure", "compliance", "tangent_u", "friction_nodes", "friction_anchors")
 
 
 def _checkpoint(model: MembraneModel, rig: Rig, force: np.ndarray) -> dict[str, np.ndarray]:
@@ -580,7 +580,7 @@ def _restore(model: MembraneModel, rig: Rig, ck: dict[str, np.ndarray]) -> np.nd
     rig.index = int(ck["rig_index"])
     rig._recent.clear()
     rig._recent.extend(float(z) for z in ck["rig_recent"])
-    model.set_state({k: ck[k] for k in _MEMBRANE_KEYS})
+    model.set_state({k: ck[k] for k in _MEMBRANE_KEYS if k in ck})  # a checkpoint of an older version lacks some
     return ck["force"].copy()
 
 
