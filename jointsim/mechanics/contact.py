@@ -227,6 +227,14 @@ class SphereFriction:
     def projected_hessian(self, u: np.ndarray) -> sp.csr_matrix:
         return self.evaluate(u, True)[2]
 
+    def centre_sensitivity(self, u: np.ndarray, dc: np.ndarray) -> np.ndarray:
+        """−∂g/∂c · dc (3n,), as :meth:`SphereContact.centre_sensitivity`: the slip is measured
+        in the sphere's frame (Δx − Δc), so moving the sphere is moving every node the other way."""
+        H = self.evaluate(u, True)[2]
+        v = np.zeros(H.shape[0])
+        v[(3 * self._act[:, None] + np.arange(3)).ravel()] = np.tile(np.asarray(dc, float), len(self._act))
+        return H @ v
+
     def force(self, u: np.ndarray) -> np.ndarray:
         """Friction force (3,) N that the body exerts on the sphere (opposing its slip)."""
         if self.mu == 0 or len(self._act) == 0:
