@@ -245,6 +245,25 @@ def test_an_off_axis_soft_press_converges():
     assert np.all(f[:, :2] @ xy > 0)
 
 
+def test_a_soft_target_move_below_the_tolerance_still_moves_the_bodies(dome_presses):
+    """A servo's ~1e-12 m jitter is below Newton's tolerance. With no step taken for it the
+    bodies stayed put and the force answered with the contact penalty's stiffness: a test-mesh
+    palpation hold with a 100 kPa target rang at ±0.3 % in Fz, and settles to 1e-9 with the one
+    Newton step a move now always gets (the linear response; the soft model has no tangent
+    predictor). A target that does not move gets none."""
+    m, (_, b) = dome_presses[200e3]
+    saved = m.get_state()
+    try:
+        c = m.contact.centre.copy()
+        still = m.press(c)
+        assert still.iterations == 0 and np.array_equal(still.u, b.u)
+        moved = m.press(c + [0.0, 0.0, 1e-12])
+        assert moved.iterations >= 1 and not np.array_equal(moved.u, b.u)
+        assert abs(moved.force[2] - b.force[2]) < 1e-3 * b.force[2]  # within the Newton tolerance of the press
+    finally:
+        m.set_state(saved)
+
+
 def test_soft_target_state_and_checkpoint(dome_presses):
     m, (a, b) = dome_presses[200e3]
     assert b.u.shape == (m.n_membrane, 3)

@@ -291,6 +291,7 @@ class MembraneModel:
         self._history: list[tuple[np.ndarray, np.ndarray]] = []
         self._iterations = 0  # Newton iterations of the last press
         self._step_its = 0  # of the step being solved (_tally)
+        self._moved = False  # whether the target moves in the step being solved
         self._compliance: float | None = None  # dV/dp of the chamber, for the closed-chamber secant
 
     def _inflate(self, height: float, mu: float, a: float, start: np.ndarray | None = None, rtol: float = 1e-4,
@@ -574,6 +575,7 @@ class MembraneModel:
         self._step_tol = max(self.force_tol, FORCE_RTOL * float(np.linalg.norm(self.contact.force(self.u))))
         self.contact.centre = centre
         self._step_its = 0  # over the step's Newton solves: friction passes, pressure updates (_tally)
+        self._moved = bool(np.any(centre != old_centre))
         res = self._newton(self._extrapolate(centre) if guess is None else guess, predicted=guess is not None)
         for _ in range(FRICTION_PASSES if self.friction is not None else 0):
             self.friction.lag(u_start, old_centre, u_normal=res.u)

@@ -420,13 +420,16 @@ class SoftTargetModel(MembraneModel):
             self.pattern_rebuilds += 1
 
     def _newton(self, guess: np.ndarray, predicted: bool = False):
-        # predicted is always False here: no tangent predictor (TANGENT_PREDICTOR)
+        # predicted is always False here: no tangent predictor (TANGENT_PREDICTOR). So a target
+        # move too small for the tolerance (a servo's ~1e-12 m jitter in a palpation hold) gets one
+        # Newton step all the same, the linear response: at none the bodies stayed put and the
+        # force answered with the contact penalty's stiffness (a hold rang at ±0.3 %)
         kw = dict(rtol=0.0, atol=self._step_tol)
         its = 0
-        for _ in range(4):
+        for attempt in range(4):
             self._system(guess)
             try:
-                res = minimize_energy(self.terms, guess, self.fixed, system=self.system, **kw)
+                res = minimize_energy(self.terms, guess, self.fixed, system=self.system, min_iter=int(self._moved and attempt == 0), **kw)
             except NewtonError:
                 # the extrapolation may have overshot: start from the last equilibrium
                 self._system(self.u)
