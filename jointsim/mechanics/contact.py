@@ -25,6 +25,14 @@ def nodal_areas(X: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return nodes, w[nodes]
 
 
+def _moved_nodes_response(H: sp.spmatrix, nodes: np.ndarray, dc: np.ndarray) -> np.ndarray:
+    """H · v with v = ``dc`` on each of ``nodes`` (zero elsewhere): for an energy of x − c, the
+    gradient's change −∂g/∂c · dc when the sphere's centre moves by ``dc``."""
+    v = np.zeros(H.shape[0])
+    v[(3 * np.asarray(nodes)[:, None] + np.arange(3)).ravel()] = np.tile(np.asarray(dc, float), len(nodes))
+    return H @ v
+
+
 class SphereContact:
     """A rigid sphere of ``radius`` at ``centre`` (set between solves to move it) against the
     surface nodes ``nodes`` (k,) with area weights ``weights`` (k,) of a mesh with reference
@@ -88,10 +96,7 @@ class SphereContact:
     def centre_sensitivity(self, u: np.ndarray, dc: np.ndarray) -> np.ndarray:
         """−∂g/∂c · dc (3n,): the change of the nodal forces the sphere exerts when its centre
         moves by ``dc`` with the nodes held (the energy depends on x − c only)."""
-        _, _, H, _ = self.evaluate(u, True)
-        v = np.zeros(self._n)
-        v[(3 * self.nodes[:, None] + np.arange(3)).ravel()] = np.tile(np.asarray(dc, float), len(self.nodes))
-        return H @ v
+        return _moved_nodes_response(self.evaluate(u, True)[2], self.nodes, dc)
 
     def force(self, u: np.ndarray) -> np.ndarray:
         """Total force (3,) N that the body exerts on the sphere."""
@@ -230,10 +235,7 @@ class SphereFriction:
     def centre_sensitivity(self, u: np.ndarray, dc: np.ndarray) -> np.ndarray:
         """−∂g/∂c · dc (3n,), as :meth:`SphereContact.centre_sensitivity`: the slip is measured
         in the sphere's frame (Δx − Δc), so moving the sphere is moving every node the other way."""
-        H = self.evaluate(u, True)[2]
-        v = np.zeros(H.shape[0])
-        v[(3 * self._act[:, None] + np.arange(3)).ravel()] = np.tile(np.asarray(dc, float), len(self._act))
-        return H @ v
+        return _moved_nodes_response(self.evaluate(u, True)[2], self._act, dc)
 
     def force(self, u: np.ndarray) -> np.ndarray:
         """Friction force (3,) N that the body exerts on the sphere (opposing its slip)."""
