@@ -269,48 +269,36 @@ def test_uniaxial_nominal_stress(material):
         np.testing.assert_allclose(P, material.mu * (lam - lam**-2), rtol=5e-3)
 
 
-THICK_SPHERE_RADII = (5e-3, 10e-3)  # A, B
-
-
-@pytest.fixture(scope="module")
-def thick_sphere_mesh() -> P2Mesh:
-    """The shell A ≤ r ≤ B in ~5 k tets, meshed once for both volumetric forms (~14 s)."""
-    import pytetwild
-    import trimesh
-
-    A, B = THICK_SPHERE_RADII
-    outer = trimesh.creation.icosphere(3, B)
-    inner = trimesh.creation.icosphere(3, A)
-    inner.invert()
-    surf = trimesh.util.concatenate([outer, inner])
-    v, t = pytetwild.tetrahedralize(
-        surf.vertices, surf.faces.astype(np.int32), edge_length_abs=2e-3, epsilon=1e-4, stop_energy=30, num_opt_iter=20
-    )
-    return P2Mesh.from_linear(TetMesh(v, t).oriented())
-
-
 @pytest.mark.parametrize("volumetric", ["pointwise", "mean_dilatation"])
-def test_pressurised_thick_sphere(volumetric, thick_sphere_mesh):
-    (A, B), mu = THICK_SPHERE_RADII, 22e3
-    m = thick_sphere_mesh
-    bf = m.boundary_faces
-    r = np.linalg.norm(m.nodes[bf[:, :3]].mean(axis=1), axis=1)
+def test_pressurised_thick_sphere(volumetric):
+    """An octant of the shell A ≤ r ≤ B under cavity pressure, on its symmetry planes (each
+    plane's nodes free in the plane only), against the exact inflation. The cavity volume is
+    that of the cone from the origin to the loaded octant of its surface: the symmetry faces
+    pass through the origin and add nothing to ∮ x·n."""
+    from jointsim.mesh.shapes import shell_octant, spherical_midsides
+
+    A, B, mu = 5e-3, 10e-3, 22e3
+    # 1200 curved (isoparametric) P2 tets: 10² triangles per sphere, 4 layers through the wall
+    m = P2Mesh.from_linear(shell_octant(A, B, 10, 4), spherical_midsides)
+    X, bf = m.nodes, m.boundary_faces
+    on_plane = np.any(np.all(np.abs(X[bf[:, :3]]) < 1e-9 * B, axis=1), axis=1)
+    r = np.linalg.norm(X[bf[:, :3]].mean(axis=1), axis=1)
     # the cavity's faces point into it (out of the solid): sign −1 for the cavity volume
-    pressure = PressureTerm(m.nodes, linear_subtriangles(bf[r < (A + B) / 2]), sign=-1.0)
+    pressure = PressureTerm(X, linear_subtriangles(bf[~on_plane & (r < (A + B) / 2)]), sign=-1.0)
     elastic = ElasticTerm(m, Material.neo_hookean(mu), volumetric=volumetric)
-    fixed = np.zeros_like(m.nodes, bool)
-    for ax in range(3):  # three nodes on the axes, free only along their axis: no rigid motion
-        fixed[np.argmax(m.nodes[:, ax]), [i for i in range(3) if i != ax]] = True
-    u = np.zeros_like(m.nodes)
+    fixed = np.abs(X) < 1e-9 * B  # u_x = 0 on x = 0, and so on
+    u = np.zeros_like(X)
     V0 = pressure.volume(u)
+    assert V0 == pytest.approx(np.pi / 6 * A**3, rel=5e-3)  # the octant of the cavity
     for p in (4e3, 8e3, 12e3):
         pressure.pressure = p
         u = minimize_energy([elastic, pressure], u, fixed).u
         la = (pressure.volume(u) / V0) ** (1 / 3)
         lb = (1 + (la**3 - 1) * (A / B) ** 3) ** (1 / 3)
         exact = 2 * mu * ((1 / lb + 1 / (4 * lb**4)) - (1 / la + 1 / (4 * la**4)))
-        # 5 k straight-sided P2 tets on a 1280-facet icosphere: measured 0.8-1.5 % high pointwise,
-        # 0.07-0.13 % by mean dilatation
+        # measured 0.3-0.9 % high pointwise, 0.8-1.1 % low by mean dilatation (its element-wise
+        # constant pressure against a pressure falling through the wall); both fall under
+        # refinement (the full shell in 5 k unstructured tets: 0.8-1.5 % and 0.07-0.13 %)
         assert p == pytest.approx(exact, rel=0.02)
 
 

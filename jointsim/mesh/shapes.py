@@ -6,7 +6,7 @@ import numpy as np
 
 from .tetmesh import TetMesh
 
-__all__ = ["box_mesh", "grid_mesh", "graded_axis", "cylinder_mesh"]
+__all__ = ["box_mesh", "grid_mesh", "graded_axis", "cylinder_mesh", "shell_octant", "spherical_midsides"]
 
 # Kuhn subdivision of the unit cube into 6 tetrahedra sharing the diagonal 0-7; conforming
 # across neighbouring cubes because every cube is split the same way.
@@ -57,3 +57,43 @@ def cylinder_mesh(radius: float, length: float, n_radial: int, n_axial: int) -> 
     v = y * np.sqrt(1 - x * x / 2)
     nodes = np.column_stack([radius * u, radius * v, m.nodes[:, 2]])
     return TetMesh(nodes, m.tets).oriented()
+
+
+def shell_octant(inner: float, outer: float, n: int, layers: int) -> TetMesh:
+    """The octant x, y, z ≥ 0 of the spherical shell inner ≤ r ≤ outer about the origin: the flat
+    triangle with its corners on the three axes cut into n² triangles, projected onto the sphere
+    and extruded through ``layers`` equal radial layers, each prism cut into three tets. The cuts
+    of a prism's side faces follow the node numbers (the diagonal from the larger-numbered
+    bottom node to the smaller-numbered top one), so neighbouring prisms conform. Nodes on the
+    coordinate planes lie on them exactly: symmetry conditions apply there."""
+    if not (0 < inner < outer and n >= 1 and layers >= 1):
+        raise ValueError("shell_octant: need 0 < inner < outer, n >= 1 and layers >= 1")
+    i, j = np.triu_indices(n + 1)  # (i, j - i): every pair with i + (j - i) ≤ n
+    j = j - i
+    flat = np.column_stack([i, j, n - i - j]) / n
+    direction = flat / np.linalg.norm(flat, axis=1, keepdims=True)
+    idx = np.full((n + 1, n + 1), -1)
+    idx[i, j] = np.arange(len(i))
+    a, b = np.triu_indices(n)  # cells (a, b - a) with a + (b - a) ≤ n − 1
+    b = b - a
+    up = np.column_stack([idx[a, b], idx[a + 1, b], idx[a, b + 1]])
+    d = a + b < n - 1
+    down = np.column_stack([idx[a + 1, b][d], idx[a + 1, b + 1][d], idx[a, b + 1][d]])
+    tri = np.sort(np.vstack([up, down]), axis=1)
+    ns = len(direction)
+    nodes = (np.linspace(inner, outer, layers + 1)[:, None, None] * direction).reshape(-1, 3)
+    lo = (ns * np.arange(layers))[:, None, None] + tri[None]  # (layers, k, 3) bottom corners
+    hi = lo + ns
+    p, q, r = np.moveaxis(lo, 2, 0)
+    P, Q, R = np.moveaxis(hi, 2, 0)
+    tets = np.stack([np.stack(t, -1) for t in ((p, q, r, P), (q, r, P, Q), (r, P, Q, R))], 2)
+    return TetMesh(nodes, tets.reshape(-1, 4)).oriented()
+
+
+def spherical_midsides(ends: np.ndarray) -> np.ndarray:
+    """Midside nodes for :meth:`P2Mesh.from_linear` on a mesh of spherical shells about the
+    origin: each at its edge's mean radius, in the direction of the great-circle midpoint, so
+    the isoparametric elements follow the spheres."""
+    r = np.linalg.norm(ends, axis=2)
+    d = (ends / r[:, :, None]).sum(axis=1)
+    return r.mean(axis=1)[:, None] * d / np.linalg.norm(d, axis=1, keepdims=True)
