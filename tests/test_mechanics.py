@@ -12,7 +12,6 @@ from jointsim.mechanics.materials import Material
 from jointsim.mechanics.newton import NewtonError, NewtonSystem, NodalForce, minimize_energy, step_to
 from jointsim.mechanics.pressure import PressureTerm, linear_subtriangles
 from jointsim.mesh.shapes import box_mesh
-from jointsim.mesh.tetmesh import TetMesh
 
 
 @pytest.mark.parametrize("volumetric", ["mean_dilatation", "pointwise"])
