@@ -240,7 +240,7 @@ from jointsim.scene import load_scene
 
 scene = load_scene(sys.argv[1]).with_mesh_preset("test")
 scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=32, layers=1))
-pal = Palpation(scene, replace(scene.palpation, target_radii=(4e-3, 7.5e-3), depth=2e-3, speed=50e-3, hold=0.0, cells=1000))
+pal = Palpation(scene, replace(scene.palpation, target_radii=(4e-3, 7.5e-3), depth=1e-3, speed=50e-3, hold=0.0, cells=1000))
 
 def run(path, stop_at=None):
     store = open_store(path, pal.schema(), scene_toml="", seed=0, n_records=pal.n_records, params=pal.params())
@@ -258,7 +258,7 @@ def run(path, stop_at=None):
 
 a = sys.argv[2]
 run(a + "/straight.h5")
-first, stored = run(a + "/resumed.h5", stop_at=7)
+first, stored = run(a + "/resumed.h5", stop_at=5)
 rest, _ = run(a + "/resumed.h5")
 x, y = open_records(a + "/straight.h5"), open_records(a + "/resumed.h5")
 print(json.dumps({"first": first, "stored": stored, "rest": rest, "sha": [x.data_sha256, y.data_sha256],
@@ -267,8 +267,9 @@ print(json.dumps({"first": first, "stored": stored, "rest": rest, "sha": [x.data
 
 
 def test_an_interrupted_run_resumes_to_the_same_result(tmp_path, test_chamber):
-    """Crash inside the second target (record 7 computed but not stored), rerun: the resumed
-    target restarts from record 6's checkpoint (rig and membrane state) and the finished file
+    """Two targets of three frames each (rest, pressed 1 mm, lifted). Crash inside the second
+    target (record 5 computed but not stored), rerun: the resumed target restarts from record
+    4's checkpoint (rig and membrane state, pressed) and the finished file
     holds the same data bit for bit as an uninterrupted run's (its digest covers every field
     but the wall-clock timings). Run in a fresh process with MKL_CBWR=AUTO, as `jointsim
     palpate` sets it: threaded MKL PARDISO is otherwise not reproducible from run to run
@@ -286,8 +287,8 @@ def test_an_interrupted_run_resumes_to_the_same_result(tmp_path, test_chamber):
                        capture_output=True, text=True, env=env)
     assert r.returncode == 0, r.stderr[-3000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
-    assert out["first"] == list(range(7)) and out["stored"] == list(range(7))
-    assert out["rest"] == [7, 8, 9] and out["n"] == 10 and out["sessions"] == 2
+    assert out["first"] == list(range(5)) and out["stored"] == list(range(5))
+    assert out["rest"] == [5] and out["n"] == 6 and out["sessions"] == 2
     assert out["sha"][0] == out["sha"][1]
 
 
