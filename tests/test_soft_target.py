@@ -183,25 +183,27 @@ def test_a_stiff_soft_target_presses_the_scene_membrane_like_a_rigid_one():
 
 @pytest.fixture(scope="module")
 def dome_presses():
-    """Forces and contact areas at 0.5 and 1 mm on a coarse dome (32-rim, one layer): rigid,
-    and soft targets of 100×, 3× and 1× the membrane's Young's modulus (66 kPa)."""
+    """{E: (model, {depth: state})} on a coarse dome (32-rim, one layer): rigid (E None) and a
+    soft target of 100× the membrane's Young's modulus (66 kPa) pressed 1 mm then eased back to
+    0.5 mm, targets of 3× and 1× pressed 0.5 mm: every model ends at 0.5 mm. (At 1 mm the
+    softer ones are out of order on this dome: the 3× target's fine surface nodes press on the
+    membrane's coarse facets and over-constrain them, README.)"""
     dome = isotropic_cap(0.02, 0.01, 32)
-    depths = (0.5e-3, 1.0e-3)
     out = {}
-    for E in (None, 6.6e6, 200e3, 66e3):
+    for E, depths in ((None, (1e-3, 0.5e-3)), (6.6e6, (1e-3, 0.5e-3)), (200e3, (0.5e-3,)), (66e3, (0.5e-3,))):
         if E is None:
             m = MembraneModel(dome, 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3)
         else:
             m = SoftTargetModel(dome, 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3, target_material=soft_material(E))
         top = m.first_contact_height((0.0, 0.0))
-        out[E] = (m, [m.press(np.array([0.0, 0.0, top - d])) for d in depths])
+        out[E] = (m, {d: m.press(np.array([0.0, 0.0, top - d])) for d in depths})
     return out
 
 
 def test_a_stiff_soft_target_tends_to_the_rigid_one(dome_presses):
-    rigid = dome_presses[None][1]
-    stiff = dome_presses[6.6e6][1]
-    for r, s in zip(rigid, stiff):
+    rigid, stiff = dome_presses[None][1], dome_presses[6.6e6][1]
+    for d in (0.5e-3, 1e-3):
+        r, s = rigid[d], stiff[d]
         # E = 100 × the membrane's: measured −1.1 % and −0.9 %
         assert s.force[2] == pytest.approx(r.force[2], rel=0.03)
         assert s.displaced_volume == pytest.approx(r.displaced_volume, rel=0.03)
@@ -211,20 +213,12 @@ def test_a_stiff_soft_target_tends_to_the_rigid_one(dome_presses):
 def test_a_softer_target_gives_less_force_and_deforms_more(dome_presses):
     # at 0.5 mm: F 12.98 / 12.62 / 11.83 mN and displaced 33.9 / 32.7 / 30.4 mm³ (100×, 3×, 1×)
     Es = (6.6e6, 200e3, 66e3)
-    f = [dome_presses[E][1][0].force[2] for E in Es]
-    v = [dome_presses[E][1][0].displaced_volume for E in Es]
+    f = [dome_presses[E][1][0.5e-3].force[2] for E in Es]
+    v = [dome_presses[E][1][0.5e-3].displaced_volume for E in Es]
     assert f[0] > f[1] > f[2] > 0
     assert v[0] > v[1] > v[2] > 0
     squash = [np.abs(dome_presses[E][0].u[dome_presses[E][0].n_membrane :]).max() for E in Es]
     assert squash[0] < squash[1] < squash[2]
-
-
-@pytest.mark.xfail(reason="known: on this coarse dome (32-rim, one layer) the 3x target's fine surface nodes "
-                   "press on the membrane's coarse facets and over-constrain them: at 1 mm it measures +11 % over rigid "
-                   "(the 1x target +2.5 %; 100x -0.9 %)", strict=False)
-def test_a_softer_target_gives_less_force_at_depth(dome_presses):
-    f = [dome_presses[E][1][1].force[2] for E in (None, 6.6e6, 200e3, 66e3)]
-    assert f[0] > f[1] > f[2] > f[3]
 
 
 def test_an_off_axis_soft_press_converges():
@@ -251,10 +245,13 @@ def test_a_soft_target_move_below_the_tolerance_still_moves_the_bodies(dome_pres
     palpation hold with a 100 kPa target rang at ±0.3 % in Fz, and settles to 1e-9 with the one
     Newton step a move now always gets (the linear response; the soft model has no tangent
     predictor). A target that does not move gets none."""
-    m, (_, b) = dome_presses[200e3]
+    m = dome_presses[200e3][0]
     saved = m.get_state()
     try:
         c = m.contact.centre.copy()
+        # a press ends within the tolerance of the candidates it last chose; re-chosen, they can
+        # ask for one more step, after which the state is a fixed point
+        b = m.press(c)
         still = m.press(c)
         assert still.iterations == 0 and np.array_equal(still.u, b.u)
         moved = m.press(c + [0.0, 0.0, 1e-12])
@@ -265,7 +262,7 @@ def test_a_soft_target_move_below_the_tolerance_still_moves_the_bodies(dome_pres
 
 
 def test_soft_target_state_and_checkpoint(dome_presses):
-    m, (a, b) = dome_presses[200e3]
+    m, b = dome_presses[200e3][0], dome_presses[200e3][1][0.5e-3]
     assert b.u.shape == (m.n_membrane, 3)
     assert b.min_jacobian > 0
     st = m.get_state()
