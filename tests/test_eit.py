@@ -286,6 +286,36 @@ def test_solver_backends_agree(box_fields):
         ForwardModel(model.mesh, list(model.assembler.electrodes), 4, model.z, backend="magic").solve(sigma)
 
 
+def test_a_model_on_a_moved_mesh_keeps_the_pattern_and_solves_as_a_fresh_one(box_fields):
+    """The mesh moved with its tets kept (a morph: here the lid bulged up, the base and its
+    electrodes in place): the model ``on`` it keeps the CEM pattern and shares the kept PARDISO
+    analysis, and solves as a model built afresh on the moved mesh (to round-off). Freed, the
+    solver analyses again. A mesh of other tets gets a pattern of its own and no shared solver."""
+    from jointsim.eit.solver import available_backends
+    from jointsim.mesh.tetmesh import TetMesh
+
+    model, sigma, f = box_fields
+    electrodes = list(model.assembler.electrodes)
+    base = ForwardModel(model.mesh, electrodes, 4, model.z, order=model.order).shared()
+    np.testing.assert_allclose(base.solve(sigma).transfer, f.transfer, rtol=1e-9)
+    X = model.mesh.nodes.copy()
+    X[:, 2] *= 1 + 0.3 * np.exp(-(X[:, 0] ** 2 + X[:, 1] ** 2) / 4e-5)
+    moved = TetMesh(X, model.mesh.tets)
+    m = base.on(moved, electrodes)
+    assert m.assembler.same_pattern(base.assembler)
+    assert (m._shared is base._shared) == ("pardiso" in available_backends())
+    fresh = ForwardModel(moved, electrodes, 4, model.z, order=model.order).solve(sigma).transfer
+    got = m.solve(sigma).transfer
+    np.testing.assert_allclose(got, fresh, rtol=1e-9)
+    assert np.abs(got - f.transfer).max() > 1e-3 * np.abs(f.transfer).max()  # the moved geometry counts
+    base.free()
+    np.testing.assert_allclose(m.solve(sigma).transfer, got, rtol=1e-12)
+    other = _box_with_discs(10, model.order)
+    o = base.on(other.mesh, list(other.assembler.electrodes))
+    assert not o.assembler.same_pattern(base.assembler) and o._shared is None
+    np.testing.assert_allclose(o.solve(1.0).transfer, other.solve(1.0).transfer, rtol=1e-9)
+
+
 def test_per_carrier_contact_impedance(box_fields):
     model, sigma, f = box_fields
     p = skip_protocol(4, 1, 1e-4)

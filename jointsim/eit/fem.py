@@ -21,6 +21,7 @@ electrodes of tests/test_eit.py, P2 on 12 cells across errs 2.3 %, P1 on 24 cell
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -140,6 +141,32 @@ class CEMAssembler:
         object.__setattr__(self, "_indptr", indptr.astype(np.int32))
         object.__setattr__(self, "_slot", slot)
         object.__setattr__(self, "_k_local", element_stiffness(self.mesh, self.order).ravel())
+
+    def on(self, mesh: TetMesh, electrodes: Sequence[ElectrodePatch]) -> "CEMAssembler":
+        """The assembler of ``mesh`` and ``electrodes``; where they have this one's topology (a
+        morphed mesh: the same tets and electrode faces) the pattern is kept and only the element
+        stiffnesses are recomputed (the pattern's sort costs ~0.8 s at 323 k tets)."""
+        electrodes = tuple(electrodes)
+        same = (
+            mesh.tets.shape == self.mesh.tets.shape
+            and np.array_equal(mesh.tets, self.mesh.tets)
+            and len(electrodes) == len(self.electrodes)
+            and all(np.array_equal(a.faces, b.faces) for a, b in zip(electrodes, self.electrodes))
+        )
+        if not same:
+            return CEMAssembler(mesh, electrodes, self.ground, self.order)
+        moved = object.__new__(CEMAssembler)
+        moved.__dict__.update(self.__dict__)
+        object.__setattr__(moved, "mesh", mesh)
+        object.__setattr__(moved, "electrodes", electrodes)
+        object.__setattr__(moved, "_k_local", element_stiffness(mesh, self.order).ravel())
+        return moved
+
+    def same_pattern(self, other: "CEMAssembler") -> bool:
+        """Whether ``other`` assembles into this one's sparsity pattern (one is :meth:`on` the other)."""
+        return other._indices is self._indices or (
+            np.array_equal(other._indptr, self._indptr) and np.array_equal(other._indices, self._indices)
+        )
 
     @property
     def n_driven(self) -> int:

@@ -327,7 +327,9 @@ class Palpation:
         self.protocol: Protocol = skip_protocol(n_el, scene.drive.skip, scene.drive.current)
         self.n_meas = self.protocol.n_meas
         with timed(t, "forward"):
-            fields = ForwardModel.from_chamber(self.reference, scene).solve(scene.saline.conductivity)
+            # every morphed frame's model is made like this one: its pattern and analysis carry over
+            self._forward = ForwardModel.from_chamber(self.reference, scene).shared()
+            fields = self._forward.solve(scene.saline.conductivity)
             self.v_ref = self.voltages(self.reference) if spec.fdm_contact_impedance else fields.voltages(self.protocol)
         with timed(t, "jacobian"):
             self.grid = ChamberGrid.over(self.reference.mesh, spec.cells)
@@ -365,7 +367,7 @@ class Palpation:
         """Clean voltages (256,) V of ``chamber`` filled with the scene's saline; with
         ``fdm_contact_impedance`` injection s runs at carrier s mod n_carriers with that
         carrier's contact impedances (ground's unchanged)."""
-        model = ForwardModel.from_chamber(chamber, self.scene)
+        model = ForwardModel.from_chamber(chamber, self.scene, like=self._forward)
         sigma = self.scene.saline.conductivity
         if not self.spec.fdm_contact_impedance:
             return model.solve(sigma).voltages(self.protocol)
@@ -524,6 +526,7 @@ class Palpation:
 
     def free(self) -> None:
         self.morpher.free()
+        self._forward.free()
 
 
 # ---------------------------------------------------------------------------------------------
