@@ -236,7 +236,9 @@ class DatasetSetup:
             ref_chamber = pal.deform(ref_dome).chamber
             patches = self._patches(ref_chamber.mesh, draw.jitter)
             z = np.full(len(patches), draw.contact_impedance)
-            v_ref = self._voltages(ref_chamber, patches, z, draw.conductivity)
+            # the group's morphed chambers share its pattern and PARDISO analysis
+            forward = self._forward(ref_chamber, patches, z).shared()
+            v_ref = forward.solve(draw.conductivity).voltages(pal.protocol)
             std = noise_std(v_ref, draw.snr_db)
             rng = _rng(self.seed, draw.group, draw.attempt, 1)
             n_ref = self.spec.reference_frames
@@ -265,8 +267,11 @@ class DatasetSetup:
                 def volts(c: ChamberMesh) -> np.ndarray:
                     # a remesh (or its pull-back pair, renumbered where slivers were dropped)
                     # gets the patches of the mesh solved
-                    p = patches if dc.path == "morph" else self._patches(c.mesh, draw.jitter)
-                    return self._voltages(c, p, z, draw.conductivity)
+                    if dc.path == "morph":
+                        model = forward.on(c.mesh, patches)
+                    else:
+                        model = self._forward(c, self._patches(c.mesh, draw.jitter), z)
+                    return model.solve(draw.conductivity).voltages(pal.protocol)
 
                 clean = dc.change(volts, v_ref)
                 v = clean + rng.normal(0.0, std, clean.shape)
@@ -285,6 +290,7 @@ class DatasetSetup:
                 rec["image"] = image.astype(np.float32)
             rec["timings"] = np.array([t[s] for s in STAGES])
             records.append(rec)
+        forward.free()
         return records
 
     def _membrane(self, draw: GroupDraw) -> MembraneModel:
@@ -304,6 +310,5 @@ class DatasetSetup:
         centres[: len(jitter), :2] += jitter
         return disc_patches(mesh, centres, layout.radii, quadratic=self.scene.mesh.element_order == 2)
 
-    def _voltages(self, chamber: ChamberMesh, patches: list[ElectrodePatch], z: np.ndarray, sigma: float) -> np.ndarray:
-        model = ForwardModel(chamber.mesh, patches, chamber.ground, z, order=self.scene.mesh.element_order)
-        return model.solve(sigma).voltages(self.pal.protocol)
+    def _forward(self, chamber: ChamberMesh, patches: list[ElectrodePatch], z: np.ndarray) -> ForwardModel:
+        return ForwardModel(chamber.mesh, patches, chamber.ground, z, order=self.scene.mesh.element_order)
