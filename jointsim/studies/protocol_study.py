@@ -113,8 +113,8 @@ class StudyResult:
         return rows
 
 
-def _fields(chamber: ChamberMesh, scene: Scene):
-    model = ForwardModel.from_chamber(chamber, scene)
+def _fields(chamber: ChamberMesh, scene: Scene, like: ForwardModel | None = None):
+    model = ForwardModel.from_chamber(chamber, scene, like=like)
     return model.solve(np.full(chamber.mesh.n_tets, scene.saline.conductivity))
 
 
@@ -128,7 +128,9 @@ def run_protocol_study(scene: Scene, config: StudyConfig = StudyConfig(), progre
     n_el = scene.electrodes.count
     ch = chamber_mesh(scene)
     dome = dome_from_scene(scene)
-    f0 = _fields(ch, scene)
+    # the indented chambers are morphs of ch: their models keep its pattern and PARDISO analysis
+    base = ForwardModel.from_chamber(ch, scene).shared()
+    f0 = base.solve(np.full(ch.mesh.n_tets, scene.saline.conductivity))
     tick()
     grid = ChamberGrid.over(ch.mesh, config.n_cells)
     protocols = {s: skip_protocol(n_el, s, scene.drive.current) for s in config.skips}
@@ -141,11 +143,12 @@ def run_protocol_study(scene: Scene, config: StudyConfig = StudyConfig(), progre
     centres, volumes = np.empty((P, 3)), np.empty(P)
     for i, xy in enumerate(config.positions):
         ind = indent_dome(dome, xy, config.depth, config.target_radius, scene.chamber.membrane_thickness)
-        fi = _fields(morph_chamber(ch, dome, ind.dome), scene)
+        fi = _fields(morph_chamber(ch, dome, ind.dome), scene, like=base)
         for s, p in protocols.items():
             v_def[s][i] = fi.voltages(p)
         centres[i], volumes[i] = ind.centroid, ind.volume
         tick()
+    base.free()
 
     rng = np.random.default_rng(config.seed)
     dv, dv_clean, lambdas, images, metrics, metrics_raw, j_sens, std = {}, {}, {}, {}, {}, {}, {}, {}
