@@ -125,8 +125,8 @@ class ForwardModel:
     def shared(self) -> "ForwardModel":
         """This model, from now on solving with a PARDISO solver whose ordering and symbolic
         analysis are kept, and shared with the models made :meth:`on` it of the same topology
-        (so that all of them solve alike, to the last bit). Without PARDISO, or with another
-        backend asked for, the model is left as it is."""
+        (so that all of them solve alike, to the last bit; they hold one factor, so one solve at
+        a time). Without PARDISO, or with another backend asked for, the model is left as it is."""
         if self._shared is None and self.backend in ("auto", "pardiso") and "pardiso" in available_backends():
             self._shared = _SharedSolver(self.assembler)
         return self
