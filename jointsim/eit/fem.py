@@ -21,6 +21,7 @@ electrodes of tests/test_eit.py, P2 on 12 cells across errs 2.3 %, P1 on 24 cell
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -145,7 +146,8 @@ class CEMAssembler:
     def on(self, mesh: TetMesh, electrodes: Sequence[ElectrodePatch]) -> "CEMAssembler":
         """The assembler of ``mesh`` and ``electrodes``; where they have this one's topology (a
         morphed mesh: the same tets and electrode faces) the pattern is kept and only the element
-        stiffnesses are recomputed (the pattern's sort costs ~0.8 s at 323 k tets)."""
+        stiffnesses are recomputed (the pattern is a sort of every element's entries: the larger
+        part of a paper-fidelity forward stage, results/palpation_benchmark.md)."""
         electrodes = tuple(electrodes)
         same = (
             mesh.tets.shape == self.mesh.tets.shape
@@ -155,12 +157,16 @@ class CEMAssembler:
         )
         if not same:
             return CEMAssembler(mesh, electrodes, self.ground, self.order)
-        moved = object.__new__(CEMAssembler)
-        moved.__dict__.update(self.__dict__)
+        moved = copy.copy(self)
         object.__setattr__(moved, "mesh", mesh)
         object.__setattr__(moved, "electrodes", electrodes)
         object.__setattr__(moved, "_k_local", element_stiffness(mesh, self.order).ravel())
         return moved
+
+    @property
+    def pattern(self) -> tuple[np.ndarray, np.ndarray]:
+        """(indptr, indices) of the CSR matrices :meth:`assemble` returns (columns sorted in each row)."""
+        return self._indptr, self._indices
 
     def same_pattern(self, other: "CEMAssembler") -> bool:
         """Whether ``other`` assembles into this one's sparsity pattern (one is :meth:`on` the other)."""

@@ -5,11 +5,12 @@ fields give the Jacobian by the adjoint method.
 
 A model made ``like`` an earlier one of the same mesh topology (a morphed chamber, frame after
 frame) keeps its CEM pattern and, where that one is ``shared()``, its PARDISO solver, whose
-ordering and symbolic analysis are then done once: at the paper's 323 k tets a forward solve goes from ~2.3 s
-(pattern 0.8 s, analysis and factorisation 0.7 s, 16 solves 0.4 s) to ~0.9 s."""
+ordering and symbolic analysis are then done once: a palpation frame's forward stage at the
+paper's 323 k tets took 3.24 s before and 1.64 s after (results/palpation_benchmark.md)."""
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,12 +115,12 @@ class ForwardModel:
         ``electrodes``. Where they have this model's topology (a morph of its mesh, the same
         electrode faces) the new model keeps the CEM pattern and, if this model is
         :meth:`shared`, its solver (module docstring)."""
-        model = object.__new__(type(self))
+        model = copy.copy(self)
         model.mesh = mesh
         model.assembler = self.assembler.on(mesh, electrodes)
         model.z = _contact_impedances(self.z if contact_impedance is None else contact_impedance, len(electrodes))
-        model.backend = self.backend
-        model._shared = self._shared if self._shared is not None and model.assembler.same_pattern(self.assembler) else None
+        if self._shared is not None and not model.assembler.same_pattern(self.assembler):
+            model._shared = None
         return model
 
     def shared(self) -> "ForwardModel":
@@ -194,11 +195,12 @@ class _SharedSolver:
     factorisation and kept: the models of a morphed chamber share it."""
 
     def __init__(self, assembler: CEMAssembler):
-        A = assembler.assemble(1.0, np.ones(len(assembler.electrodes)))  # the pattern, sorted by row and column
-        rows = np.repeat(np.arange(A.shape[0]), np.diff(A.indptr))
-        self._upper = A.indices >= rows
-        indptr = np.concatenate([[0], np.cumsum(np.bincount(rows[self._upper], minlength=A.shape[0]))])
-        self._solver = PatternSolver(indptr, A.indices[self._upper], spd=True, backend="pardiso")
+        indptr, indices = assembler.pattern
+        n = len(indptr) - 1
+        rows = np.repeat(np.arange(n), np.diff(indptr))
+        self._upper = indices >= rows  # the upper triangle, in the order of the assembled values
+        upper_indptr = np.concatenate([[0], np.cumsum(np.bincount(rows[self._upper], minlength=n))])
+        self._solver = PatternSolver(upper_indptr, indices[self._upper], spd=True, backend="pardiso")
 
     def solve(self, A, rhs: np.ndarray) -> np.ndarray:
         self._solver.factor(A.data[self._upper])

@@ -130,7 +130,7 @@ def run_protocol_study(scene: Scene, config: StudyConfig = StudyConfig(), progre
     dome = dome_from_scene(scene)
     # the indented chambers are morphs of ch: their models keep its pattern and PARDISO analysis
     base = ForwardModel.from_chamber(ch, scene).shared()
-    f0 = base.solve(np.full(ch.mesh.n_tets, scene.saline.conductivity))
+    f0 = base.solve(scene.saline.conductivity)
     tick()
     grid = ChamberGrid.over(ch.mesh, config.n_cells)
     protocols = {s: skip_protocol(n_el, s, scene.drive.current) for s in config.skips}
