@@ -155,6 +155,26 @@ def test_p2_needs_the_p2_electrode_moments():
         ForwardModel(m.mesh, list(m.assembler.electrodes), ground=4, contact_impedance=1e-3, order=2)
 
 
+def test_p1_stiffness_is_exact_for_a_linear_field():
+    # u = a·x lies in the P1 space and is harmonic: K u vanishes at every interior node, and
+    # uᵀ K u = ∫|∇u|² = |a|² × the box's volume, on any (here unstructured) mesh of the box
+    from jointsim.eit.fem import element_stiffness
+    from jointsim.mesh.tetmesh import TetMesh
+
+    mesh = box_mesh((1.0, 2.0, 1.0), (4, 6, 4))
+    rng = np.random.default_rng(1)
+    inner = np.all((mesh.nodes > 1e-9) & (mesh.nodes < np.array([1, 2, 1]) - 1e-9), axis=1)
+    mesh = TetMesh(mesh.nodes + inner[:, None] * rng.uniform(-0.06, 0.06, mesh.nodes.shape), mesh.tets)
+    a = np.array([2.0, -1.0, 3.0])
+    u = mesh.nodes @ a
+    k = element_stiffness(mesh)
+    assert k.shape == (mesh.n_tets, 4, 4)
+    np.testing.assert_allclose(k, np.swapaxes(k, 1, 2), rtol=0, atol=1e-15 * np.abs(k).max())
+    Ku = np.bincount(mesh.tets.ravel(), weights=np.einsum("kab,kb->ka", k, u[mesh.tets]).ravel(), minlength=mesh.n_nodes)
+    assert np.abs(Ku[inner]).max() < 1e-12 * np.abs(Ku).max()
+    assert u @ Ku == pytest.approx(a @ a * 2.0, rel=1e-12)
+
+
 def test_p2_stiffness_is_exact_for_a_harmonic_quadratic():
     # u = x² − y² lies in the P2 space and ∇²u = 0, so K u vanishes at every dof not on the
     # boundary (Galerkin orthogonality with no discretisation error); P1 cannot represent u

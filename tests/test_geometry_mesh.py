@@ -43,6 +43,29 @@ def test_unit_tet_gradients_and_volume():
     np.testing.assert_allclose(m.gradients[0], [[-1, -1, -1], [1, 0, 0], [0, 1, 0], [0, 0, 1]], atol=1e-14)
 
 
+def test_element_geometry_of_affine_images_of_the_unit_tet():
+    """Each tetrahedron x = A ξ + x0 of the unit one: volume det A / 6 and ∇λ = A⁻ᵀ ∇_ξ λ
+    (rows: ∇_ξ λ · A⁻¹), against numpy's inverse, to round-off of well-conditioned maps."""
+    rng = np.random.default_rng(1)
+    A = np.eye(3) + 0.4 * rng.standard_normal((200, 3, 3))
+    A[np.linalg.det(A) < 0, :, 0] *= -1  # positively oriented
+    unit = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
+    x0 = rng.standard_normal((200, 1, 3))
+    nodes = (np.einsum("kij,aj->kai", A, unit) + x0).reshape(-1, 3)
+    m = TetMesh(nodes, np.arange(800).reshape(200, 4))
+    np.testing.assert_allclose(m.signed_volumes, np.linalg.det(A) / 6, rtol=1e-12)
+    g_unit = np.array([[-1, -1, -1], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
+    expected = np.einsum("aj,kji->kai", g_unit, np.linalg.inv(A))
+    np.testing.assert_allclose(m.gradients, expected, rtol=1e-10, atol=1e-12 * np.abs(expected).max())
+
+
+def test_a_flat_element_has_no_gradients():
+    m = TetMesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.0]]), np.array([[0, 1, 2, 3]]))
+    assert m.signed_volumes[0] == 0.0
+    with pytest.raises(ValueError, match="zero volume"):
+        m.gradients
+
+
 def test_box_mesh_quality_and_boundary():
     m = box_mesh((2.0, 3.0, 4.0), (2, 3, 4))  # unit cubes, 6 Kuhn tets each
     q = mesh_quality(m)

@@ -22,6 +22,7 @@ from jointsim.mesh.morph import (
     element_quality,
     morph_chamber,
 )
+from jointsim.mesh.kernels import tet_quality
 from jointsim.mesh.tetmesh import TetMesh, mesh_quality
 from jointsim.mechanics.surface_contact import closest_points
 
@@ -129,6 +130,10 @@ def test_element_quality_agrees_with_mesh_quality(test_chamber, morpher):
         assert fast.n_inverted == full.n_inverted == 0
         assert fast.min_dihedral_deg == pytest.approx(full.min_dihedral_deg, abs=1e-9)
         assert fast.max_dihedral_deg == pytest.approx(full.max_dihedral_deg, abs=1e-9)
+        # the kernel's η against the numpy formula (the untangling's), and its 6V against the volumes
+        vol6, _, _, eta = tet_quality(mesh.nodes, mesh.tets)
+        np.testing.assert_allclose(eta, morph.shape_measure(mesh.nodes, mesh.tets), rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(vol6, 6 * mesh.signed_volumes, rtol=1e-12)
     # η: 1 for the regular tetrahedron, negative once inverted, 0 when flat
     reg = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
     tet = TetMesh(reg, [[0, 1, 2, 3]]).oriented().tets

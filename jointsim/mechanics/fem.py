@@ -40,9 +40,9 @@ from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
-import warp as wp
 from threadpoolctl import threadpool_limits
 
+from .._warp import wp
 from ..eit.solver import csr_pattern
 from ..mesh.tetmesh import KEAST_POINTS, TET_EDGES, TetMesh, unique_edges
 from .materials import Material, first_piola, strain_energy, tangent_with_pressure

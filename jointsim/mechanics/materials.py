@@ -31,13 +31,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import logging
-
 import numpy as np
-import warp as wp
 
-# Warp's start-up banner and per-module load lines are noise on a command line
-wp.config.log_level = max(getattr(wp.config, "log_level", logging.WARNING), logging.WARNING)
+from .._warp import wp
 
 __all__ = ["Material", "Tangent", "first_piola", "strain_energy", "tangent_with_pressure"]
 

@@ -8,6 +8,8 @@ from functools import cached_property
 
 import numpy as np
 
+from .kernels import tet_geometry
+
 __all__ = ["TetMesh", "MeshQuality", "mesh_quality", "refine_uniform", "edge_midpoints", "unique_edges", "TET_EDGES", "KEAST_POINTS"]
 
 # the six edges of a tetrahedron, in the order P2 midpoint nodes follow
@@ -46,10 +48,12 @@ class TetMesh:
         return len(self.tets)
 
     @cached_property
+    def _geometry(self) -> tuple[np.ndarray, np.ndarray]:
+        return tet_geometry(self.nodes, self.tets)
+
+    @property
     def signed_volumes(self) -> np.ndarray:
-        p = self.nodes[self.tets]
-        e = p[:, 1:] - p[:, :1]
-        return np.linalg.det(e) / 6.0
+        return self._geometry[0]
 
     @property
     def volumes(self) -> np.ndarray:
@@ -59,16 +63,16 @@ class TetMesh:
     def centroids(self) -> np.ndarray:
         return self.nodes[self.tets].mean(axis=1)
 
-    @cached_property
+    @property
     def gradients(self) -> np.ndarray:
         """∇λ_a of the four barycentric (P1) shape functions, shape (n_tets, 4, 3), constant per
-        element: the rows of the inverse edge matrix, with ∇λ_0 = −Σ ∇λ_{1..3}."""
-        p = self.nodes[self.tets]
-        e = p[:, 1:] - p[:, :1]  # (m, 3, 3): rows are edge vectors
-        inv = np.linalg.inv(e)  # columns of inv are ∇λ_1..3
-        g = np.empty((len(self.tets), 4, 3))
-        g[:, 1:] = np.swapaxes(inv, 1, 2)
-        g[:, 0] = -g[:, 1:].sum(axis=1)
+        element: the columns of the inverse edge matrix, with ∇λ_0 = −Σ ∇λ_{1..3}. A mesh with a
+        flat element has none (ValueError naming it)."""
+        volume, g = self._geometry
+        flat = volume == 0
+        if flat.any():
+            raise ValueError(f"mesh: {int(flat.sum())} of {self.n_tets} elements have zero volume (first: element "
+                             f"{int(np.argmax(flat))}); shape-function gradients need every element of nonzero volume")
         return g
 
     @cached_property
