@@ -44,8 +44,9 @@ def test_unit_tet_gradients_and_volume():
 
 
 def test_element_geometry_of_affine_images_of_the_unit_tet():
-    """Each tetrahedron x = A ξ + x0 of the unit one: volume det A / 6 and ∇λ = A⁻ᵀ ∇_ξ λ
-    (rows: ∇_ξ λ · A⁻¹), against numpy's inverse, to round-off of well-conditioned maps."""
+    """Each tetrahedron x = A ξ + x0 of the unit one: volume det A / 6, ∇λ = A⁻ᵀ ∇_ξ λ (rows:
+    ∇_ξ λ · A⁻¹) and centroid A (¼, ¼, ¼) + x0, against numpy, to round-off of
+    well-conditioned maps."""
     rng = np.random.default_rng(1)
     A = np.eye(3) + 0.4 * rng.standard_normal((200, 3, 3))
     A[np.linalg.det(A) < 0, :, 0] *= -1  # positively oriented
@@ -57,6 +58,7 @@ def test_element_geometry_of_affine_images_of_the_unit_tet():
     g_unit = np.array([[-1, -1, -1], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
     expected = np.einsum("aj,kji->kai", g_unit, np.linalg.inv(A))
     np.testing.assert_allclose(m.gradients, expected, rtol=1e-10, atol=1e-12 * np.abs(expected).max())
+    np.testing.assert_allclose(m.centroids, A.sum(axis=2) / 4 + x0[:, 0], rtol=0, atol=1e-14 * np.abs(nodes).max())
 
 
 def test_a_flat_element_has_no_gradients():

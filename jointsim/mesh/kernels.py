@@ -1,5 +1,5 @@
-"""Per-tetrahedron geometry as Warp kernels on the CPU: signed volumes and barycentric
-gradients (:func:`tet_geometry`), and the quality measures of a morphed chamber
+"""Per-tetrahedron geometry as Warp kernels on the CPU: signed volumes, barycentric
+gradients and centroids (:func:`tet_geometry`), and the quality measures of a morphed chamber
 (:func:`tet_quality`). These run once per frame over the whole chamber (323 k tetrahedra at
 the paper's fidelity), where numpy's batched 3×3 inverse and determinant cost ~0.7 s and the
 per-element quality ~0.35 s (results/palpation_benchmark.md: the mesh and forward stages).
@@ -28,9 +28,10 @@ def _edges(x: wp.array(dtype=wp.vec3d), tets: wp.array2d(dtype=wp.int64), k: int
 
 @wp.kernel
 def _geometry(x: wp.array(dtype=wp.vec3d), tets: wp.array2d(dtype=wp.int64),
-              volume: wp.array(dtype=wp.float64), grad: wp.array2d(dtype=wp.vec3d)):
+              volume: wp.array(dtype=wp.float64), grad: wp.array2d(dtype=wp.vec3d), centroid: wp.array(dtype=wp.vec3d)):
     k = wp.tid()
     a, b, c = _edges(x, tets, k)
+    centroid[k] = x[tets[k, 0]] + (a + b + c) * wp.float64(0.25)
     # area normals of the faces opposite vertices 1, 2, 3, each ∝ ∇λ of that vertex
     n1 = wp.cross(b, c)
     n2 = wp.cross(c, a)
@@ -95,15 +96,15 @@ def _inputs(nodes: np.ndarray, tets: np.ndarray) -> tuple[wp.array, wp.array]:
     return on_host(x, wp.vec3d), on_host(t, wp.int64)
 
 
-def tet_geometry(nodes: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Signed volumes (m,) and the gradients ∇λ_a of the four barycentric coordinates
-    (m, 4, 3) of the tetrahedra ``tets`` (m, 4) on ``nodes`` (n, 3). A flat element (zero
-    volume) has none: its rows are zeros, not infinities."""
+def tet_geometry(nodes: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Signed volumes (m,), the gradients ∇λ_a of the four barycentric coordinates (m, 4, 3)
+    and the centroids (m, 3) of the tetrahedra ``tets`` (m, 4) on ``nodes`` (n, 3). A flat
+    element (zero volume) has no gradients: its rows are zeros, not infinities."""
     x, t = _inputs(nodes, tets)
     m = t.shape[0]
-    volume, grad = np.empty(m), np.empty((m, 4, 3))
-    wp.launch(_geometry, m, inputs=[x, t, on_host(volume), on_host(grad, wp.vec3d)], device="cpu")
-    return volume, grad
+    volume, grad, centroid = np.empty(m), np.empty((m, 4, 3)), np.empty((m, 3))
+    wp.launch(_geometry, m, inputs=[x, t, on_host(volume), on_host(grad, wp.vec3d), on_host(centroid, wp.vec3d)], device="cpu")
+    return volume, grad, centroid
 
 
 def tet_quality(nodes: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

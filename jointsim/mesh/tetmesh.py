@@ -48,7 +48,7 @@ class TetMesh:
         return len(self.tets)
 
     @cached_property
-    def _geometry(self) -> tuple[np.ndarray, np.ndarray]:
+    def _geometry(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return tet_geometry(self.nodes, self.tets)
 
     @property
@@ -59,16 +59,16 @@ class TetMesh:
     def volumes(self) -> np.ndarray:
         return np.abs(self.signed_volumes)
 
-    @cached_property
+    @property
     def centroids(self) -> np.ndarray:
-        return self.nodes[self.tets].mean(axis=1)
+        return self._geometry[2]
 
     @property
     def gradients(self) -> np.ndarray:
         """∇λ_a of the four barycentric (P1) shape functions, shape (n_tets, 4, 3), constant per
         element: the columns of the inverse edge matrix, with ∇λ_0 = −Σ ∇λ_{1..3}. A mesh with a
         flat element has none (ValueError naming it)."""
-        volume, g = self._geometry
+        volume, g, _ = self._geometry
         flat = volume == 0
         if flat.any():
             raise ValueError(f"mesh: {int(flat.sum())} of {self.n_tets} elements have zero volume (first: element "

@@ -594,7 +594,7 @@ def _displaced_centroid(reference: ChamberMesh, chamber: ChamberMesh) -> np.ndar
     lost = va.sum() - vb.sum()
     if lost <= 1e-9 * va.sum():
         return np.full(3, np.nan)
-    return ((va[:, None] * a.centroids).sum(0) - (vb[:, None] * b.centroids).sum(0)) / lost
+    return (va @ a.centroids - vb @ b.centroids) / lost
 
 
 def run_palpation(
