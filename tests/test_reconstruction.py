@@ -119,6 +119,26 @@ def _img(grid, cells):
     return x[grid.active]
 
 
+def test_chamber_grid_shares_each_element_among_the_cells_of_its_children():
+    # C[k, c] = (children of element k whose centroid lies in cell c) / 64, from the children's
+    # barycentres directly; elements here straddle voxels (1 mm cells, 0.7 mm voxels, offset)
+    from jointsim.reconstruction.grid import _child_barycentres
+
+    mesh = box_mesh((3e-3,) * 3, (3, 3, 3))
+    rng = np.random.default_rng(2)
+    inner = np.all((mesh.nodes > 1e-9) & (mesh.nodes < 3e-3 - 1e-9), axis=1)
+    mesh = type(mesh)(mesh.nodes + inner[:, None] * rng.uniform(-2e-4, 2e-4, mesh.nodes.shape), mesh.tets)
+    vg = VoxelGrid(np.full(3, -0.2e-3), np.full(3, 0.7e-3), (5, 6, 7))  # unequal: the flat index order counts
+    g = ChamberGrid.over(mesh, grid=vg)
+    bary = _child_barycentres(2)
+    cells = vg.cell_of(np.einsum("sa,kai->ksi", bary, mesh.nodes[mesh.tets]).reshape(-1, 3)).reshape(mesh.n_tets, -1)
+    expected = np.zeros((mesh.n_tets, vg.n_cells))
+    np.add.at(expected, (np.repeat(np.arange(mesh.n_tets), len(bary)), cells.ravel()), 1.0 / len(bary))
+    np.testing.assert_array_equal(g.active, np.flatnonzero(expected.any(axis=0)))
+    np.testing.assert_allclose(g.C.toarray(), expected[:, g.active], rtol=0, atol=1e-15)
+    assert g.volume.sum() == pytest.approx(27e-9, rel=1e-12)
+
+
 def test_cube_grid_has_full_cells():
     g = _cube_grid()
     assert g.n_cells == 512

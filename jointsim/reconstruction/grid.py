@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from .._warp import on_host, wp
 from ..mesh.tetmesh import TetMesh
 
 __all__ = ["VoxelGrid", "element_voxel_map"]
@@ -60,6 +61,36 @@ def _child_barycentres(levels: int) -> np.ndarray:
     return np.column_stack([1 - c.sum(axis=1), c])
 
 
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def _child_cells(x: wp.array(dtype=wp.vec3d), tets: wp.array2d(dtype=wp.int64), bary: wp.array(dtype=wp.vec4d),
+                 origin: wp.vec3d, spacing: wp.vec3d, shape: wp.vec3i, cells: wp.array2d(dtype=wp.int32)):
+    # the flat index of the voxel holding child s of element k (VoxelGrid.cell_of, clamped)
+    k, s = wp.tid()
+    b = bary[s]
+    p = b[0] * x[tets[k, 0]] + b[1] * x[tets[k, 1]] + b[2] * x[tets[k, 2]] + b[3] * x[tets[k, 3]]
+    q = wp.cw_div(p - origin, spacing)
+    i = wp.clamp(int(wp.floor(q[0])), 0, shape[0] - 1)
+    j = wp.clamp(int(wp.floor(q[1])), 0, shape[1] - 1)
+    m = wp.clamp(int(wp.floor(q[2])), 0, shape[2] - 1)
+    cells[k, s] = wp.int32((i * shape[1] + j) * shape[2] + m)
+
+
+def _cells_of_children(mesh: TetMesh, grid: VoxelGrid, bary: np.ndarray) -> np.ndarray:
+    """(n_tets, s) int32: the cell of each element's children at barycentrics ``bary`` (s, 4).
+    One Warp kernel: the same in numpy (points, floor, clip, flat index) took ~6 s per pass
+    over the paper's 323 k elements × 64 children."""
+    if grid.n_cells >= 2**31:
+        raise ValueError(f"grid: {grid.n_cells} cells, more than a 32-bit index holds")
+    cells = np.empty((mesh.n_tets, len(bary)), np.int32)
+    wp.launch(_child_cells, cells.shape, device="cpu", inputs=[
+        on_host(mesh.nodes, wp.vec3d), on_host(mesh.tets, wp.int64), on_host(np.ascontiguousarray(bary, float), wp.vec4d),
+        wp.vec3d(*grid.origin), wp.vec3d(*grid.spacing), wp.vec3i(*grid.shape), on_host(cells, wp.int32)])
+    return cells
+
+
 def element_voxel_map(mesh: TetMesh, grid: VoxelGrid) -> sp.csr_matrix:
     """C (n_tets, n_cells), C[k, c] = 1 when element k's centroid lies in cell c. Then
     J_coarse = J·C is the exact Jacobian for σ_k = σ_cell(k), and σ_fine = C·σ_coarse."""
@@ -99,17 +130,14 @@ class ChamberGrid:
             g = VoxelGrid.covering(mesh, n_cells, volume=volume * first.n_cells / n_cells)
             return cls.over(mesh, grid=g, levels=levels)
         bary = _child_barycentres(levels)  # (s, 4)
-        rows, cols = [], []
-        chunk = max(1, 2_000_000 // len(bary))
-        for start in range(0, mesh.n_tets, chunk):
-            t = mesh.tets[start : start + chunk]
-            pts = np.einsum("sa,kai->ksi", bary, mesh.nodes[t])
-            cols.append(grid.cell_of(pts.reshape(-1, 3)))
-            rows.append(np.repeat(np.arange(start, start + len(t)), len(bary)))
-        rows, cols = np.concatenate(rows), np.concatenate(cols)
-        active, local = np.unique(cols, return_inverse=True)
+        cells = _cells_of_children(mesh, grid, bary)
+        active = np.flatnonzero(np.bincount(cells.ravel(), minlength=grid.n_cells))
+        local = np.full(grid.n_cells, -1, np.int32)
+        local[active] = np.arange(len(active), dtype=np.int32)
+        # row k holds element k's children (s entries, a cell repeated as often as it has children)
         C = sp.csr_matrix(
-            (np.full(len(rows), 1.0 / len(bary)), (rows, local.ravel())), shape=(mesh.n_tets, len(active))
+            (np.full(cells.size, 1.0 / len(bary)), local[cells].ravel(), np.arange(0, cells.size + 1, len(bary))),
+            shape=(mesh.n_tets, len(active)),
         )
         C.sum_duplicates()
         vol = mesh.volumes
