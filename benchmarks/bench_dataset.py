@@ -20,7 +20,6 @@ little.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import shlex
@@ -32,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _machine import cpu_name
+from _machine import cpu_name, speed_reference, write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -86,14 +85,15 @@ def bench(scene, n: int, workers: int, seed: int, folder: Path) -> dict:
 
 
 def write(summary: dict, res: Path) -> None:
-    res.mkdir(parents=True, exist_ok=True)
-    (res / "dataset_benchmark.json").write_text(json.dumps(summary, indent=1))
     rows = summary["runs"]
     lines = [
         "# Dataset generation benchmark",
         "",
         f"Command: `{summary['command']}`  ",
         f"Machine: {summary['machine']['cpu']}, {summary['machine']['cores']} cores, Python {summary['machine']['python']}  ",
+        "Reference workload (`benchmarks/_machine.py` speed_reference, a fixed sparse factorisation): "
+        + " s at the start, ".join(f"{x:.3f}" for x in summary["speed_reference_s_start_end"])
+        + " s at the end; to compare with a run of another day, scale by the ratio of this figure.  ",
         f"Scene: {summary['scene']} (mesh preset {summary['mesh']}, membrane {summary['membrane']}), "
         f"{summary['samples_per_press']} samples per press, seed {summary['seed']}  ",
         f"Goals: >= {GOAL_RATE:.0f} samples/h, >= {GOAL_EFFICIENCY:.0%} efficiency from 1 to 2 workers",
@@ -120,7 +120,7 @@ def write(summary: dict, res: Path) -> None:
     ]
     for r in rows:
         lines.append(f"| {r['workers']} | " + " | ".join(f"{r['stage_mean_s'][s]:.3f}" for s in STAGES) + " |")
-    (res / "dataset_benchmark.md").write_text("\n".join(lines) + "\n")
+    write_pair(res / "dataset_benchmark", summary, "\n".join(lines) + "\n")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -135,6 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     n = 12 if args.quick and args.n == 48 else args.n
     counts = [int(w) for w in args.workers.split(",")]
     runs = []
+    speed0 = speed_reference()
     with tempfile.TemporaryDirectory(prefix="bench_dataset_") as tmp:
         for w in counts:
             r = bench(scene, n, w, args.seed, Path(tmp))
@@ -154,6 +155,7 @@ def main(argv: list[str] | None = None) -> int:
         "efficiency_steady": eff("rate_steady_per_h"),
         "same_data": len({r["data_sha256"] for r in runs}) == 1,
         "goals": {"rate_per_h": GOAL_RATE, "efficiency": GOAL_EFFICIENCY},
+        "speed_reference_s_start_end": [speed0, speed_reference()],
     }
     print(f"efficiency 1 -> 2 workers: total {summary['efficiency_total']:.0%}, steady {summary['efficiency_steady']:.0%}; "
           f"same data: {summary['same_data']}")
