@@ -1,7 +1,10 @@
-"""Warp as the package imports it: one place for its process-wide settings, and numpy arrays
-seen by CPU kernels without a copy."""
+"""Warp as the package imports it: one place for its process-wide settings and start-up, and
+numpy arrays seen by CPU kernels without a copy."""
 
 import logging
+import os
+import sys
+import tempfile
 
 import numpy as np
 import warp as wp
@@ -10,6 +13,36 @@ import warp as wp
 wp.config.log_level = max(getattr(wp.config, "log_level", logging.WARNING), logging.WARNING)
 
 __all__ = ["wp", "on_host"]
+
+# printed by Warp's native library on every machine without an NVIDIA driver, which is where
+# jointsim mostly runs (its kernels run on the CPU); asking for a CUDA device there still gets
+# a clear error (mechanics.fem.warp_device)
+_NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
+
+
+def _init() -> None:
+    """``wp.init()`` with its native stderr read back and passed on without the no-driver line."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no usable fd 2 (an embedded interpreter): let it print
+        wp.init()
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        tmp.seek(0)
+        text = tmp.read().decode(errors="replace")
+    kept = "".join(line for line in text.splitlines(keepends=True) if _NO_DRIVER not in line)
+    if kept:
+        sys.stderr.write(kept)
+
+
+_init()
 
 
 def on_host(a: np.ndarray, dtype=wp.float64) -> wp.array:
