@@ -32,14 +32,12 @@ def _init() -> None:
         os.dup2(tmp.fileno(), 2)
         try:
             wp.init()
-        finally:
+        finally:  # passed on even when the start-up fails: its own words say why
             os.dup2(saved, 2)
             os.close(saved)
-        tmp.seek(0)
-        text = tmp.read().decode(errors="replace")
-    kept = "".join(line for line in text.splitlines(keepends=True) if _NO_DRIVER not in line)
-    if kept:
-        sys.stderr.write(kept)
+            tmp.seek(0)
+            text = tmp.read().decode(errors="replace")
+            sys.stderr.write("".join(line for line in text.splitlines(keepends=True) if _NO_DRIVER not in line))
 
 
 _init()

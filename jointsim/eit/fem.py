@@ -72,8 +72,8 @@ def element_stiffness(mesh: TetMesh, order: int = 1) -> np.ndarray:
     (n_tets, 10, 10) for P2."""
     g = mesh.gradients
     if _check_order(order) == 1:
-        # a Warp kernel: numpy's batched product costs ~0.15 s per frame at the paper's 323 k
-        # tetrahedra (results/palpation_benchmark.md, the forward stage)
+        # a Warp kernel: a morphed frame assembles afresh, and at the paper's 323 k tetrahedra
+        # numpy's batched product was a visible part of the forward stage
         K = np.empty((mesh.n_tets, 4, 4))
         wp.launch(_p1_stiffness, mesh.n_tets, inputs=[on_host(g, wp.vec3d), on_host(mesh.signed_volumes), on_host(K)], device="cpu")
         return K

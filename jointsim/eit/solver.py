@@ -79,9 +79,9 @@ def _pardiso_solver(mtype: int):
 
 
 PARDISO_REFINEMENT = 2  # iterative refinement steps per solve: MKL's default, iparm(8)
-# ...which a Cholesky factor in double precision does not need: on the paper's chamber (323 k
-# tetrahedra, P1 CEM) the two steps cost 0.2 s of a 0.47 s factorisation + 16 solves and moved
-# the voltages by 1.3e-14 of their largest (the instrument's noise is ~2e-4 of it)
+# ...which a Cholesky factor in double precision does not need (tests/test_eit.py: the lead
+# fields agree with two steps' to 1e-12). In a scratch run on the paper's chamber (323 k
+# tetrahedra, P1 CEM) the two steps took 0.2 s of a 0.47 s factorisation + 16 solves
 SPD_REFINEMENT = 0
 
 

@@ -110,10 +110,8 @@ def shape_measure(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
 def element_quality(nodes: np.ndarray, tets: np.ndarray) -> ElementQuality:
     """:class:`ElementQuality` of nodes (n, 3), tets (m, 4): signed volumes by triple
     products, dihedral angles from the outward face normals, η from the six edge lengths, in
-    one Warp kernel (:func:`~jointsim.mesh.kernels.tet_quality`; ~0.05 s at the paper's 323 k
-    tetrahedra, where the same in numpy took ~0.35 s of each frame's mesh stage). The minimum
-    dihedral angle agrees with :func:`~jointsim.mesh.tetmesh.mesh_quality`, η with
-    :func:`shape_measure`."""
+    one Warp kernel (:func:`~jointsim.mesh.kernels.tet_quality`). The minimum dihedral angle
+    agrees with :func:`~jointsim.mesh.tetmesh.mesh_quality`, η with :func:`shape_measure`."""
     if len(tets) == 0:
         raise ValueError("tets: the mesh has no elements")
     vol6, cos_min, cos_max, eta = tet_quality(nodes, tets)
