@@ -112,6 +112,22 @@ def test_jacobian_matches_central_differences(box_fields):
         assert np.abs(fd - J[:, k]).max() <= 0.01 * np.abs(J[:, k]).max()
 
 
+def test_p1_jacobian_is_minus_volume_times_the_fields_gradient_product(box_fields):
+    """The P1 kernel path against its definition, J[s·M + m, k] = −V_k ∇u_s·∇v_m, from the
+    lead fields' element gradients in numpy (lead_gradients), to round-off."""
+    from jointsim.eit.jacobian import lead_gradients
+
+    model, sigma, f = box_fields
+    if model.order != 1:
+        pytest.skip("P2 Jacobians take the numpy path (Keast quadrature)")
+    p = skip_protocol(4, 1, 1e-4)
+    G = lead_gradients(f)  # (n_tets, L, 3)
+    gu = np.einsum("sl,kli->ksi", p.stim, G)
+    gv = np.einsum("ml,kli->kmi", p.meas[0], G)
+    expected = -(model.mesh.volumes[:, None, None] * np.einsum("ksi,kmi->ksm", gu, gv)).reshape(model.mesh.n_tets, -1).T
+    np.testing.assert_allclose(jacobian(f, p), expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+
+
 def test_coarse_jacobian_is_the_sum_of_fine_columns_and_the_exact_derivative(box_fields):
     model, sigma, f = box_fields
     p = skip_protocol(4, 1, 1e-4)
