@@ -3,7 +3,7 @@ gradients and centroids (:func:`tet_geometry`), and the quality measures of a mo
 (:func:`tet_quality`). These run once per frame over the whole chamber (323 k tetrahedra at
 the paper's fidelity), where numpy's batched 3×3 inverse and determinant and its per-element
 quality were most of the frame's mesh and forward stages: with the kernels those went from
-0.61 s and 1.64 s to 0.12 s and 0.44 s (results/palpation_benchmark.md, at e6af84c and b6050f7).
+0.61 s and 1.64 s to 0.13 s and 0.49 s (results/palpation_benchmark.md, at e6af84c and cb38c7f).
 
 Both kernels work from the three edge vectors a, b, c out of vertex 0: 6V = a·(b × c), and the
 gradients of λ_1..3 are the columns of the inverse edge matrix, (b × c, c × a, a × b) / 6V, so
