@@ -83,9 +83,8 @@ def _p1_kernel_jacobian(fields: LeadFields, protocol: Protocol, coarse: sp.csr_m
     elements their gradients and each element's column (:func:`_p1_sensitivity`). Jᵀ is
     accumulated, so the result is its transpose (Fortran-ordered, no copy)."""
     mesh = fields.model.mesh
-    nodal = fields.nodal[: mesh.n_nodes]
-    u = np.ascontiguousarray(nodal @ protocol.stim.T)
-    v = np.ascontiguousarray(nodal @ protocol.meas[0].T)
+    u = np.ascontiguousarray(fields.potentials(protocol))
+    v = np.ascontiguousarray(fields.nodal[: mesh.n_nodes] @ protocol.meas[0].T)
     if coarse is None:
         coarse = sp.identity(mesh.n_tets, format="csr")
     indptr, cells = coarse.indptr.astype(np.int64), coarse.indices.astype(np.int64)

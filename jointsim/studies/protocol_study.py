@@ -25,7 +25,7 @@ from ..eit.protocol import skip_protocol
 from ..geometry import dome_from_scene
 from ..mechanics.geometric import indent_dome
 from ..mesh.chamber import ChamberMesh, chamber_mesh
-from ..mesh.morph import morph_chamber
+from ..mesh.morph import ChamberMorpher
 from ..metrics import ImageMetrics, image_metrics, rms, sensitivity_total
 from ..reconstruction.grid import ChamberGrid
 from ..reconstruction.tikhonov import SVD, LambdaChoice, choose_lambda
@@ -114,8 +114,7 @@ class StudyResult:
 
 
 def _fields(chamber: ChamberMesh, scene: Scene, like: ForwardModel | None = None):
-    model = ForwardModel.from_chamber(chamber, scene, like=like)
-    return model.solve(np.full(chamber.mesh.n_tets, scene.saline.conductivity))
+    return ForwardModel.from_chamber(chamber, scene, like=like).solve(scene.saline.conductivity)
 
 
 def run_protocol_study(scene: Scene, config: StudyConfig = StudyConfig(), progress=None) -> StudyResult:
@@ -141,13 +140,14 @@ def run_protocol_study(scene: Scene, config: StudyConfig = StudyConfig(), progre
     P = len(config.positions)
     v_def = {s: np.empty((P, n_el * n_el)) for s in config.skips}
     centres, volumes = np.empty((P, 3)), np.empty(P)
-    for i, xy in enumerate(config.positions):
-        ind = indent_dome(dome, xy, config.depth, config.target_radius, scene.chamber.membrane_thickness)
-        fi = _fields(morph_chamber(ch, dome, ind.dome), scene, like=base)
-        for s, p in protocols.items():
-            v_def[s][i] = fi.voltages(p)
-        centres[i], volumes[i] = ind.centroid, ind.volume
-        tick()
+    with ChamberMorpher(ch, dome) as morpher:  # one preparation for every position's morph
+        for i, xy in enumerate(config.positions):
+            ind = indent_dome(dome, xy, config.depth, config.target_radius, scene.chamber.membrane_thickness)
+            fi = _fields(morpher(ind.dome), scene, like=base)
+            for s, p in protocols.items():
+                v_def[s][i] = fi.voltages(p)
+            centres[i], volumes[i] = ind.centroid, ind.volume
+            tick()
     base.free()
 
     rng = np.random.default_rng(config.seed)
