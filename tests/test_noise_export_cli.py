@@ -80,6 +80,32 @@ def test_cli_help_lists_the_subcommands():
     assert "forward" in r.stdout and "mesh" in r.stdout
 
 
+def test_cli_help_loads_no_solver():
+    """Every subcommand's parser is built without loading the solvers and meshers (Warp, PARDISO,
+    scipy, trimesh, MuJoCo: seconds of imports), so `jointsim --help` and a mistyped flag answer
+    at once; each command loads them when it runs."""
+    heavy = ("warp", "pypardiso", "scipy", "trimesh", "mujoco", "meshio", "h5py", "matplotlib")
+    code = ("import sys; from jointsim.cli.main import build_parser; build_parser().format_help(); "
+            f"print(' '.join(m for m in {heavy!r} if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == []
+
+
+def test_cli_reports_a_solver_failure_in_one_line(monkeypatch, capsys):
+    """A NewtonError raised by a command is one line on stderr and exit status 2, like bad input."""
+    from jointsim.cli import main as cli
+    from jointsim.cli import mesh
+    from jointsim.mechanics.newton import NewtonError
+
+    def fail(args):
+        raise NewtonError("no convergence in 50 iterations")
+
+    monkeypatch.setattr(mesh, "run", fail)
+    assert cli.main(["mesh"]) == 2
+    assert capsys.readouterr().err.strip() == "jointsim mesh: error: no convergence in 50 iterations"
+
+
 def test_cli_rejects_a_bad_scene_with_the_key(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text("[electrodes]\nring_radius_mm = 25.0\n")

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..dataset import default_workers, generate_dataset
+from .._cores import available_cores
 from ..scene import scene_toml
 from .common import add_scene_arguments, scene_from_args
 
@@ -29,7 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--n", type=int, required=True, help="number of labelled samples")
     p.add_argument("--out", type=Path, default=Path("out/dataset.h5"), help="output file (default out/dataset.h5)")
     p.add_argument("--seed", type=int, help="dataset seed (default: the scene's [noise] seed)")
-    p.add_argument("--workers", type=int, help=f"local worker processes (default: one per core, here {default_workers()})")
+    p.add_argument("--workers", type=int, help=f"local worker processes (default: one per core, here {available_cores()})")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="Dask distributed scheduler address (e.g. tcp://host:8786): run the groups on that cluster")
     p.add_argument("--images", action=argparse.BooleanOptionalAction, default=None,
@@ -39,6 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..dataset import generate_dataset
+
     scene = scene_from_args(args)
     if args.images is not None:
         scene = replace(scene, dataset=replace(scene.dataset, images=args.images))
@@ -50,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--workers = {args.workers}: must be >= 1")
     d = scene.dataset
     k = d.samples_per_press
-    where = f"Dask scheduler {args.scheduler}" if args.scheduler else f"{args.workers or default_workers()} local worker(s)"
+    where = f"Dask scheduler {args.scheduler}" if args.scheduler else f"{args.workers or available_cores()} local worker(s)"
     print(f"jointsim dataset: scene {scene.name}, mesh {scene.mesh.preset} P{scene.mesh.element_order}, {args.n} samples "
           f"({-(-args.n // k)} presses x {k} depths), radius {d.radius[0] * 1e3:g}-{d.radius[1] * 1e3:g} mm, "
           f"depth {d.depth[0] * 1e3:g}-{d.depth[1] * 1e3:g} mm, r <= {d.r_max * 1e3:g} mm, {where} -> {args.out}")

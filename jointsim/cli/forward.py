@@ -11,12 +11,6 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..eit.forward import ForwardModel
-from ..eit.jacobian import jacobian
-from ..eit.noise import add_noise, noise_std
-from ..eit.protocol import skip_protocol
-from ..io.export import atomic_path, write_mat, write_npz, write_vtu
-from ..reconstruction.grid import ChamberGrid
 from .common import add_scene_arguments, scene_from_args, stage
 
 HELP = "EIT forward solve of a scene's chamber: voltages, Jacobian, VTU and .mat"
@@ -32,6 +26,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..eit.forward import ForwardModel
+    from ..eit.jacobian import jacobian
+    from ..eit.noise import add_noise, noise_std
+    from ..eit.protocol import skip_protocol
+    from ..io.export import atomic_path, write_mat, write_npz, write_vtu
+    from ..palpation.pipeline import deployed_chamber
+    from ..reconstruction.grid import ChamberGrid
+
     scene = scene_from_args(args)
     skip = scene.drive.skip if args.skip is None else args.skip
     if not 0 <= skip <= scene.electrodes.count // 2:
@@ -41,8 +43,6 @@ def run(args: argparse.Namespace) -> int:
     out: Path = args.out
     t: dict[str, float] = {}
     print(f"jointsim forward: scene {scene.name}, mesh preset {scene.mesh.preset}, P{scene.mesh.element_order} elements, skip-{skip}")
-    from ..palpation.pipeline import deployed_chamber  # here: it loads MuJoCo and the FEM
-
     flat = scene.membrane.moulding == "flat"
     with stage("chamber mesh (cached after the first run)" + (", on the flat moulding inflated" if flat else ""), t):
         ch = deployed_chamber(scene)

@@ -17,9 +17,6 @@ from tqdm import tqdm
 
 from .. import __version__
 from ..io.export import atomic_path, write_npz, write_vtu
-from ..mechanics.dome import MembraneModel
-from ..mechanics.fem import warp_device
-from ..mesh.tetmesh import TetMesh
 from .common import add_scene_arguments, add_target_size_arguments, scene_from_args, target_radius_mm
 
 HELP = "force-indentation sweep of the dome membrane (FEM): CSV, PNG, VTU"
@@ -39,6 +36,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..mechanics.dome import MembraneModel
+    from ..mechanics.fem import warp_device
+    from ..mesh.tetmesh import TetMesh
+
     scene = scene_from_args(args)
     device = warp_device(args.device, "--device")
     radius = target_radius_mm(args, scene.target.radius * 1e3)

@@ -28,15 +28,25 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
-    from ..mechanics.newton import NewtonError
-    from ..mesh.morph import MeshInversionError
+# a solver that could not reach a valid state: (module, error class). Looked up where they are
+# already imported, as an error of a module not loaded cannot have been raised: `jointsim --help`
+# and a bad argument then answer without loading the solvers (scipy, PARDISO, Warp: seconds)
+SOLVER_ERRORS = (("jointsim.mechanics.newton", "NewtonError"), ("jointsim.mesh.morph", "MeshInversionError"))
 
+
+def _reported(e: Exception) -> bool:
+    """Whether ``e`` is reported in one line (bad input or a solver failure), not a traceback."""
+    loaded = tuple(getattr(sys.modules[m], name) for m, name in SOLVER_ERRORS if m in sys.modules)
+    return isinstance(e, (SceneError, ValueError) + loaded)
+
+
+def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.handler(args) or 0)
-    except (SceneError, ValueError, NewtonError, MeshInversionError) as e:
-        # bad input, or a solver that could not reach a valid state: one line, not a traceback
+    except Exception as e:
+        if not _reported(e):
+            raise
         print(f"jointsim {args.command}: error: {e}", file=sys.stderr)
         return 2
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..mesh.chamber import cache_dir
 from .common import add_scene_arguments, scene_from_args, stage
 
 HELP = "mesh a scene's chamber and report its quality"
@@ -17,11 +16,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..mesh.chamber import cache_dir
+    from ..palpation.pipeline import deployed_chamber
+
     scene = scene_from_args(args)
     t: dict[str, float] = {}
     print(f"scene {scene.name}, mesh preset {scene.mesh.preset} (cache: {cache_dir()})")
-    from ..palpation.pipeline import deployed_chamber  # here: it loads MuJoCo and the FEM
-
     flat = scene.membrane.moulding == "flat"
     with stage("inflate the flat-moulded membrane, mesh its chamber" if flat else "mesh", t):
         ch = deployed_chamber(scene)

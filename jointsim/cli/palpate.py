@@ -17,10 +17,6 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..io.store import open_records, open_store
-from ..mechanics.fem import warp_device
-from ..palpation import Palpation, program_params, run_palpation
-from ..palpation.report import VtuSeries, summarise, write_pvd, write_report, write_setup
 from ..scene import PALPATION_MODES, scene_toml
 from .common import add_scene_arguments, scene_from_args
 
@@ -114,6 +110,11 @@ def run(args: argparse.Namespace) -> int:
     # to run unless its conditional numerical reproducibility is on; a resumed run must give the
     # frames an uninterrupted one gives. Read by MKL when it first runs, i.e. after this line.
     os.environ.setdefault("MKL_CBWR", "AUTO")
+    from ..io.store import open_records, open_store
+    from ..mechanics.fem import warp_device
+    from ..palpation import Palpation, program_params, run_palpation
+    from ..palpation.report import VtuSeries, summarise, write_pvd, write_report, write_setup
+
     scene = configure(args)
     device = warp_device(args.device, "--device")
     cmap = None

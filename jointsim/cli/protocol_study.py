@@ -11,8 +11,6 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..studies.protocol_study import StudyConfig, run_protocol_study
-from ..studies.report import write_study
 from .common import add_scene_arguments, add_target_size_arguments, scene_from_args, target_radius_mm
 
 HELP = "the paper's protocol study (Fig. 2 G-H): skip-0..8 metrics and images"
@@ -31,6 +29,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..studies.protocol_study import StudyConfig, run_protocol_study
+    from ..studies.report import write_study
+
     scene = scene_from_args(args)
     radius = target_radius_mm(args, 7.5)
     if not 0 < args.depth_mm < scene.chamber.dome_height * 1e3:

@@ -49,6 +49,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
+from .._cores import available_cores
 from ..geometry import electrode_layout
 from ..io.store import RecordStore, attach, open_records, open_store
 from ..mesh.chamber import ChamberMesh
@@ -82,10 +83,7 @@ class DatasetRun:
 
 def default_workers() -> int:
     """One worker per core available to this process."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # platforms without affinity
-        return os.cpu_count() or 1
+    return available_cores()
 
 
 def _paths(out: str | Path) -> tuple[Path, Path]:

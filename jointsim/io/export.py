@@ -8,11 +8,12 @@ import os
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
 
 import numpy as np
 
-from ..mesh.tetmesh import TetMesh
+if TYPE_CHECKING:  # annotations only: the command line reads this module's neighbours without Warp
+    from ..mesh.tetmesh import TetMesh
 
 __all__ = ["atomic_path", "write_vtu", "write_npz", "write_mat", "write_voxels_vtu"]
 

@@ -42,6 +42,7 @@ import numpy as np
 import scipy.sparse as sp
 from threadpoolctl import threadpool_limits
 
+from .._cores import available_cores
 from .._warp import wp
 from ..eit.solver import csr_pattern
 from ..mesh.tetmesh import KEAST_POINTS, TET_EDGES, TetMesh, unique_edges
@@ -60,7 +61,7 @@ _MatN = wp.types.matrix(shape=(10, 3), dtype=wp.float64)
 # elements are split into this many contiguous chunks launched from as many threads, each with
 # its own Hessian buffer (neighbouring elements add into the same entries), summed after. One
 # on a single core; more than 4 chunks would spend more on the buffers than they save
-KERNEL_THREADS = max(1, min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1))
+KERNEL_THREADS = max(1, min(4, available_cores()))
 MIN_CHUNK = 1024  # elements: below this a launch is too short to share
 _POOL: tuple[int, ThreadPoolExecutor] | None = None  # (the process it was made in, the pool)
 
