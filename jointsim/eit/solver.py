@@ -190,8 +190,9 @@ class PatternSolver:
 
     ``single``: PARDISO factors and solves in single precision (results returned in double):
     1.6× faster factorisations of P2 elasticity (the 92-rim, 2-layer membrane's press:
-    results/mechanics_solvers.md), and a solve's relative residual ~1e-7 — for Newton
-    directions, which need far less (the press's forces agree with double to four digits).
+    results/mechanics_solvers.md), and a solve's relative residual of 1e-5 to 1e-3 on a pressed
+    membrane's Hessian — for Newton directions, which need no more (the press's forces agree
+    with double to four digits).
     ``two_by_two=False``: 1×1 pivots only; measured no faster there (0.97)."""
 
     def __init__(

@@ -69,8 +69,10 @@ class NewtonResult:
 _BACKEND = "pardiso" if "pardiso" in available_backends() else "superlu"
 
 
-# Newton's linear systems factored in single precision (PARDISO only): their relative residual
-# is ~1e-7, far below what an inexact Newton step needs to keep its quadratic convergence
+# Newton's linear systems factored in single precision (PARDISO only). A solve's relative residual
+# on the pressed 92/2 membrane's Hessian is 2e-5 for the predictor's right-hand side and 2e-3 for
+# a random one (a scratch check, issue 4's notes of session 26): a Newton direction needs no more,
+# as in double precision the 64/2 press's iterations reduce the gradient by the same ratios
 SINGLE_PRECISION = True
 # Bunch–Kaufman 1×1 and 2×2 pivots in the indefinite LDLᵀ (1×1 only measured no faster on the
 # 92-rim membrane: results/mechanics_solvers.md as of 2026-11-21, in git)
