@@ -1,4 +1,6 @@
-"""The ``jointsim`` command line: a thin layer over the Python API, one module per subcommand."""
+"""The ``jointsim`` command line: a thin layer over the Python API, one module per subcommand.
+A subcommand module imports the package's solvers inside its ``run``, not at module level, so
+that building the parser (``--help``, a mistyped flag) loads none of them (tested)."""
 
 from __future__ import annotations
 
