@@ -164,8 +164,8 @@ class CEMAssembler:
     def on(self, mesh: TetMesh, electrodes: Sequence[ElectrodePatch]) -> "CEMAssembler":
         """The assembler of ``mesh`` and ``electrodes``; where they have this one's topology (a
         morphed mesh: the same tets and electrode faces) the pattern is kept and only the element
-        stiffnesses are recomputed (the pattern is a sort of every element's entries: the larger
-        part of a paper-fidelity forward stage, results/palpation_benchmark.md)."""
+        stiffnesses are recomputed (the pattern is a sort of every element's entries; with it and
+        the solver's analysis kept, see :mod:`~jointsim.eit.forward` for what that saves)."""
         electrodes = tuple(electrodes)
         same = (
             mesh.tets.shape == self.mesh.tets.shape

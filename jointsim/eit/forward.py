@@ -6,7 +6,8 @@ fields give the Jacobian by the adjoint method.
 A model made ``like`` an earlier one of the same mesh topology (a morphed chamber, frame after
 frame) keeps its CEM pattern and, where that one is ``shared()``, its PARDISO solver, whose
 ordering and symbolic analysis are then done once: a palpation frame's forward stage at the
-paper's 323 k tets took 3.24 s before and 1.64 s after (results/palpation_benchmark.md)."""
+paper's 323 k tets took 3.24 s before and 1.64 s after (results/palpation_benchmark.md as
+committed in 1a24a27 and b81002b, in git; later runs have the Warp kernels too)."""
 
 from __future__ import annotations
 
