@@ -91,6 +91,8 @@ def run(n_rim: int, layers: int) -> dict:
         return d, spd
 
     def on_regularised(data, free, g, system):
+        if events and events[-1]["kind"] == "full, indefinite" and "alpha" not in events[-1]:
+            events[-1]["rejected"] = True  # the whole step did not lower the energy: the regularised one replaces it
         events.append({"kind": "regularised"})
         return regularised(data, free, g, system)
 
@@ -178,7 +180,9 @@ def write(rows: list[dict], meta: dict) -> None:
 
 def _taken(e: dict) -> str:
     """One iteration as "kind α move": α None where the line search found the energy at its
-    round-off (the step ends there), absent where an indefinite full step was taken whole."""
+    round-off (the step ends there); an indefinite full step is taken whole or rejected."""
+    if e.get("rejected"):
+        return f"{e['kind']}, rejected"
     if "alpha" not in e:
         return f"{e['kind']}, whole"
     if e["alpha"] is None:
