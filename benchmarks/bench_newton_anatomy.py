@@ -20,11 +20,12 @@ energy's curvature along d, which no linear solver setting changes.
     python benchmarks/bench_newton_anatomy.py              # 64/2 and 92/2: results/newton_anatomy.{md,json}
     python benchmarks/bench_newton_anatomy.py --report     # rewrites the .md from the .json
 
-Runs in ~2 min on the 2-core Intel machine.
+Runs in ~40 s on the 2-core Intel machine.
 """
 
 from __future__ import annotations
 
+import json
 import sys
 import time
 from dataclasses import replace
@@ -32,7 +33,7 @@ from dataclasses import replace
 import numpy as np
 import scipy.sparse as sp
 
-from _machine import machine, speed_reference, write_pair
+from _machine import atomic_write, machine, speed_reference
 from bench_mechanics import DEPTHS_MM, ROOT, _membrane
 
 OUT = ROOT / "results" / "newton_anatomy"
@@ -46,13 +47,13 @@ def _free_norm(g: np.ndarray, free: np.ndarray) -> float:
 
 def split_remainder(terms: list, u: np.ndarray, d: np.ndarray, free: np.ndarray) -> dict:
     """The residual after the whole step ``d`` from ``u``, split into the linear solve's part and
-    each term's second-order remainder, all relative to ‖g(u)‖ (free components)."""
+    each term's second-order remainder, all relative to ‖g(u)‖ (free components; "r0")."""
     g0 = [t.evaluate(u, True) for t in terms]
     g1 = [t.evaluate(u + d, False)[1] for t in terms]
     Hd = [sp.csr_matrix(e[2]) @ d.ravel() for e in g0]
     g_u = sum(e[1] for e in g0)
     r0 = _free_norm(g_u, free)
-    out = {"ratio": _free_norm(sum(g1), free) / r0, "linear_solve": _free_norm(g_u + sum(Hd), free) / r0}
+    out = {"r0": r0, "ratio": _free_norm(sum(g1), free) / r0, "linear_solve": _free_norm(g_u + sum(Hd), free) / r0}
     for t, e, gt, hd in zip(terms, g0, g1, Hd):
         out[type(t).__name__] = _free_norm(gt - e[1] - hd, free) / r0
         if hasattr(t, "_gap"):  # the sphere contact: nodes entering or leaving it along the step (its Hessian jumps there)
@@ -100,12 +101,9 @@ def run(n_rim: int, layers: int) -> dict:
         res = line_search(terms, u, E, g, d, it)
         step = float(np.max(np.abs(d)))
         alpha = None if res is None or step == 0 else float(np.max(np.abs(res[0] - u)) / step)
-        kind = events[-1]["kind"] if events and "alpha" not in events[-1] else "?"
-        if events and "alpha" not in events[-1]:
-            events[-1].update(alpha=alpha, move_um=step * 1e6 * (alpha or 0.0), iteration=it)
-        else:
-            events.append({"kind": kind, "alpha": alpha, "move_um": step * 1e6 * (alpha or 0.0), "iteration": it})
-        events[-1]["state"] = (u.copy(), d.copy())
+        if not events or "alpha" in events[-1]:
+            events.append({"kind": "?"})  # a step no hook announced (the projected fallback)
+        events[-1].update(alpha=alpha, move_um=step * 1e6 * (alpha or 0.0), iteration=it, state=(u.copy(), d.copy()))
         return res
 
     def on_minimize(*a, **k):
@@ -138,9 +136,8 @@ def run(n_rim: int, layers: int) -> dict:
                 d = d.reshape(u.shape)
                 # the terms as they were in that iteration: the target is where this step put it
                 split = split_remainder(model.terms, u, d, free)
-                r0 = _free_norm(sum(t.evaluate(u, False)[1] for t in model.terms), free)
                 row["first_full_step"] = {"iteration": first["iteration"], "move_um": first["move_um"], **split,
-                                          "elastic_by_bulk_divisor": elastic_remainder_by_bulk(model, material, u, d, free, r0)}
+                                          "elastic_by_bulk_divisor": elastic_remainder_by_bulk(model, material, u, d, free, split["r0"])}
             steps.append(row)
     finally:
         newton._full_step, newton._regularised_step, newton._line_search = full_step, regularised, line_search
@@ -149,6 +146,7 @@ def run(n_rim: int, layers: int) -> dict:
 
 
 def write(rows: list[dict], meta: dict) -> None:
+    """results/newton_anatomy.md from the measured rows (main writes the .json first)."""
     lines = ["# Anatomy of a press step's Newton solve", "", f"Command: `{meta['command']}`  ",
              f"Machine: {meta['machine']}; run {meta['date']}; speed_reference {meta['speed_reference_s']:.3f} s.  ",
              "The press of results/mechanics_benchmark.md (rigid 15 mm sphere on the axis, 0.5 mm steps to 3 mm, tangent predictor, "
@@ -175,7 +173,7 @@ def write(rows: list[dict], meta: dict) -> None:
                          f"{f['ElasticTerm']:.2e} | {f['PressureTerm']:.1e} | {f['SphereContact']:.1e} | {b['10']:.2e} | {b['100']:.2e} |")
         lines.append("")
     lines += _reading(rows)
-    write_pair(OUT, {"meta": meta, "rows": rows}, "\n".join(lines) + "\n")
+    atomic_write(OUT.with_suffix(".md"), "\n".join(lines) + "\n")
 
 
 def _taken(e: dict) -> str:
@@ -229,15 +227,14 @@ def _reading(rows: list[dict]) -> list[str]:
 
 def main() -> int:
     if len(sys.argv) > 1 and sys.argv[1] == "--report":
-        import json
-
         data = json.loads(OUT.with_suffix(".json").read_text())
         write(data["rows"], data["meta"])
         return 0
     meta = {"command": "python benchmarks/bench_newton_anatomy.py", "machine": machine(), "date": time.strftime("%Y-%m-%d"),
             "speed_reference_s": speed_reference()}
     rows = [run(n_rim, layers) for n_rim, layers in MESHES]
-    write_pair(OUT, {"meta": meta, "rows": rows}, "")  # the measurements first: --report can redo the text
+    # the measurements first: --report redoes the text from them
+    atomic_write(OUT.with_suffix(".json"), json.dumps({"meta": meta, "rows": rows}, indent=2))
     write(rows, meta)
     print(OUT.with_suffix(".md").read_text())
     return 0
