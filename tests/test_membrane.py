@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+import jointsim.mechanics.dome as dome_module
 from jointsim.geometry import chamber_surface, isotropic_cap, spherical_cap
 from jointsim.mechanics.dome import MembraneModel, membrane_mesh
 from jointsim.mechanics.newton import minimize_energy
@@ -285,11 +286,12 @@ def test_force_and_shape_converge_under_mesh_refinement():
     assert np.ptp(out[:, 2]) < 0.03 * np.abs(out[:, 2]).max()
 
 
-def test_a_move_below_the_newton_tolerance_is_answered_by_the_membrane_not_the_penalty():
+def test_a_move_below_the_newton_tolerance_is_answered_by_the_membrane_not_the_penalty(monkeypatch):
     """A servo's jitter (~1e-12 m) moves the target too little for a Newton iteration; the
     membrane must still follow it, so that the force changes with the membrane's stiffness.
-    Here after a one-iteration step (its last factor the regularised one, not the tangent), as
-    at the start of a palpation hold. Without the tangent the membrane stayed put and the force
+    Here after a one-iteration step whose last factor is the regularised one, not the tangent
+    (every predicted step's first iteration regularised, as before dome.REGULARISE_MOVE: a
+    palpation hold's start then). Without the tangent the membrane stayed put and the force
     answered with the penalty's stiffness (605 N/m here against 1.95; ~5e4 N/m on the paper's
     press, where it made the rig's lateral servo loop ring by ×2.4 per frame). The reference:
     a central difference of ±10 µm moves, each solved by Newton; its curvature error at 10 µm
@@ -297,7 +299,9 @@ def test_a_move_below_the_newton_tolerance_is_answered_by_the_membrane_not_the_p
     model, top = _fresh_model()
     for d in (0.5e-3, 1.0e-3):
         model.press(np.array([0.0, 0.0, top - d]))
-    st = model.press(np.array([0.0, 0.0, top - 1.0035e-3]))  # a small move: one iteration
+    with monkeypatch.context() as m:
+        m.setattr(dome_module, "REGULARISE_MOVE", 0.0)
+        st = model.press(np.array([0.0, 0.0, top - 1.0035e-3]))  # a small move: one iteration
     assert st.iterations == 1 and not model.system.tangent_ready  # the case this test is about
     c, dx = model.contact.centre.copy(), 1e-12
     tiny = model.press(c + [dx, 0.0, 0.0])
@@ -308,6 +312,37 @@ def test_a_move_below_the_newton_tolerance_is_answered_by_the_membrane_not_the_p
     assert a.iterations > 0 and b.iterations > 0
     k_ref = -(a.force[0] - b.force[0]) / (2 * h)
     assert k_tiny == pytest.approx(k_ref, rel=0.05)
+
+
+def test_a_small_move_ends_on_the_tangent_so_the_next_frame_needs_no_factorisation(monkeypatch):
+    """A move below dome.REGULARISE_MOVE × thickness (a servo settling at the end of a press)
+    starts Newton with the full step: the Hessian at the tangent predictor is positive definite
+    there, so the step ends holding a positive definite factor, and a hold's next frame (a
+    jitter below the Newton tolerance) is a solve with it: no factorisation. With a regularised
+    first step it ended on a shifted factor and the next frame factored the tangent. Both rules
+    stop at an out-of-balance force below FORCE_RTOL of the contact force, so their forces agree
+    to a few times that."""
+    import jointsim.eit.solver as solver
+
+    model, top = _fresh_model()
+    for d in (0.5e-3, 1.0e-3):
+        model.press(np.array([0.0, 0.0, top - d]))
+    saved = model.get_state()
+    small = np.array([0.0, 0.0, top - 1.0035e-3])
+    assert np.linalg.norm(small - model.contact.centre) < dome_module.REGULARISE_MOVE * model.thickness
+    st = model.press(small)
+    assert st.iterations >= 1 and model.system.tangent_ready
+    factored = []
+    with monkeypatch.context() as m:
+        m.setattr(solver.PatternSolver, "factor", lambda self, data: factored.append(1))
+        tiny = model.press(small + [1e-12, 0.0, 0.0])
+    assert tiny.iterations == 0 and not factored
+    model.set_state(saved)
+    with monkeypatch.context() as m:
+        m.setattr(dome_module, "REGULARISE_MOVE", 0.0)
+        regularised = model.press(small)
+    assert not model.system.tangent_ready  # the other rule's ending, for contrast
+    assert st.force[2] == pytest.approx(regularised.force[2], rel=3 * dome_module.FORCE_RTOL)
 
 
 def test_a_restored_state_continues_exactly(pressed):

@@ -44,6 +44,14 @@ FIRST_CONTACT = 0.01
 # displacement within 0.07 µm, displaced volume within 1e-4 — far below the 2 % mesh error and
 # the EIT noise — for ~15 % fewer Newton iterations
 FORCE_RTOL = 1e-3
+# a load step's first Newton iteration is regularised (newton.minimize_energy's
+# regularise_first) only where the target moves more than this × thickness: the Hessian at the
+# tangent predictor of a 0.5 mm frame is indefinite, but after a move of up to 0.1 × thickness
+# (200 µm, down or up, at 0.5 and 2 mm depth on 64/2) it was positive definite, so the full
+# Newton step is the better first one and its factor is the tangent the next frame predicts
+# with: a hold's servo-sized moves no longer end on a shifted factor that the next frame has to
+# replace by factoring the tangent (the README's palpation run)
+REGULARISE_MOVE = 0.05
 TOUCH_CLEARANCE = 1e-12  # × target radius: ~1000 ulps of the gap, physically nothing
 
 
@@ -576,7 +584,8 @@ class MembraneModel:
         self.contact.centre = centre
         self._step_its = 0  # over the step's Newton solves: friction passes, pressure updates (_tally)
         self._moved = bool(np.any(centre != old_centre))
-        res = self._newton(self._extrapolate(centre) if guess is None else guess, predicted=guess is not None)
+        large = float(np.linalg.norm(centre - old_centre)) > REGULARISE_MOVE * self.thickness
+        res = self._newton(self._extrapolate(centre) if guess is None else guess, predicted=guess is not None and large)
         for _ in range(FRICTION_PASSES if self.friction is not None else 0):
             self.friction.lag(u_start, old_centre, u_normal=res.u)
             res = self._newton(res.u)
