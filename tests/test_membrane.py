@@ -314,6 +314,31 @@ def test_a_move_below_the_newton_tolerance_is_answered_by_the_membrane_not_the_p
     assert k_tiny == pytest.approx(k_ref, rel=0.05)
 
 
+def test_the_hessian_at_the_predictor_is_definite_below_the_regularise_move_not_at_a_frame():
+    """Why dome.REGULARISE_MOVE is where it is: after the target moves REGULARISE_MOVE ×
+    thickness (down or up) from a 1 mm equilibrium, the Hessian at the tangent predictor is
+    positive definite (Cholesky succeeds), so the full Newton step is a descent step there; after
+    a 0.5 mm frame it is not, and the first step is regularised."""
+    from jointsim.mechanics.newton import _total
+
+    model, top = _fresh_model()
+    for d in (0.5e-3, 1.0e-3):
+        model.press(np.array([0.0, 0.0, top - d]))
+    saved, c0 = model.get_state(), model.contact.centre.copy()
+
+    def definite_at_predictor(dz):
+        model.set_state(saved)
+        c = c0 + [0.0, 0.0, dz]
+        guess = model._tangent_guess(c0, c)
+        model.contact.centre = c
+        _, _, Hs, _ = _total(model.terms, guess, True, model.system)
+        return model.system.factor_hessian(model.system.data(Hs), guess)
+
+    small = dome_module.REGULARISE_MOVE * model.thickness
+    assert definite_at_predictor(-small) and definite_at_predictor(small)
+    assert not definite_at_predictor(-0.5e-3) and not definite_at_predictor(0.5e-3)
+
+
 def test_a_small_move_ends_on_the_tangent_so_the_next_frame_needs_no_factorisation(monkeypatch):
     """A move below dome.REGULARISE_MOVE × thickness (a servo settling at the end of a press)
     starts Newton with the full step: the Hessian at the tangent predictor is positive definite

@@ -46,12 +46,13 @@ FIRST_CONTACT = 0.01
 FORCE_RTOL = 1e-3
 # a load step's first Newton iteration is regularised (newton.minimize_energy's
 # regularise_first) only where the target moves more than this × thickness: the Hessian at the
-# tangent predictor of a 0.5 mm frame is indefinite, but after a move of up to 0.1 × thickness
-# (200 µm, down or up, at 0.5 and 2 mm depth on 64/2) it was positive definite, so the full
-# Newton step is the better first one and its factor is the tangent the next frame predicts
-# with: a hold's servo-sized moves no longer end on a shifted factor that the next frame has to
-# replace by factoring the tangent (results/palpation_benchmark.md: the hold frames' mechanics
-# 0.06 and 0.15 s at the dataset and paper resolutions, 0.28 and 0.56 s in the run before)
+# tangent predictor of a 0.5 mm frame is indefinite, but after a smaller move it was positive
+# definite (up to 0.1 × thickness, 200 µm, down or up, at 0.5 and 2 mm depth on 64/2 in a
+# scratch probe; at this move on the test dome in tests/test_membrane.py), so the full Newton
+# step is the better first one and its factor is the tangent the next frame predicts with: a
+# hold's servo-sized moves no longer end on a shifted factor that the next frame has to replace
+# by factoring the tangent (results/palpation_benchmark.md: the hold frames' mechanics 0.06 and
+# 0.15 s at the dataset and paper resolutions, 0.28 and 0.56 s in the run before)
 REGULARISE_MOVE = 0.05
 TOUCH_CLEARANCE = 1e-12  # × target radius: ~1000 ulps of the gap, physically nothing
 
