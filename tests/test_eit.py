@@ -421,12 +421,13 @@ def _grid_laplacian(m: int) -> tuple[sp.csr_matrix, np.ndarray]:
     return sp.csr_matrix(L), (lam1[:, None, None] + lam1[None, :, None] + lam1[None, None, :]).ravel()
 
 
-@pytest.mark.parametrize("single, two_by_two", [(False, True), (True, True), (True, False)])
-def test_pattern_solver_reports_the_inertia_and_solves_to_its_precision(single, two_by_two):
+@pytest.mark.parametrize("single, two_by_two, two_level", [(False, True, False), (True, True, False), (True, False, False), (False, True, True), (True, True, True)])
+def test_pattern_solver_reports_the_inertia_and_solves_to_its_precision(single, two_by_two, two_level):
     """PatternSolver on a shifted 3-D grid Laplacian L − σI (20³ = 8000 unknowns, on PARDISO's
     path), whose eigenvalues are known in closed form: the LDLᵀ factor's negative pivots are
     the count of eigenvalues below σ (Sylvester's law of inertia), in double and in single
-    precision, with 2×2 pivots or 1×1 only; a solve is backward stable:
+    precision, with 2×2 pivots or 1×1 only, by the one-level or the two-level factorisation; a
+    solve is backward stable:
     ‖Ax − b‖ ≤ 100·ε·‖A‖₂·‖x‖ with ε the precision's unit round-off (float32 6e-8, float64
     1.1e-16) and ‖A‖₂ = max |λ − σ| in closed form."""
     from jointsim.eit.solver import PatternSolver, available_backends
@@ -441,7 +442,7 @@ def test_pattern_solver_reports_the_inertia_and_solves_to_its_precision(single, 
     A = sp.csr_matrix(L - sigma * sp.identity(m**3))
     upper = sp.triu(A, format="csr")
     upper.sort_indices()
-    solver = PatternSolver(upper.indptr, upper.indices, spd=False, refinement=0, single=single, two_by_two=two_by_two)
+    solver = PatternSolver(upper.indptr, upper.indices, spd=False, refinement=0, single=single, two_by_two=two_by_two, two_level=two_level)
     assert solver.backend == "pardiso"
     solver.factor(upper.data)
     assert solver.negative_eigenvalues == int((eig < sigma).sum()) > 10
@@ -453,12 +454,13 @@ def test_pattern_solver_reports_the_inertia_and_solves_to_its_precision(single, 
     solver.free()
 
 
-@pytest.mark.parametrize("single", [False, True])
-def test_cholesky_fails_exactly_on_a_matrix_that_is_not_positive_definite(single):
+@pytest.mark.parametrize("single, two_level", [(False, False), (True, False), (False, True)])
+def test_cholesky_fails_exactly_on_a_matrix_that_is_not_positive_definite(single, two_level):
     """PatternSolver.try_factor on L − σI (the 3-D grid Laplacian, 12³ unknowns, smallest
     eigenvalue λ₁ in closed form): σ at 0.9 λ₁ factors (and solves backward stably), σ at 1.1 λ₁
     leaves one eigenvalue −0.1 λ₁ ≈ −0.01 — far above either precision's round-off of ‖A‖ ≈ 12
-    — and is refused, with no stale factor left to solve with."""
+    — and is refused, with no stale factor left to solve with; by the one-level or the two-level
+    factorisation (the CEM matrices take the latter: SPD_TWO_LEVEL)."""
     from jointsim.eit.solver import PatternSolver, available_backends
 
     if "pardiso" not in available_backends():
@@ -468,7 +470,7 @@ def test_cholesky_fails_exactly_on_a_matrix_that_is_not_positive_definite(single
     low = eig.min()
     upper = sp.triu(L, format="csr")
     upper.sort_indices()
-    solver = PatternSolver(upper.indptr, upper.indices, spd=True, backend="pardiso", refinement=0, single=single)
+    solver = PatternSolver(upper.indptr, upper.indices, spd=True, backend="pardiso", refinement=0, single=single, two_level=two_level)
     diag = upper.indptr[:-1]  # each row of the sorted upper triangle starts at its diagonal
     for factor, definite in ((0.9, True), (1.1, False), (0.9, True)):
         data = upper.data.copy()

@@ -83,6 +83,12 @@ PARDISO_REFINEMENT = 2  # iterative refinement steps per solve: MKL's default, i
 # fields agree with two steps' to 1e-12). In a scratch run on the paper's chamber (323 k
 # tetrahedra, P1 CEM) the two steps took 0.2 s of a 0.47 s factorisation + 16 solves
 SPD_REFINEMENT = 0
+# ...and is factored by PARDISO's two-level algorithm (iparm(24) = 1), which MKL offers for
+# scalability on many threads. On 2 cores it left the paper chamber's factorisation as it was and
+# took the 16 lead-field solves 0.67× the classic one's time; on Newton's Hessians (PatternSolver's
+# default, one-level) its factorisation took 1.09×, which a Newton iteration's one solve (0.45×)
+# does not win back (results/pardiso_two_level.md)
+SPD_TWO_LEVEL = True
 
 
 def _release_pardiso(solver) -> None:
@@ -147,7 +153,7 @@ def factorize(A: sp.spmatrix, backend: str = "auto", spd: bool = True) -> Factor
         mtype = 2 if spd else -2
         solver = _pardiso_solver(mtype)
         if spd:  # MKL's settings, made explicit to drop the refinement (restored on release)
-            _set_iparm(solver, SPD_REFINEMENT)
+            _set_iparm(solver, SPD_REFINEMENT, two_level=SPD_TWO_LEVEL)
         Au = sp.triu(A, format="csr")
         Au.sort_indices()
         solver.factorize(Au)
@@ -160,7 +166,7 @@ def factorize(A: sp.spmatrix, backend: str = "auto", spd: bool = True) -> Factor
     raise ValueError(f"backend = {backend!r}: allowed values are {available_backends()}")
 
 
-def _set_iparm(solver, refinement: int, single: bool = False, two_by_two: bool = True) -> None:
+def _set_iparm(solver, refinement: int, single: bool = False, two_by_two: bool = True, two_level: bool = False) -> None:
     """MKL's defaults for a symmetric matrix, made explicit (iparm(1) = 1) so that the
     iterative refinement steps set here are honoured: with iparm(1) = 0 MKL overwrites every
     entry with its defaults on the first call, refinement included (2 steps: a Newton solve of
@@ -168,7 +174,8 @@ def _set_iparm(solver, refinement: int, single: bool = False, two_by_two: bool =
     in single precision (iparm(28) = 1; the matrix and right-hand sides then float32).
     ``two_by_two``: Bunch–Kaufman 1×1 and 2×2 pivots for a symmetric indefinite matrix; without,
     1×1 pivots only, tiny ones perturbed (iparm(21) = 0; the inertia is then the perturbed
-    matrix's, which differs only by pivots ~1e-8·‖A‖)."""
+    matrix's, which differs only by pivots ~1e-8·‖A‖). ``two_level``: the two-level
+    factorisation (iparm(24) = 1; see SPD_TWO_LEVEL)."""
     ip = solver.iparm
     ip[:] = 0
     ip[0] = 1  # user-supplied values
@@ -177,6 +184,7 @@ def _set_iparm(solver, refinement: int, single: bool = False, two_by_two: bool =
     ip[9] = 8  # pivot perturbation 1e-8 (symmetric)
     ip[17] = -1  # report the factor's non-zeros
     ip[20] = 1 if two_by_two else 0
+    ip[23] = 1 if two_level else 0
     ip[27] = 1 if single else 0
 
 
@@ -193,14 +201,17 @@ class PatternSolver:
     results/mechanics_solvers.md), and a solve's relative residual of 1e-5 to 1e-3 on a pressed
     membrane's Hessian — for Newton directions, which need no more (the press's forces agree
     with double to four digits).
-    ``two_by_two=False``: 1×1 pivots only; measured no faster there (0.97)."""
+    ``two_by_two=False``: 1×1 pivots only; measured no faster there (0.97).
+    ``two_level``: PARDISO's two-level factorisation (see SPD_TWO_LEVEL)."""
 
     def __init__(
-        self, indptr: np.ndarray, indices: np.ndarray, spd: bool, backend: str = "auto", refinement: int = PARDISO_REFINEMENT, single: bool = False, two_by_two: bool = True
+        self, indptr: np.ndarray, indices: np.ndarray, spd: bool, backend: str = "auto", refinement: int = PARDISO_REFINEMENT, single: bool = False,
+        two_by_two: bool = True, two_level: bool = False,
     ):
         self.refinement = int(refinement)
         self.single = bool(single)
         self.two_by_two = bool(two_by_two)
+        self.two_level = bool(two_level)
         self.indptr = np.asarray(indptr, np.int64)
         self.indices = np.asarray(indices, np.int64)
         self.n = len(self.indptr) - 1
@@ -228,7 +239,7 @@ class PatternSolver:
             return
         if self._solver is None:
             self._solver = _pardiso_solver(2 if self.spd else -2)
-            _set_iparm(self._solver, self.refinement, self.single, self.two_by_two)
+            _set_iparm(self._solver, self.refinement, self.single, self.two_by_two, self.two_level)
         b = np.zeros(self.n, self._dtype)
         if not self._analysed:
             self._solver.set_phase(11)
