@@ -50,12 +50,14 @@ RESOLUTIONS = [(48, 2, 0.0, "pointwise"), (64, 2, 0.0, "pointwise"), (72, 2, 0.0
 # `--solvers`: the Newton solves' settings compared on one mesh, each run REPEATS times
 # interleaved (load drift falls on all alike): (single precision, 2×2 pivots, Cholesky first,
 # element-kernel threads or 0 for the package's KERNEL_THREADS, the elastic Hessian assembled
-# by the kernel into the Newton system or as a matrix the system gathers from); the first is the
-# package default, every RESOLUTIONS row's. The last is the default before Cholesky-first and
-# the threaded kernel (results of 2026-11-21) in its solver settings
-SOLVERS = {"default": (True, True, True, 0, True), "LDLᵀ only": (True, True, False, 0, True), "one kernel thread": (True, True, True, 1, True),
-           "double precision": (False, True, True, 0, True), "Hessian gathered from a matrix": (True, True, True, 0, False),
-           "LDLᵀ only, one kernel thread": (True, True, False, 1, True)}
+# by the kernel into the Newton system or as a matrix the system gathers from, PARDISO's two-level
+# factorisation); the first is the package default, every RESOLUTIONS row's. "LDLᵀ only, one
+# kernel thread" is the default before Cholesky-first and the threaded kernel (results of
+# 2026-11-21) in its solver settings
+SOLVERS = {"default": (True, True, True, 0, True, True), "LDLᵀ only": (True, True, False, 0, True, True),
+           "one kernel thread": (True, True, True, 1, True, True), "double precision": (False, True, True, 0, True, True),
+           "Hessian gathered from a matrix": (True, True, True, 0, False, True), "LDLᵀ only, one kernel thread": (True, True, False, 1, True, True),
+           "one-level factorisation": (True, True, True, 0, True, False)}
 SOLVER_MESH, REPEATS = (92, 2, 0.0, "pointwise"), 2
 # `--flat`: the same press on the membrane moulded flat and inflated to the dome ([membrane]
 # moulding = "flat"); the last is the reference
@@ -71,7 +73,7 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
     import jointsim.mechanics.fem as fem
     import jointsim.mechanics.newton as newton
 
-    newton.SINGLE_PRECISION, newton.PIVOT_2X2, newton.CHOLESKY_FIRST, threads, into = SOLVERS[linear]
+    newton.SINGLE_PRECISION, newton.PIVOT_2X2, newton.CHOLESKY_FIRST, threads, into, solver.PARDISO_TWO_LEVEL = SOLVERS[linear]
     fem.KERNEL_THREADS = threads or fem.KERNEL_THREADS
     if not into:  # Newton then takes the Hessian on the mesh's pattern and gathers its values
         del fem.ElasticTerm.evaluate_into
@@ -263,10 +265,11 @@ def write_solvers(runs: list[dict], meta: dict) -> None:
              f"each setting run {meta['repeats']} times interleaved; per-step means over the steps after the first. PARDISO, the ordering and "
              "symbolic analysis once per model. Ratios against the package default: single precision; each Hessian (and each shifted one) "
              "factored by Cholesky first, by Bunch–Kaufman LDLᵀ (1×1 and 2×2 pivots) with its inertia only where Cholesky fails; the Warp "
-             f"element kernel launched in {meta.get('kernel_threads', '?')} chunks from as many threads. \"LDLᵀ only, one kernel thread\" "
-             "is the default of results/mechanics_benchmark.md before 2026-11-22 in its solver settings; the pressure Hessian's "
-             "assembly (a fixed linear map since 2026-11-22) is the package's in every row, so that row is faster than that default "
-             "was. \"Hessian gathered from a matrix\": the element kernel assembles the Hessian on the mesh's pattern and the Newton "
+             f"element kernel launched in {meta.get('kernel_threads', '?')} chunks from as many threads; PARDISO's two-level "
+             "factorisation. \"LDLᵀ only, one kernel thread\" is the default of results/mechanics_benchmark.md before 2026-11-22 in its "
+             "solver settings; the pressure Hessian's assembly (a fixed linear map since 2026-11-22) and the two-level factorisation "
+             "(since 2026-11-22; \"one-level factorisation\" is the classic one, jointsim/eit/solver.py PARDISO_TWO_LEVEL) are the "
+             "package's in that row, so it is faster than that default was. \"Hessian gathered from a matrix\": the element kernel assembles the Hessian on the mesh's pattern and the Newton "
              "system gathers its free upper triangle, as before 2026-11-22, instead of adding straight into it.", "",
              "| setting | s / step | ratio | factorise+solve s / step | ratio | kernel s / step | ratio | Newton its / step | F 1 / 2 / 3 mm, mN |",
              "|---|---|---|---|---|---|---|---|---|"]

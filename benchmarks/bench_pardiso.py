@@ -9,10 +9,11 @@ systems the package factors most:
   lead-field solves, with a fresh analysis (one forward: ForwardModel) and with the analysis
   reused (the morphed chambers of a palpation: the forward's _SharedSolver).
 
-The package takes the two-level factorisation for the CEM matrices (jointsim.eit.solver.SPD_TWO_LEVEL)
-and the one-level one for Newton's Hessians (PatternSolver's default).
+The package takes the two-level factorisation for both (jointsim.eit.solver.PARDISO_TWO_LEVEL);
+`python benchmarks/bench_mechanics.py --solvers` measures a whole press with either.
 
     python benchmarks/bench_pardiso.py [repeats]     # writes results/pardiso_two_level.{json,md}
+    python benchmarks/bench_pardiso.py --report      # rewrites the .md from the .json
 
 The settings alternate within each repeat (medians of the repeats). Checks beside the times:
 both give the same inertia of an indefinite matrix (the Hessian shifted down), both Cholesky
@@ -99,7 +100,7 @@ def time_chamber(A, rhs, two_level: bool) -> dict:
     """One forward's linear algebra: analysis and factorisation, then the 16 solves at once."""
     import jointsim.eit.solver as solver
 
-    solver.SPD_TWO_LEVEL = two_level  # what factorize reads
+    solver.PARDISO_TWO_LEVEL = two_level  # what factorize reads
     t0 = time.perf_counter()
     solve = solver.factorize(A, "pardiso")
     factor = time.perf_counter() - t0
@@ -135,6 +136,12 @@ def time_chamber_shared(A, rhs, two_level: bool) -> dict:
 def main(argv: list[str]) -> int:
     from jointsim.eit.solver import available_backends
 
+    if argv[:1] == ["--report"]:
+        import json
+
+        d = json.loads(OUT.with_suffix(".json").read_text())
+        write_pair(OUT, d, markdown(d))
+        return 0
     if "pardiso" not in available_backends():
         print("PARDISO (pypardiso) is not installed: nothing to compare")
         return 1
@@ -162,7 +169,7 @@ def main(argv: list[str]) -> int:
                 f"{c} {runs[name][c][-1]['factor_s']:.3f} + {runs[name][c][-1]['solve_s']:.4f} s" for c in runs[name]), flush=True)
     import jointsim.eit.solver as solver
 
-    solver.SPD_TWO_LEVEL = True  # the package's setting again
+    solver.PARDISO_TWO_LEVEL = True  # the package's setting again
     meta["speed_reference_end_s"] = speed_reference()
     agree = {case: float(np.linalg.norm(keep[("two-level", case)] - keep[("one-level", case)]) / np.linalg.norm(keep[("one-level", case)]))
              for case in cases}
@@ -214,7 +221,8 @@ def markdown(d: dict) -> str:
         f"{ldlt['two-level']} two-level; Cholesky breaks down on it in every repeat: one-level {chol['one-level']}, two-level "
         f"{chol['two-level']}. The chamber's relative residual: at most {res['one-level']:.1e} one-level, {res['two-level']:.1e} two-level.",
         "",
-        "The package: two-level for the CEM matrices (jointsim/eit/solver.py SPD_TWO_LEVEL), one-level for Newton's Hessians.",
+        "The package takes the two-level factorisation for both (jointsim/eit/solver.py PARDISO_TWO_LEVEL); a whole press with "
+        "either: results/mechanics_solvers.md.",
         "",
     ])
 

@@ -460,7 +460,7 @@ def test_cholesky_fails_exactly_on_a_matrix_that_is_not_positive_definite(single
     eigenvalue λ₁ in closed form): σ at 0.9 λ₁ factors (and solves backward stably), σ at 1.1 λ₁
     leaves one eigenvalue −0.1 λ₁ ≈ −0.01 — far above either precision's round-off of ‖A‖ ≈ 12
     — and is refused, with no stale factor left to solve with; by the one-level or the two-level
-    factorisation (the CEM matrices take the latter: SPD_TWO_LEVEL)."""
+    factorisation (the package's: PARDISO_TWO_LEVEL)."""
     from jointsim.eit.solver import PatternSolver, available_backends
 
     if "pardiso" not in available_backends():

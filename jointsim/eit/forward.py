@@ -22,7 +22,7 @@ from ..mesh.tetmesh import TetMesh
 from ..scene import Scene
 from .fem import CEMAssembler
 from .protocol import Protocol
-from .solver import SPD_REFINEMENT, SPD_TWO_LEVEL, PatternSolver, available_backends, factorize
+from .solver import SPD_REFINEMENT, PatternSolver, available_backends, factorize
 
 __all__ = ["ForwardModel", "LeadFields"]
 
@@ -201,8 +201,7 @@ class _SharedSolver:
         rows = np.repeat(np.arange(n), np.diff(indptr))
         self._upper = indices >= rows  # the upper triangle, in the order of the assembled values
         upper_indptr = np.concatenate([[0], np.cumsum(np.bincount(rows[self._upper], minlength=n))])
-        self._solver = PatternSolver(upper_indptr, indices[self._upper], spd=True, backend="pardiso", refinement=SPD_REFINEMENT,
-                                     two_level=SPD_TWO_LEVEL)
+        self._solver = PatternSolver(upper_indptr, indices[self._upper], spd=True, backend="pardiso", refinement=SPD_REFINEMENT)
 
     def solve(self, A, rhs: np.ndarray) -> np.ndarray:
         self._solver.factor(A.data[self._upper])

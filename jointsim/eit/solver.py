@@ -83,12 +83,12 @@ PARDISO_REFINEMENT = 2  # iterative refinement steps per solve: MKL's default, i
 # fields agree with two steps' to 1e-12). In a scratch run on the paper's chamber (323 k
 # tetrahedra, P1 CEM) the two steps took 0.2 s of a 0.47 s factorisation + 16 solves
 SPD_REFINEMENT = 0
-# ...and is factored by PARDISO's two-level algorithm (iparm(24) = 1), which MKL offers for
-# scalability on many threads. On 2 cores it left the paper chamber's factorisation as it was and
-# took the 16 lead-field solves 0.67× the classic one's time; on Newton's Hessians (PatternSolver's
-# default, one-level) its factorisation took 1.09×, which a Newton iteration's one solve (0.45×)
-# does not win back (results/pardiso_two_level.md)
-SPD_TWO_LEVEL = True
+# PARDISO factors by its two-level algorithm (iparm(24) = 1), which MKL offers for scalability on
+# many threads, instead of the classic one-level one. On these 2 cores the paper chamber's CEM
+# matrix factorises in the same time and its 16 lead-field solves take 0.71×; the 92/2 membrane's
+# Hessian factorises in 1.05× and a solve takes 0.47× (results/pardiso_two_level.md), and the
+# press of results/mechanics_solvers.md takes fewer seconds per step (the one-level row there)
+PARDISO_TWO_LEVEL = True
 
 
 def _release_pardiso(solver) -> None:
@@ -153,7 +153,7 @@ def factorize(A: sp.spmatrix, backend: str = "auto", spd: bool = True) -> Factor
         mtype = 2 if spd else -2
         solver = _pardiso_solver(mtype)
         if spd:  # MKL's settings, made explicit to drop the refinement (restored on release)
-            _set_iparm(solver, SPD_REFINEMENT, two_level=SPD_TWO_LEVEL)
+            _set_iparm(solver, SPD_REFINEMENT, two_level=PARDISO_TWO_LEVEL)
         Au = sp.triu(A, format="csr")
         Au.sort_indices()
         solver.factorize(Au)
@@ -175,7 +175,7 @@ def _set_iparm(solver, refinement: int, single: bool = False, two_by_two: bool =
     ``two_by_two``: Bunch–Kaufman 1×1 and 2×2 pivots for a symmetric indefinite matrix; without,
     1×1 pivots only, tiny ones perturbed (iparm(21) = 0; the inertia is then the perturbed
     matrix's, which differs only by pivots ~1e-8·‖A‖). ``two_level``: the two-level
-    factorisation (iparm(24) = 1; see SPD_TWO_LEVEL)."""
+    factorisation (iparm(24) = 1; see PARDISO_TWO_LEVEL)."""
     ip = solver.iparm
     ip[:] = 0
     ip[0] = 1  # user-supplied values
@@ -202,16 +202,16 @@ class PatternSolver:
     membrane's Hessian — for Newton directions, which need no more (the press's forces agree
     with double to four digits).
     ``two_by_two=False``: 1×1 pivots only; measured no faster there (0.97).
-    ``two_level``: PARDISO's two-level factorisation (see SPD_TWO_LEVEL)."""
+    ``two_level``: PARDISO's two-level factorisation (None: PARDISO_TWO_LEVEL's, when made)."""
 
     def __init__(
         self, indptr: np.ndarray, indices: np.ndarray, spd: bool, backend: str = "auto", refinement: int = PARDISO_REFINEMENT, single: bool = False,
-        two_by_two: bool = True, two_level: bool = False,
+        two_by_two: bool = True, two_level: bool | None = None,
     ):
         self.refinement = int(refinement)
         self.single = bool(single)
         self.two_by_two = bool(two_by_two)
-        self.two_level = bool(two_level)
+        self.two_level = PARDISO_TWO_LEVEL if two_level is None else bool(two_level)
         self.indptr = np.asarray(indptr, np.int64)
         self.indices = np.asarray(indices, np.int64)
         self.n = len(self.indptr) - 1
