@@ -13,6 +13,10 @@ and the rest.
     python benchmarks/bench_mechanics.py --report   # rewrites the .md files from the .json
     python benchmarks/bench_mechanics.py --solvers [N]  # the solver settings on one mesh, N runs each:
                                                     # results/mechanics_solvers.{md,json}
+    python benchmarks/bench_mechanics.py --pair SETTING [N]  # the default and one SOLVERS setting in N
+                                                    # adjacent pairs, ratios per pair (for gains
+                                                    # below the spread between runs on a busy
+                                                    # machine): results/mechanics_solver_pair.{md,json}
     python benchmarks/bench_mechanics.py --assembly [N]  # one iteration's Hessian by both assembly
                                                     # routes, N times: results/mechanics_assembly.{md,json}
     python benchmarks/bench_mechanics.py --first-contact [N]  # the first 0.5 mm frame solved with and without
@@ -168,6 +172,9 @@ def main() -> int:
         if SOLVERS_OUT.with_suffix(".json").exists():
             saved = json.loads(SOLVERS_OUT.with_suffix(".json").read_text())
             write_solvers(saved["runs"], saved["meta"])
+        if PAIR_OUT.with_suffix(".json").exists():
+            saved = json.loads(PAIR_OUT.with_suffix(".json").read_text())
+            write_pair_study(saved["runs"], saved["meta"])
         return 0
     if len(sys.argv) > 1 and sys.argv[1] == "--one":
         args = sys.argv[2:]
@@ -185,6 +192,8 @@ def main() -> int:
         return first_contact(int(sys.argv[2]) if len(sys.argv) > 2 else 2)
     if len(sys.argv) > 1 and sys.argv[1] == "--solvers":
         return solvers(int(sys.argv[2]) if len(sys.argv) > 2 else REPEATS)
+    if len(sys.argv) > 2 and sys.argv[1] == "--pair":
+        return pair(sys.argv[2], int(sys.argv[3]) if len(sys.argv) > 3 else 4)
     if len(sys.argv) > 1 and sys.argv[1] == "--flat":
         return study(FLAT_RESOLUTIONS, FLAT_OUT, "flat", "python benchmarks/bench_mechanics.py --flat")
     return study(RESOLUTIONS, OUT, "cap", "python benchmarks/bench_mechanics.py")
@@ -228,8 +237,6 @@ SOLVERS_OUT = ROOT / "results" / "mechanics_solvers"
 def solvers(repeats: int = REPEATS) -> int:
     """The linear-solver comparison on SOLVER_MESH (``--solvers``): results/mechanics_solvers.{md,json},
     finished runs kept in its .partial.json (an interrupted run resumes)."""
-    import subprocess
-
     partial = SOLVERS_OUT.with_suffix(".partial.json")
     saved = json.loads(partial.read_text()) if partial.exists() else {"runs": [], "meta": {}}
     meta = saved["meta"] or {**_new_meta(f"python benchmarks/bench_mechanics.py --solvers {repeats}"), "speed_reference_s": speed_reference()}
@@ -239,17 +246,83 @@ def solvers(repeats: int = REPEATS) -> int:
         if i < len(runs):
             continue
         linear = list(SOLVERS)[i % len(SOLVERS)]
-        r = subprocess.run([sys.executable, __file__, "--one", *map(str, SOLVER_MESH), linear], capture_output=True, text=True)
-        if r.returncode:
-            print(r.stderr[-2000:], file=sys.stderr)
+        r = _press_run(linear)
+        if r is None:
             return 1
-        runs.append(json.loads(r.stdout.strip().splitlines()[-1]))
+        runs.append(r)
         atomic_write(partial, json.dumps({"meta": meta, "runs": runs}, indent=2))
         print(f"{linear}: {np.mean([x['wall_s'] for x in runs[-1]['steps'][1:]]):.2f} s/step", flush=True)
     meta["load_average_start_end"][1] = os.getloadavg()[0]
     write_solvers(runs, meta)
     partial.unlink()
     return 0
+
+
+PAIR_OUT = ROOT / "results" / "mechanics_solver_pair"
+
+
+def _press_run(linear: str) -> dict | None:
+    """SOLVER_MESH's press with the ``linear`` setting, in a fresh process (None: it failed)."""
+    import subprocess
+
+    r = subprocess.run([sys.executable, __file__, "--one", *map(str, SOLVER_MESH), linear], capture_output=True, text=True)
+    if r.returncode:
+        print(r.stderr[-2000:], file=sys.stderr)
+        return None
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def pair(setting: str, pairs: int) -> int:
+    """``--pair``: the default and ``setting`` run back to back ``pairs`` times (the order
+    alternating), so that each pair sees nearly the same machine; results/mechanics_solver_pair."""
+    if setting not in SOLVERS or setting == "default":
+        print(f"SETTING = {setting!r}: one of {[k for k in SOLVERS if k != 'default']}", file=sys.stderr)
+        return 2
+    meta = {**_new_meta(f"python benchmarks/bench_mechanics.py --pair {setting!r} {pairs}"), "speed_reference_s": speed_reference(),
+            "setting": setting, "pairs": pairs}
+    runs = []
+    for i in range(pairs):
+        order = ("default", setting) if i % 2 == 0 else (setting, "default")
+        for linear in order:
+            r = _press_run(linear)
+            if r is None:
+                return 1
+            r["pair"] = i
+            runs.append(r)
+            print(f"pair {i + 1}/{pairs} {linear}: {np.mean([x['wall_s'] for x in r['steps'][1:]]):.2f} s/step", flush=True)
+    meta["load_average_start_end"][1] = os.getloadavg()[0]
+    write_pair_study(runs, meta)
+    return 0
+
+
+def write_pair_study(runs: list[dict], meta: dict) -> None:
+    """results/mechanics_solver_pair.{md,json} from the runs of :func:`pair`."""
+    step = lambda r, key: float(np.mean([x[key] for x in r["steps"][1:]]))
+    setting = meta["setting"]
+    lines = [f"# Mechanics: \"{setting}\" against the default, in adjacent pairs", "", f"Command: `{meta['command']}`  ",
+             f"Machine: {meta['machine']}; run {meta['date']}; 1-min load average {meta['load_average_start_end'][0]:.1f} at the start, "
+             f"{meta['load_average_start_end'][1]:.1f} at the end; speed_reference {meta['speed_reference_s']:.3f} s (`benchmarks/_machine.py`).  ",
+             f"The press of results/mechanics_solvers.md on the {_label(runs[0])} membrane (settings there), run with the package default "
+             f"and with \"{setting}\" back to back, each in its own process, {meta['pairs']} pairs, the order alternating. Per-step means "
+             "over the steps after the first; ratio: the setting's over the default's of the same pair. This shared machine's speed "
+             "drifts between runs by more than such a gain, and much less within a pair.", "",
+             "| pair | default s / step | setting s / step | ratio | default factorise+solve s | setting | ratio | Newton its / step | F 1 / 2 / 3 mm, mN (setting) |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    ratios, lin = [], []
+    for i in range(meta["pairs"]):
+        d = next(r for r in runs if r["pair"] == i and r["linear"] == "default")
+        x = next(r for r in runs if r["pair"] == i and r["linear"] == setting)
+        ratios.append(step(x, "wall_s") / step(d, "wall_s"))
+        lin.append(step(x, "factorise+solve_s") / step(d, "factorise+solve_s"))
+        lines.append(f"| {i + 1} | {step(d, 'wall_s'):.2f} | {step(x, 'wall_s'):.2f} | {ratios[-1]:.3f} | {step(d, 'factorise+solve_s'):.2f} | "
+                     f"{step(x, 'factorise+solve_s'):.2f} | {lin[-1]:.3f} | {step(d, 'iterations'):.1f} / {step(x, 'iterations'):.1f} | "
+                     + " / ".join(f"{_at(x, dd):.2f}" for dd in (1.0, 2.0, 3.0)) + " |")
+    same = all(abs(_at(r, dd) - _at(runs[0], dd)) < 5e-3 for r in runs for dd in (1.0, 2.0, 3.0))
+    lines += ["", f"Ratio of the setting to the default: wall time median {np.median(ratios):.3f} (range {min(ratios):.3f}–{max(ratios):.3f}), "
+              f"factorise+solve median {np.median(lin):.3f} (range {min(lin):.3f}–{max(lin):.3f}). Forces "
+              + ("the same to 0.01 mN in every run." if same else "differ between runs: see the .json.")]
+    write_pair(PAIR_OUT, {"meta": meta, "runs": runs}, "\n".join(lines) + "\n")
+    print("\n".join(lines))
 
 
 def write_solvers(runs: list[dict], meta: dict) -> None:
@@ -271,13 +344,18 @@ def write_solvers(runs: list[dict], meta: dict) -> None:
              "(since 2026-11-22; \"one-level factorisation\" is the classic one, jointsim/eit/solver.py PARDISO_TWO_LEVEL) are the "
              "package's in that row, so it is faster than that default was. \"Hessian gathered from a matrix\": the element kernel assembles the Hessian on the mesh's pattern and the Newton "
              "system gathers its free upper triangle, as before 2026-11-22, instead of adding straight into it.", "",
-             "| setting | s / step | ratio | factorise+solve s / step | ratio | kernel s / step | ratio | Newton its / step | F 1 / 2 / 3 mm, mN |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| setting | s / step | ratio | runs' s / step, min–max | factorise+solve s / step | ratio | kernel s / step | ratio | Newton its / step | F 1 / 2 / 3 mm, mN |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for k, rs in by.items():
-        lines.append(f"| {k} | {mean(rs, 'wall_s'):.2f} | {mean(rs, 'wall_s') / mean(base, 'wall_s'):.2f} | {mean(rs, 'factorise+solve_s'):.2f} | "
+        spread = [mean([r], "wall_s") for r in rs]
+        lines.append(f"| {k} | {mean(rs, 'wall_s'):.2f} | {mean(rs, 'wall_s') / mean(base, 'wall_s'):.2f} | {min(spread):.2f}–{max(spread):.2f} | "
+                     f"{mean(rs, 'factorise+solve_s'):.2f} | "
                      f"{mean(rs, 'factorise+solve_s') / mean(base, 'factorise+solve_s'):.2f} | {mean(rs, 'kernel_s'):.2f} | "
                      f"{mean(rs, 'kernel_s') / mean(base, 'kernel_s'):.2f} | {mean(rs, 'iterations'):.1f} | "
                      + " / ".join(f"{_at(rs[0], d):.2f}" for d in (1.0, 2.0, 3.0)) + " |")
+    lines += ["", "Where a setting's runs spread wider than the settings differ (the min–max column: this shared machine's load "
+              "drifts within a run), the run cannot rank them; `--pair SETTING` runs one setting and the default back to back "
+              "(results/mechanics_solver_pair.md)."]
     write_pair(SOLVERS_OUT, {"meta": meta, "runs": runs}, "\n".join(lines) + "\n")
     print("\n".join(lines))
 
