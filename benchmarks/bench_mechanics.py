@@ -295,9 +295,14 @@ def pair(setting: str, pairs: int) -> int:
     return 0
 
 
+def _per_step(runs: list[dict], key: str) -> float:
+    """The mean of ``key`` over the runs' steps after the first (the first: first contact)."""
+    return float(np.mean([x[key] for r in runs for x in r["steps"][1:]]))
+
+
 def write_pair_study(runs: list[dict], meta: dict) -> None:
     """results/mechanics_solver_pair.{md,json} from the runs of :func:`pair`."""
-    step = lambda r, key: float(np.mean([x[key] for x in r["steps"][1:]]))
+    step = lambda r, key: _per_step([r], key)  # noqa: E731
     setting = meta["setting"]
     lines = [f"# Mechanics: \"{setting}\" against the default, in adjacent pairs", "", f"Command: `{meta['command']}`  ",
              f"Machine: {meta['machine']}; run {meta['date']}; 1-min load average {meta['load_average_start_end'][0]:.1f} at the start, "
@@ -327,7 +332,7 @@ def write_pair_study(runs: list[dict], meta: dict) -> None:
 
 def write_solvers(runs: list[dict], meta: dict) -> None:
     """results/mechanics_solvers.{md,json} from the runs of :func:`solvers`."""
-    mean = lambda rs, key: float(np.mean([x[key] for r in rs for x in r["steps"][1:]]))
+    mean = _per_step
     by = {k: [r for r in runs if r["linear"] == k] for k in SOLVERS}
     base = by["default"]
     lines = ["# Mechanics: the Newton solves' linear-solver and kernel settings", "", f"Command: `{meta['command']}`  ",

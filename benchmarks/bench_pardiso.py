@@ -53,22 +53,32 @@ def hessian_case() -> tuple:
     return system, system.data(Hs), -g[system.free], model.mesh.n_nodes
 
 
-def time_hessian(system, data: np.ndarray, b: np.ndarray, spd: bool, two_level: bool) -> dict:
-    """One analysis, then a numerical factorisation and SOLVES solves, timed; the solution; and
-    what the factor says about the Hessian shifted to indefinite."""
+def _pattern_timing(indptr, indices, data: np.ndarray, b: np.ndarray, solves: int, **kw):
+    """(PatternSolver(indptr, indices, **kw) still holding its factor, numerical factorisation s,
+    median solve s, solution): the analysis done first and left out, as a model's later
+    factorisations reuse it."""
     from jointsim.eit.solver import PatternSolver
-    from jointsim.mechanics.newton import SINGLE_PRECISION
 
-    s = PatternSolver(system.full.indptr, system.full.indices, spd=spd, refinement=0, single=SINGLE_PRECISION, two_level=two_level)
-    s.factor(data)  # the analysis, done once per model in Newton
+    s = PatternSolver(indptr, indices, **kw)
+    s.factor(data)
     t0 = time.perf_counter()
     s.factor(data)
     factor = time.perf_counter() - t0
-    solves = []
-    for _ in range(SOLVES):
+    times = []
+    for _ in range(solves):
         t0 = time.perf_counter()
         x = s.solve(b)
-        solves.append(time.perf_counter() - t0)
+        times.append(time.perf_counter() - t0)
+    return s, factor, float(np.median(times)), x
+
+
+def time_hessian(system, data: np.ndarray, b: np.ndarray, spd: bool, two_level: bool) -> dict:
+    """A numerical factorisation and SOLVES solves as Newton's, timed; the solution; and what
+    the factor says about the Hessian shifted to indefinite."""
+    from jointsim.mechanics.newton import SINGLE_PRECISION
+
+    s, factor, solve, x = _pattern_timing(system.full.indptr, system.full.indices, data, b, SOLVES, spd=spd, refinement=0,
+                                          single=SINGLE_PRECISION, two_level=two_level)
     shifted = data.copy()
     shifted[system.diagonal] -= 1e-3 * np.abs(data[system.diagonal])  # σ = −1e-3: a few thousand negative pivots
     if spd:
@@ -77,7 +87,7 @@ def time_hessian(system, data: np.ndarray, b: np.ndarray, spd: bool, two_level: 
         s.factor(shifted)
         indefinite = {"negative_eigenvalues": s.negative_eigenvalues}
     s.free()
-    return {"factor_s": factor, "solve_s": float(np.median(solves)), "x": x, **indefinite}
+    return {"factor_s": factor, "solve_s": solve, "x": x, **indefinite}
 
 
 def chamber_case() -> tuple:
@@ -100,10 +110,13 @@ def time_chamber(A, rhs, two_level: bool) -> dict:
     """One forward's linear algebra: analysis and factorisation, then the 16 solves at once."""
     import jointsim.eit.solver as solver
 
-    solver.PARDISO_TWO_LEVEL = two_level  # what factorize reads
-    t0 = time.perf_counter()
-    solve = solver.factorize(A, "pardiso")
-    factor = time.perf_counter() - t0
+    package, solver.PARDISO_TWO_LEVEL = solver.PARDISO_TWO_LEVEL, two_level  # what factorize reads
+    try:
+        t0 = time.perf_counter()
+        solve = solver.factorize(A, "pardiso")
+        factor = time.perf_counter() - t0
+    finally:
+        solver.PARDISO_TWO_LEVEL = package
     t0 = time.perf_counter()
     x = solve(rhs)
     solves = time.perf_counter() - t0
@@ -117,18 +130,12 @@ def time_chamber_shared(A, rhs, two_level: bool) -> dict:
     factorisation and the 16 solves timed."""
     import scipy.sparse as sp
 
-    from jointsim.eit.solver import SPD_REFINEMENT, PatternSolver
+    from jointsim.eit.solver import SPD_REFINEMENT
 
     U = sp.triu(A, format="csr")
     U.sort_indices()
-    s = PatternSolver(U.indptr, U.indices, spd=True, backend="pardiso", refinement=SPD_REFINEMENT, two_level=two_level)
-    s.factor(U.data)
-    t0 = time.perf_counter()
-    s.factor(U.data)
-    factor = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    x = s.solve(rhs)
-    solves = time.perf_counter() - t0
+    s, factor, solves, x = _pattern_timing(U.indptr, U.indices, U.data, rhs, 1, spd=True, backend="pardiso", refinement=SPD_REFINEMENT,
+                                           two_level=two_level)
     s.free()
     return {"factor_s": factor, "solve_s": solves, "x": x}
 
@@ -167,9 +174,6 @@ def main(argv: list[str]) -> int:
                 runs[name][case].append(r)
             print(f"repeat {rep + 1}/{repeats} {name}: " + ", ".join(
                 f"{c} {runs[name][c][-1]['factor_s']:.3f} + {runs[name][c][-1]['solve_s']:.4f} s" for c in runs[name]), flush=True)
-    import jointsim.eit.solver as solver
-
-    solver.PARDISO_TWO_LEVEL = True  # the package's setting again
     meta["speed_reference_end_s"] = speed_reference()
     agree = {case: float(np.linalg.norm(keep[("two-level", case)] - keep[("one-level", case)]) / np.linalg.norm(keep[("one-level", case)]))
              for case in cases}
