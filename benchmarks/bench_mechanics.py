@@ -16,7 +16,7 @@ and the rest.
     python benchmarks/bench_mechanics.py --pair SETTING [N]  # the default and one SOLVERS setting in N
                                                     # adjacent pairs, ratios per pair (for gains
                                                     # below the spread between runs on a busy
-                                                    # machine): results/mechanics_solver_pair.{md,json}
+                                                    # machine): results/mechanics_pair_<setting>.{md,json}
     python benchmarks/bench_mechanics.py --assembly [N]  # one iteration's Hessian by both assembly
                                                     # routes, N times: results/mechanics_assembly.{md,json}
     python benchmarks/bench_mechanics.py --first-contact [N]  # the first 0.5 mm frame solved with and without
@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sys
 import time
 from pathlib import Path
@@ -55,13 +56,14 @@ RESOLUTIONS = [(48, 2, 0.0, "pointwise"), (64, 2, 0.0, "pointwise"), (72, 2, 0.0
 # interleaved (load drift falls on all alike): (single precision, 2×2 pivots, Cholesky first,
 # element-kernel threads or 0 for the package's KERNEL_THREADS, the elastic Hessian assembled
 # by the kernel into the Newton system or as a matrix the system gathers from, PARDISO's two-level
-# factorisation); the first is the package default, every RESOLUTIONS row's. "LDLᵀ only, one
+# factorisation, Newton's chord steps); the first is the package default, every RESOLUTIONS row's. "LDLᵀ only, one
 # kernel thread" is the default before Cholesky-first and the threaded kernel (results of
 # 2026-11-21) in its solver settings
-SOLVERS = {"default": (True, True, True, 0, True, True), "LDLᵀ only": (True, True, False, 0, True, True),
-           "one kernel thread": (True, True, True, 1, True, True), "double precision": (False, True, True, 0, True, True),
-           "Hessian gathered from a matrix": (True, True, True, 0, False, True), "LDLᵀ only, one kernel thread": (True, True, False, 1, True, True),
-           "one-level factorisation": (True, True, True, 0, True, False)}
+SOLVERS = {"default": (True, True, True, 0, True, True, True), "LDLᵀ only": (True, True, False, 0, True, True, True),
+           "one kernel thread": (True, True, True, 1, True, True, True), "double precision": (False, True, True, 0, True, True, True),
+           "Hessian gathered from a matrix": (True, True, True, 0, False, True, True),
+           "LDLᵀ only, one kernel thread": (True, True, False, 1, True, True, True),
+           "one-level factorisation": (True, True, True, 0, True, False, True), "no chord steps": (True, True, True, 0, True, True, False)}
 SOLVER_MESH, REPEATS = (92, 2, 0.0, "pointwise"), 2
 # `--flat`: the same press on the membrane moulded flat and inflated to the dome ([membrane]
 # moulding = "flat"); the last is the reference
@@ -77,24 +79,28 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
     import jointsim.mechanics.fem as fem
     import jointsim.mechanics.newton as newton
 
-    newton.SINGLE_PRECISION, newton.PIVOT_2X2, newton.CHOLESKY_FIRST, threads, into, solver.PARDISO_TWO_LEVEL = SOLVERS[linear]
+    newton.SINGLE_PRECISION, newton.PIVOT_2X2, newton.CHOLESKY_FIRST, threads, into, solver.PARDISO_TWO_LEVEL, newton.CHORD_STEPS = SOLVERS[linear]
     fem.KERNEL_THREADS = threads or fem.KERNEL_THREADS
     if not into:  # Newton then takes the Hessian on the mesh's pattern and gathers its values
         del fem.ElasticTerm.evaluate_into
 
     timers = {"kernel": 0.0, "factorise+solve": 0.0}
+    factorisations = [0]
 
-    def timed(name, f):
+    def timed(name, f, count=None):
         def g(*a, **k):
             t0 = time.perf_counter()
             try:
                 return f(*a, **k)
             finally:
                 timers[name] += time.perf_counter() - t0
+                if count is not None:
+                    count[0] += 1
         return g
 
     fem.ElementKernel.__call__ = timed("kernel", fem.ElementKernel.__call__)
-    solver.PatternSolver.factor = timed("factorise+solve", solver.PatternSolver.factor)
+    # try_factor (Cholesky that may fail) calls factor: each attempt counts once
+    solver.PatternSolver.factor = timed("factorise+solve", solver.PatternSolver.factor, factorisations)
     solver.PatternSolver.solve = timed("factorise+solve", solver.PatternSolver.solve)
 
     model, setup = _membrane(n_rim, layers, apex_mm, volumetric, device, moulding)
@@ -103,10 +109,12 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
     for d in np.array(DEPTHS_MM) * 1e-3:
         for k in timers:
             timers[k] = 0.0
+        factorisations[0] = 0
         t0 = time.perf_counter()
         st = model.press(np.array([0.0, 0.0, top - d]))
         wall = time.perf_counter() - t0
-        steps.append({"depth_mm": d * 1e3, "wall_s": wall, "iterations": st.iterations, **{f"{k}_s": v for k, v in timers.items()},
+        steps.append({"depth_mm": d * 1e3, "wall_s": wall, "iterations": st.iterations, "factorisations": factorisations[0],
+                      **{f"{k}_s": v for k, v in timers.items()},
                       "force_mN": st.force[2] * 1e3, "displaced_mm3": st.displaced_volume * 1e9, "penetration_um": st.penetration * 1e6})
     return {"n_rim": n_rim, "layers": layers, "apex_mm": apex_mm, "volumetric": volumetric, "linear": linear, "device": device,
             "moulding": moulding, "p2_nodes": model.mesh.n_nodes, "tets": model.mesh.n_tets, "setup_s": setup,
@@ -172,8 +180,8 @@ def main() -> int:
         if SOLVERS_OUT.with_suffix(".json").exists():
             saved = json.loads(SOLVERS_OUT.with_suffix(".json").read_text())
             write_solvers(saved["runs"], saved["meta"])
-        if PAIR_OUT.with_suffix(".json").exists():
-            saved = json.loads(PAIR_OUT.with_suffix(".json").read_text())
+        for path in sorted((ROOT / "results").glob(PAIR_PREFIX + "*.json")):
+            saved = json.loads(path.read_text())
             write_pair_study(saved["runs"], saved["meta"])
         return 0
     if len(sys.argv) > 1 and sys.argv[1] == "--one":
@@ -258,7 +266,12 @@ def solvers(repeats: int = REPEATS) -> int:
     return 0
 
 
-PAIR_OUT = ROOT / "results" / "mechanics_solver_pair"
+PAIR_PREFIX = "mechanics_pair_"
+
+
+def pair_out(setting: str) -> Path:
+    """results/mechanics_pair_<setting, as a file name> (no suffix): where ``--pair`` writes."""
+    return ROOT / "results" / (PAIR_PREFIX + re.sub(r"[^a-z0-9]+", "_", setting.lower()).strip("_"))
 
 
 def _press_run(linear: str) -> dict | None:
@@ -274,7 +287,7 @@ def _press_run(linear: str) -> dict | None:
 
 def pair(setting: str, pairs: int) -> int:
     """``--pair``: the default and ``setting`` run back to back ``pairs`` times (the order
-    alternating), so that each pair sees nearly the same machine; results/mechanics_solver_pair."""
+    alternating), so that each pair sees nearly the same machine; results/mechanics_pair_<setting>."""
     if setting not in SOLVERS or setting == "default":
         print(f"SETTING = {setting!r}: one of {[k for k in SOLVERS if k != 'default']}", file=sys.stderr)
         return 2
@@ -301,7 +314,7 @@ def _per_step(runs: list[dict], key: str) -> float:
 
 
 def write_pair_study(runs: list[dict], meta: dict) -> None:
-    """results/mechanics_solver_pair.{md,json} from the runs of :func:`pair`."""
+    """results/mechanics_pair_<setting>.{md,json} from the runs of :func:`pair`."""
     step = lambda r, key: _per_step([r], key)  # noqa: E731
     setting = meta["setting"]
     lines = [f"# Mechanics: \"{setting}\" against the default, in adjacent pairs", "", f"Command: `{meta['command']}`  ",
@@ -311,8 +324,10 @@ def write_pair_study(runs: list[dict], meta: dict) -> None:
              f"and with \"{setting}\" back to back, each in its own process, {meta['pairs']} pairs, the order alternating. Per-step means "
              "over the steps after the first; ratio: the setting's over the default's of the same pair. This shared machine's speed "
              "drifts between runs by more than such a gain, and much less within a pair.", "",
-             "| pair | default s / step | setting s / step | ratio | default factorise+solve s | setting | ratio | Newton its / step | F 1 / 2 / 3 mm, mN (setting) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| pair | default s / step | setting s / step | ratio | default factorise+solve s | setting | ratio | Newton its / step | factorisations / step | F 1 / 2 / 3 mm, mN (setting) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    # runs before 2026-11-23 did not count the factorisations
+    facts = lambda r: f"{step(r, 'factorisations'):.1f}" if all("factorisations" in x for x in r["steps"]) else "–"  # noqa: E731
     ratios, lin = [], []
     for i in range(meta["pairs"]):
         d = next(r for r in runs if r["pair"] == i and r["linear"] == "default")
@@ -320,20 +335,20 @@ def write_pair_study(runs: list[dict], meta: dict) -> None:
         ratios.append(step(x, "wall_s") / step(d, "wall_s"))
         lin.append(step(x, "factorise+solve_s") / step(d, "factorise+solve_s"))
         lines.append(f"| {i + 1} | {step(d, 'wall_s'):.2f} | {step(x, 'wall_s'):.2f} | {ratios[-1]:.3f} | {step(d, 'factorise+solve_s'):.2f} | "
-                     f"{step(x, 'factorise+solve_s'):.2f} | {lin[-1]:.3f} | {step(d, 'iterations'):.1f} / {step(x, 'iterations'):.1f} | "
+                     f"{step(x, 'factorise+solve_s'):.2f} | {lin[-1]:.3f} | {step(d, 'iterations'):.1f} / {step(x, 'iterations'):.1f} | {facts(d)} / {facts(x)} | "
                      + " / ".join(f"{_at(x, dd):.2f}" for dd in (1.0, 2.0, 3.0)) + " |")
     same = all(abs(_at(r, dd) - _at(runs[0], dd)) < 5e-3 for r in runs for dd in (1.0, 2.0, 3.0))
     lines += ["", f"Ratio of the setting to the default: wall time median {np.median(ratios):.3f} (range {min(ratios):.3f}–{max(ratios):.3f}), "
               f"factorise+solve median {np.median(lin):.3f} (range {min(lin):.3f}–{max(lin):.3f}). Forces "
               + ("the same to 0.01 mN in every run." if same else "differ between runs: see the .json.")]
-    write_pair(PAIR_OUT, {"meta": meta, "runs": runs}, "\n".join(lines) + "\n")
+    write_pair(pair_out(setting), {"meta": meta, "runs": runs}, "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
 def write_solvers(runs: list[dict], meta: dict) -> None:
     """results/mechanics_solvers.{md,json} from the runs of :func:`solvers`."""
     mean = _per_step
-    by = {k: [r for r in runs if r["linear"] == k] for k in SOLVERS}
+    by = {k: [r for r in runs if r["linear"] == k] for k in SOLVERS if any(r["linear"] == k for r in runs)}
     base = by["default"]
     lines = ["# Mechanics: the Newton solves' linear-solver and kernel settings", "", f"Command: `{meta['command']}`  ",
              f"Machine: {meta['machine']}; run {meta['date']}; 1-min load average {meta['load_average_start_end'][0]:.1f} at the start, "
@@ -360,7 +375,7 @@ def write_solvers(runs: list[dict], meta: dict) -> None:
                      + " / ".join(f"{_at(rs[0], d):.2f}" for d in (1.0, 2.0, 3.0)) + " |")
     lines += ["", "Where a setting's runs spread wider than the settings differ (the min–max column: this shared machine's load "
               "drifts within a run), the run cannot rank them; `--pair SETTING` runs one setting and the default back to back "
-              "(results/mechanics_solver_pair.md)."]
+              "(results/mechanics_pair_<setting>.md)."]
     write_pair(SOLVERS_OUT, {"meta": meta, "runs": runs}, "\n".join(lines) + "\n")
     print("\n".join(lines))
 

@@ -87,7 +87,7 @@ SPD_REFINEMENT = 0
 # many threads, instead of the classic one-level one. On these 2 cores the paper chamber's CEM
 # matrix factorises in the same time and its 16 lead-field solves take 0.71×; the 92/2 membrane's
 # Hessian factorises in 1.05× and a solve takes 0.47× (results/pardiso_two_level.md), and its
-# press takes ~0.9× the seconds per step (results/mechanics_solver_pair.md: one-level 1.11×)
+# press takes ~0.9× the seconds per step (results/mechanics_pair_one_level_factorisation.md: one-level 1.11×)
 PARDISO_TWO_LEVEL = True
 
 
