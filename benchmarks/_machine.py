@@ -24,6 +24,25 @@ def machine() -> str:
     return f"{platform.machine()} {cpu_name()}, {os.cpu_count()} cores, Python {platform.python_version()}"
 
 
+def cpu_counters() -> list[int] | None:
+    """The machine's CPU time counters since boot (/proc/stat's "cpu" line: user, nice, system,
+    idle, iowait, irq, softirq, steal, …), None where there is no /proc/stat."""
+    try:
+        return [int(x) for x in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def steal_share(start: list[int] | None, end: list[int] | None) -> float | None:
+    """The share of the CPU time between two :func:`cpu_counters` readings that the hypervisor
+    gave to other guests (steal). On this shared virtual machine it is why a run is slow: a
+    half of it stolen doubles a benchmark's times. None without both readings."""
+    if not start or not end or len(start) < 8 or len(end) < 8:
+        return None
+    d = [b - a for a, b in zip(start, end)]
+    return d[7] / sum(d) if sum(d) > 0 else None
+
+
 def speed_reference(repeats: int = 3) -> float:
     """Seconds (best of ``repeats``) of a fixed workload like the benchmarks' hot path: the
     sparse LDLᵀ factorisation and one solve of a 3-D 7-point Laplacian on a 32³ grid (32 768

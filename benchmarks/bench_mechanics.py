@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _machine import atomic_write, machine, speed_reference, write_pair
+from _machine import atomic_write, cpu_counters, machine, speed_reference, steal_share, write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 # (rim vertices, layers through the thickness, apex edge mm or 0 for uniform, volumetric form);
@@ -228,7 +228,7 @@ def study(resolutions: list[tuple], out: Path, moulding: str, command: str) -> i
         atomic_write(partial, json.dumps({"meta": meta, "rows": rows}, indent=2))
         s = rows[-1]["steps"]
         print(f"{n_rim} rim, {layers} layers, apex {apex} mm, {volumetric}: {np.mean([x['wall_s'] for x in s[1:]]):.2f} s/step, F(3 mm) {s[-1]['force_mN']:.2f} mN", flush=True)
-    meta["load_average_start_end"][1] = os.getloadavg()[0]
+    _finish_meta(meta)
     meta["speed_reference_s_start_end"][1] = speed_reference()
     order = {k: i for i, k in enumerate(resolutions)}
     rows.sort(key=lambda r: order.get((r["n_rim"], r["layers"], r["apex_mm"], r["volumetric"]), -1))
@@ -260,7 +260,7 @@ def solvers(repeats: int = REPEATS) -> int:
         runs.append(r)
         atomic_write(partial, json.dumps({"meta": meta, "runs": runs}, indent=2))
         print(f"{linear}: {np.mean([x['wall_s'] for x in runs[-1]['steps'][1:]]):.2f} s/step", flush=True)
-    meta["load_average_start_end"][1] = os.getloadavg()[0]
+    _finish_meta(meta)
     write_solvers(runs, meta)
     partial.unlink()
     return 0
@@ -303,7 +303,7 @@ def pair(setting: str, pairs: int) -> int:
             r["pair"] = i
             runs.append(r)
             print(f"pair {i + 1}/{pairs} {linear}: {np.mean([x['wall_s'] for x in r['steps'][1:]]):.2f} s/step", flush=True)
-    meta["load_average_start_end"][1] = os.getloadavg()[0]
+    _finish_meta(meta)
     write_pair_study(runs, meta)
     return 0
 
@@ -319,7 +319,7 @@ def write_pair_study(runs: list[dict], meta: dict) -> None:
     setting = meta["setting"]
     lines = [f"# Mechanics: \"{setting}\" against the default, in adjacent pairs", "", f"Command: `{meta['command']}`  ",
              f"Machine: {meta['machine']}; run {meta['date']}; 1-min load average {meta['load_average_start_end'][0]:.1f} at the start, "
-             f"{meta['load_average_start_end'][1]:.1f} at the end; speed_reference {meta['speed_reference_s']:.3f} s (`benchmarks/_machine.py`).  ",
+             f"{meta['load_average_start_end'][1]:.1f} at the end{_steal(meta)}; speed_reference {meta['speed_reference_s']:.3f} s (`benchmarks/_machine.py`).  ",
              f"The press of results/mechanics_solvers.md on the {_label(runs[0])} membrane (settings there), run with the package default "
              f"and with \"{setting}\" back to back, each in its own process, {meta['pairs']} pairs, the order alternating. Per-step means "
              "over the steps after the first; ratio: the setting's over the default's of the same pair. This shared machine's speed "
@@ -352,7 +352,7 @@ def write_solvers(runs: list[dict], meta: dict) -> None:
     base = by["default"]
     lines = ["# Mechanics: the Newton solves' linear-solver and kernel settings", "", f"Command: `{meta['command']}`  ",
              f"Machine: {meta['machine']}; run {meta['date']}; 1-min load average {meta['load_average_start_end'][0]:.1f} at the start, "
-             f"{meta['load_average_start_end'][1]:.1f} at the end; speed_reference {meta.get('speed_reference_s', float('nan')):.3f} s "
+             f"{meta['load_average_start_end'][1]:.1f} at the end{_steal(meta)}; speed_reference {meta.get('speed_reference_s', float('nan')):.3f} s "
              "(`benchmarks/_machine.py`).  ",
              f"The press of results/mechanics_benchmark.md (rigid 15 mm target, 0.5 mm steps to 3 mm) on the {_label(runs[0])} membrane, "
              f"each setting run {meta['repeats']} times interleaved; per-step means over the steps after the first. PARDISO, the ordering and "
@@ -507,7 +507,19 @@ def _new_meta(command: str) -> dict:
     from jointsim.mechanics.fem import KERNEL_THREADS
 
     return {"command": command, "machine": machine(), "date": time.strftime("%Y-%m-%d"), "kernel_threads": KERNEL_THREADS,
-            "first_contact": FIRST_CONTACT, "load_average_start_end": [os.getloadavg()[0], None]}
+            "first_contact": FIRST_CONTACT, "load_average_start_end": [os.getloadavg()[0], None], "cpu_counters_start": cpu_counters()}
+
+
+def _finish_meta(meta: dict) -> None:
+    """The end of a run into ``meta``: the load average, and the CPU steal over the run."""
+    meta["load_average_start_end"][1] = os.getloadavg()[0]
+    meta["cpu_steal"] = steal_share(meta.get("cpu_counters_start"), cpu_counters())
+
+
+def _steal(meta: dict) -> str:
+    """"; CPU steal x % over the run" where the run recorded it (runs before 2026-11-23 did not)."""
+    share = meta.get("cpu_steal")
+    return "" if share is None else f"; {100 * share:.0f} % of the CPU time stolen by other guests over the run"
 
 
 def write(rows: list[dict], meta: dict, out: Path = OUT) -> None:
@@ -551,19 +563,21 @@ def write(rows: list[dict], meta: dict, out: Path = OUT) -> None:
              "the elastic Hessian's assembly into the Newton system's values; factorise+solve s: PARDISO's, in single precision, each Hessian by "
              "Cholesky first and by LDLᵀ where that fails (jointsim/mechanics/newton.py SINGLE_PRECISION, CHOLESKY_FIRST).",
              f"Errors: against the last row ({_label(ref)}: rim vertices / layers).  ",
-             f"1-min load average {meta['load_average_start_end'][0]:.1f} at the start, {meta['load_average_start_end'][1]:.1f} at the end "
-             "(on 2 cores a load above 1 inflates the times; the forces do not depend on it).  ",
+             f"1-min load average {meta['load_average_start_end'][0]:.1f} at the start, {meta['load_average_start_end'][1]:.1f} at the end"
+             f"{_steal(meta)} (on 2 cores a load above 1 inflates the times; the forces do not depend on it).  ",
              "Reference workload (`benchmarks/_machine.py` speed_reference, a fixed sparse factorisation): "
              f"{meta['speed_reference_s_start_end'][0]:.3f} s at the start, {meta['speed_reference_s_start_end'][1]:.3f} s at the end; "
              "to compare with a run of another day, scale by the ratio of this figure.", "",
-             "| rim / layers | P2 nodes | s / step | Newton its / step | kernel s | factorise+solve s | first step s (its) | F 1 / 2 / 3 mm, mN | force error 1 / 2 / 3 mm | displaced mm³ at 3 mm | its error |"
+             "| rim / layers | P2 nodes | s / step | Newton its / step (factorisations, where counted) | kernel s | factorise+solve s | first step s (its) | F 1 / 2 / 3 mm, mN | force error 1 / 2 / 3 mm | displaced mm³ at 3 mm | its error |"
              + (" setup s | deploy pressure Pa | chamber mm³ |" if flat else ""),
              "|---|---|---|---|---|---|---|---|---|---|---|" + ("---|---|---|" if flat else "")]
     for r in rows:
         s = r["steps"][1:]
         err = " / ".join(f"{100 * (_at(r, d) / _at(ref, d) - 1):+.1f} %" for d in depths)
         vol = _at(r, 3.0, "displaced_mm3")
-        lines.append(f"| {_label(r)} | {r['p2_nodes']:,} | {per_step[_label(r)]:.2f} | {np.mean([x['iterations'] for x in s]):.1f} | "
+        # runs before 2026-11-23 did not count the factorisations (one per iteration then)
+        facts = f" ({np.mean([x['factorisations'] for x in s]):.1f})" if all("factorisations" in x for x in s) else ""
+        lines.append(f"| {_label(r)} | {r['p2_nodes']:,} | {per_step[_label(r)]:.2f} | {np.mean([x['iterations'] for x in s]):.1f}{facts} | "
                      f"{np.mean([x['kernel_s'] for x in s]):.2f} | {np.mean([x['factorise+solve_s'] for x in s]):.2f} | "
                      f"{r['steps'][0]['wall_s']:.2f} ({r['steps'][0]['iterations']}) | "
                      + " / ".join(f"{_at(r, d):.2f}" for d in depths) + f" | {err} | {vol:.1f} | {100 * (vol / _at(ref, 3.0, 'displaced_mm3') - 1):+.1f} % |"
