@@ -59,11 +59,11 @@ RESOLUTIONS = [(48, 2, 0.0, "pointwise"), (64, 2, 0.0, "pointwise"), (72, 2, 0.0
 # factorisation, Newton's chord steps); the first is the package default, every RESOLUTIONS row's. "LDLᵀ only, one
 # kernel thread" is the default before Cholesky-first and the threaded kernel (results of
 # 2026-11-21) in its solver settings
-SOLVERS = {"default": (True, True, True, 0, True, True, True), "LDLᵀ only": (True, True, False, 0, True, True, True),
-           "one kernel thread": (True, True, True, 1, True, True, True), "double precision": (False, True, True, 0, True, True, True),
-           "Hessian gathered from a matrix": (True, True, True, 0, False, True, True),
-           "LDLᵀ only, one kernel thread": (True, True, False, 1, True, True, True),
-           "one-level factorisation": (True, True, True, 0, True, False, True), "no chord steps": (True, True, True, 0, True, True, False)}
+SOLVERS = {"default": (True, True, True, 0, True, True, False), "LDLᵀ only": (True, True, False, 0, True, True, False),
+           "one kernel thread": (True, True, True, 1, True, True, False), "double precision": (False, True, True, 0, True, True, False),
+           "Hessian gathered from a matrix": (True, True, True, 0, False, True, False),
+           "LDLᵀ only, one kernel thread": (True, True, False, 1, True, True, False),
+           "one-level factorisation": (True, True, True, 0, True, False, False), "chord steps": (True, True, True, 0, True, True, True)}
 SOLVER_MESH, REPEATS = (92, 2, 0.0, "pointwise"), 2
 # `--flat`: the same press on the membrane moulded flat and inflated to the dome ([membrane]
 # moulding = "flat"); the last is the reference

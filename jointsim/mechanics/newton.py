@@ -4,9 +4,9 @@ step is taken with a positive definite modification of it: H + σ·diag|H| (Leve
 when the linear solver reports the inertia, else each term's PSD-projected Hessian. With
 PARDISO each Hessian is factored by Cholesky first, which succeeds exactly where it is positive
 definite (nearly every Newton iteration of a press), and by LDLᵀ, whose inertia decides the
-rest, only where Cholesky fails; the shifted Hessians by Cholesky alone. Once a full step from a
-positive definite factor lands in Newton's quadratic regime, the next iterations first try that
-factor again with the new gradient (chord steps: a solve, no Hessian and no factorisation).
+rest, only where Cholesky fails; the shifted Hessians by Cholesky alone. Optionally
+(CHORD_STEPS), once a full step from a positive definite factor lands in Newton's quadratic
+regime, the next iterations first try that factor again with the new gradient.
 
 The total energy is a sum of terms (elastic, pressure, contact), each returning its energy,
 gradient and Hessian over all 3n displacement components. Dirichlet components are fixed to
@@ -82,19 +82,21 @@ SINGLE_PRECISION = True
 PIVOT_2X2 = True
 # factor the Hessian (and its shifts) by Cholesky first, LDLᵀ only where that fails
 CHOLESKY_FIRST = True
-# chord steps: after a full Newton step from a positive definite factor, taken whole, that left at
-# most CHORD_AFTER of the gradient it started from, the next iteration first solves with that
-# factor again. A press step's full steps leave 0.2 of their gradient even when no node enters
-# the contact: the volumetric energy κ/2 (J − 1)² curving along the step, amplified by κ
-# (results/newton_anatomy.md); the step that remains is small and the factor nearly the tangent,
-# so one chord step leaves ~0.03 of it, at a solve and a gradient (~0.06 s on the 92/2 membrane)
-# instead of a Hessian and its factorisation (~0.4 s). A chord step is kept where it lowers the
-# energy and the gradient, and another may follow while each leaves at most CHORD_GAIN of the
-# gradient; otherwise Newton takes a fresh Hessian. On the 92/2 press, against a fresh Hessian
-# every iteration: 3.2 factorisations per step instead of 3.6, the wall time per step 1/1.056 (the
-# median of 4 adjacent pairs, each above 1), the same forces
-# (results/mechanics_pair_no_chord_steps.md)
-CHORD_STEPS = True
+# chord steps (off by default): after a full Newton step from a positive definite factor, taken
+# whole, that left at most CHORD_AFTER of the gradient it started from, the next iteration first
+# solves with that factor again — a solve and a gradient (~0.06 s on the 92/2 membrane) instead
+# of a Hessian and its factorisation (~0.4 s). A press step's full steps leave 0.2 of their
+# gradient even where no node enters the contact (the volumetric energy κ/2 (J − 1)² curving
+# along the step, results/newton_anatomy.md), and one chord step then leaves ~0.03 of it. A chord
+# step is kept where it lowers the energy and the gradient, another may follow while each leaves
+# at most CHORD_GAIN; otherwise Newton takes a fresh Hessian. Why off: on the 92/2 press it saves
+# (3.2 factorisations per step instead of 3.6, 1/1.056 of the wall time over 4 adjacent pairs:
+# results/mechanics_pair_no_chord_steps.md, run while it was the default), but the convergence
+# study's press with it on (issue 4's notes of session 30) took more iterations on most other
+# meshes, e.g. 64/2 4.6 per step (3.8 factorisations) against 3.2, and single steps of 15–39
+# factorisations on 48/2, 128/2 and 160/2: the states it ends on (the factor not at the final
+# point) make later steps' Hessians harder to regularise
+CHORD_STEPS = False
 CHORD_AFTER, CHORD_GAIN = 0.5, 0.25
 
 
