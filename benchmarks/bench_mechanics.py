@@ -308,6 +308,12 @@ def pair(setting: str, pairs: int) -> int:
     return 0
 
 
+def _factorisations(steps: list[dict]) -> float | None:
+    """The mean factorisations per step of ``steps``; None for runs before 2026-11-23, which did
+    not count them (one per Newton iteration then)."""
+    return float(np.mean([x["factorisations"] for x in steps])) if all("factorisations" in x for x in steps) else None
+
+
 def _per_step(runs: list[dict], key: str) -> float:
     """The mean of ``key`` over the runs' steps after the first (the first: first contact)."""
     return float(np.mean([x[key] for r in runs for x in r["steps"][1:]]))
@@ -326,8 +332,7 @@ def write_pair_study(runs: list[dict], meta: dict) -> None:
              "drifts between runs by more than such a gain, and much less within a pair.", "",
              "| pair | default s / step | setting s / step | ratio | default factorise+solve s | setting | ratio | Newton its / step | factorisations / step | F 1 / 2 / 3 mm, mN (setting) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
-    # runs before 2026-11-23 did not count the factorisations
-    facts = lambda r: f"{step(r, 'factorisations'):.1f}" if all("factorisations" in x for x in r["steps"]) else "–"  # noqa: E731
+    facts = lambda r: "–" if _factorisations(r["steps"][1:]) is None else f"{_factorisations(r['steps'][1:]):.1f}"  # noqa: E731
     ratios, lin = [], []
     for i in range(meta["pairs"]):
         d = next(r for r in runs if r["pair"] == i and r["linear"] == "default")
@@ -575,8 +580,7 @@ def write(rows: list[dict], meta: dict, out: Path = OUT) -> None:
         s = r["steps"][1:]
         err = " / ".join(f"{100 * (_at(r, d) / _at(ref, d) - 1):+.1f} %" for d in depths)
         vol = _at(r, 3.0, "displaced_mm3")
-        # runs before 2026-11-23 did not count the factorisations (one per iteration then)
-        facts = f" ({np.mean([x['factorisations'] for x in s]):.1f})" if all("factorisations" in x for x in s) else ""
+        facts = "" if _factorisations(s) is None else f" ({_factorisations(s):.1f})"
         lines.append(f"| {_label(r)} | {r['p2_nodes']:,} | {per_step[_label(r)]:.2f} | {np.mean([x['iterations'] for x in s]):.1f}{facts} | "
                      f"{np.mean([x['kernel_s'] for x in s]):.2f} | {np.mean([x['factorise+solve_s'] for x in s]):.2f} | "
                      f"{r['steps'][0]['wall_s']:.2f} ({r['steps'][0]['iterations']}) | "
