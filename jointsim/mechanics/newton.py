@@ -91,8 +91,8 @@ CHOLESKY_FIRST = True
 # step is kept where it lowers the energy and the gradient, another may follow while each leaves
 # at most CHORD_GAIN; otherwise Newton takes a fresh Hessian. Why off: on the 92/2 press it saves
 # (3.2 factorisations per step instead of 3.6, 1/1.056 of the wall time over 4 adjacent pairs:
-# results/mechanics_pair_no_chord_steps.md, run while it was the default), but the convergence
-# study's press with it on (issue 4's notes of session 30) took more iterations on most other
+# results/mechanics_pair_no_chord_steps.md, run at 1a4fec2 while it was the default), but the
+# convergence study there (bench_mechanics.py; issue 4's notes of session 30) took more iterations on most other
 # meshes, e.g. 64/2 4.6 per step (3.8 factorisations) against 3.2, and single steps of 15–39
 # factorisations on 48/2, 128/2 and 160/2: the states it ends on (the factor not at the final
 # point) make later steps' Hessians harder to regularise
@@ -371,9 +371,9 @@ def _chord_step(terms, u, E, g, free, system: NewtonSystem):
     judges) and lowers the gradient; else None (the caller takes a fresh Hessian)."""
     d = np.zeros(u.size)
     d[free] = system.solve_tangent(-g[free])
-    slope = float(g @ d)
-    if not (np.all(np.isfinite(d)) and slope < 0):
+    if not _descent(d[free], g[free]):
         return None
+    slope = float(g @ d)
     u_try = u + d.reshape(u.shape)
     E_try, g_try, _, ok = _total(terms, u_try, False)
     lower = E_try <= E + 1e-4 * slope or -slope <= ROUNDOFF_DECREMENT * abs(E)
