@@ -93,7 +93,9 @@ class Membrane:
     the pressure); ``rim_vertices`` sets the membrane mesh (edge ≈ 2π·base radius / rim_vertices;
     by default the mesh preset's, :data:`MEMBRANE_RIM_VERTICES`);
     ``volumetric``: how the P2 elements integrate the volumetric energy, "pointwise" or
-    "mean_dilatation" (jointsim/mechanics/fem.py); ``moulding``: the stress-free shape, "cap" (moulded
+    "mean_dilatation" (jointsim/mechanics/fem.py); ``element``: "p2_tet" (each prism of a
+    layer as three P2 tetrahedra) or "wedge15" (one 15-node quadratic prism with a projected
+    dilatation, jointsim/mechanics/wedge.py; ``volumetric`` must then be "pointwise"); ``moulding``: the stress-free shape, "cap" (moulded
     as the dome, inflated by the reservoir pressure) or "flat" (a flat sheet inflated until its
     apex reaches the dome height; the pressure that takes replaces ``reservoir_pressure``)."""
 
@@ -107,6 +109,7 @@ class Membrane:
     rim_vertices: int = 64
     volumetric: str = "pointwise"
     moulding: str = "cap"
+    element: str = "p2_tet"
 
     def scaled(self, factor: float) -> "Membrane":
         """The same membrane with its moduli (either law's) multiplied by ``factor``."""
@@ -393,6 +396,9 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     rim_vertices = t.integer("rim_vertices", MEMBRANE_RIM_VERTICES[preset], 16, 1024)
     volumetric = t.choice("volumetric", "pointwise", ("pointwise", "mean_dilatation"))
     moulding = t.choice("moulding", "cap", MOULDINGS)
+    element = t.choice("element", "p2_tet", ("p2_tet", "wedge15"))
+    if element == "wedge15" and volumetric != "pointwise":
+        raise SceneError(f"membrane.volumetric = {volumetric!r}: only 'pointwise' with membrane.element = 'wedge15' (its volumetric form is its own)")
     t.finish()
 
     target = _target(data.get("target", {}), base_r)
@@ -405,7 +411,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         drive=Drive(current * 1e-6, freqs, skip),
         noise=Noise(snr, seed, drift, rate),
         mesh=MeshSpec(preset, max_edge * MM, refine, zone * MM, grading, eps, stop_energy, max_opt_iter, element_order),
-        membrane=Membrane(law, mu * 1e3, tuple(c * 1e3 for c in yc), bulk_ratio, layers, p_res, closed, rim_vertices, volumetric, moulding),
+        membrane=Membrane(law, mu * 1e3, tuple(c * 1e3 for c in yc), bulk_ratio, layers, p_res, closed, rim_vertices, volumetric, moulding, element),
         target=target,
         palpation=_palpation(data.get("palpation", {}), base_r, height, thick, zf is not None),
         dataset=_dataset(data.get("dataset", {}), base_r, height, ring, diam, count, zone),

@@ -175,7 +175,7 @@ def dataset_schema(n_electrodes: int, n_meas: int, n_cells: int | None) -> Schem
 
 # scene values added after stores were first written, with the behaviour before they existed:
 # recorded only where they differ from it, so a store written before still resumes
-LATER_KEYS: dict[tuple[str, str], object] = {("membrane", "moulding"): "cap"}
+LATER_KEYS: dict[tuple[str, str], object] = {("membrane", "moulding"): "cap", ("membrane", "element"): "p2_tet"}
 
 
 def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str) -> dict[str, Any]:

@@ -21,6 +21,7 @@ from .fem import ElasticTerm, P2Mesh
 from .materials import Material
 from .newton import NewtonError, NewtonSystem, minimize_energy
 from .pressure import PressureTerm, linear_subtriangles
+from .wedge import WedgeElasticTerm, WedgeMesh
 
 __all__ = ["MembraneModel", "MembraneState", "UnreachablePose", "membrane_mesh", "ECOFLEX_00_50"]
 
@@ -55,6 +56,9 @@ FORCE_RTOL = 1e-3
 # 0.15 s at the dataset and paper resolutions, 0.28 and 0.56 s in the run before)
 REGULARISE_MOVE = 0.05
 TOUCH_CLEARANCE = 1e-12  # × target radius: ~1000 ulps of the gap, physically nothing
+# the membrane's elements: "p2_tet" (each prism of a layer as three P2 tetrahedra, fem.py) or
+# "wedge15" (one 15-node quadratic prism, its dilatation projected: wedge.py)
+ELEMENTS = ("p2_tet", "wedge15")
 
 
 class UnreachablePose(ValueError):
@@ -243,7 +247,14 @@ class MembraneModel:
         device: str = "cpu",
         inflate_to: float | None = None,
         inflate_from: np.ndarray | None = None,
+        element: str = "p2_tet",
     ):
+        if element not in ELEMENTS:
+            raise ValueError(f"element = {element!r}: allowed values are {ELEMENTS}")
+        if element == "wedge15" and volumetric != "pointwise":
+            raise ValueError(f"volumetric = {volumetric!r}: the wedge15 element has its own (projected) volumetric form; "
+                             "volumetric applies to element = 'p2_tet' only")
+        self.element = element
         # converged when the out-of-balance nodal force is below force_tol (N): by default
         # 1e-6·μ·t², a millionth of the force that strains a membrane-thick cube by one
         self.force_tol = force_tol if force_tol is not None else 1e-6 * material.mu * thickness**2
@@ -257,11 +268,15 @@ class MembraneModel:
         flat = is_flat(dome)
         rim_radius = float(np.hypot(*dome.vertices[dome.rim, :2].T).min())
         place = on_rim_circle(rim_radius) if flat else None if centre is None else on_spheres(centre, 1e-9 * np.ptp(lin.nodes))
-        self.mesh = P2Mesh.from_linear(lin, place)
-        X = self.mesh.nodes
         # device: where Warp runs the element kernel ("cpu", or "cuda:0" where a GPU is); the
         # contact, pressure and sparse solves stay on the host
-        self.elastic = ElasticTerm(self.mesh, material, volumetric=volumetric, device=device)
+        if element == "wedge15":
+            self.mesh = WedgeMesh.on_membrane(dome, thickness, layers, centre, place if place is not None else lambda ends: ends.mean(axis=1))
+            self.elastic = WedgeElasticTerm(self.mesh, material, device=device)
+        else:
+            self.mesh = P2Mesh.from_linear(lin, place)
+            self.elastic = ElasticTerm(self.mesh, material, volumetric=volumetric, device=device)
+        X = self.mesh.nodes
         bf = self.mesh.boundary_faces
         n = self.n_surface
         on_inner = np.all(bf[:, :3] < n, axis=1)
@@ -435,6 +450,7 @@ class MembraneModel:
             closed=m.chamber == "closed",
             volumetric=m.volumetric,
             device=device,
+            element=m.element,
             **kw,
         )
 
@@ -731,10 +747,13 @@ class MembraneModel:
         )
 
 
-def _peak_green_strain(mesh: P2Mesh, u: np.ndarray) -> float:
-    """Largest principal Green–Lagrange strain at the element centroids (corner-node gradient)."""
-    x = (mesh.nodes + u)[mesh.tets[:, :4]]
-    Ds = np.swapaxes(x[:, 1:] - x[:, :1], 1, 2)
-    F = Ds @ mesh.corner_gradient_map
+def _peak_green_strain(mesh: P2Mesh | WedgeMesh, u: np.ndarray) -> float:
+    """Largest principal Green–Lagrange strain at the element centroids (for P2 tetrahedra, the
+    corner nodes' gradient; for wedges, the full element's at its centroid)."""
+    if isinstance(mesh, WedgeMesh):
+        F = np.eye(3) + np.einsum("mni,mnj->mij", u[mesh.elements], mesh.centroid_gradients)
+    else:
+        x = (mesh.nodes + u)[mesh.tets[:, :4]]
+        F = np.swapaxes(x[:, 1:] - x[:, :1], 1, 2) @ mesh.corner_gradient_map
     Egl = 0.5 * (np.swapaxes(F, 1, 2) @ F - np.eye(3))
     return float(np.linalg.eigvalsh(Egl).max())

@@ -145,6 +145,20 @@ class P2Mesh:
     def n_tets(self) -> int:
         return len(self.tets)
 
+    @property
+    def elements(self) -> np.ndarray:
+        """The element connectivity, by the name every membrane mesh has (wedge.WedgeMesh's)."""
+        return self.tets
+
+    @property
+    def n_elements(self) -> int:
+        return len(self.tets)
+
+    @property
+    def corner_tets(self) -> np.ndarray:
+        """The linear tetrahedra of the corners (m, 4)."""
+        return self.tets[:, :4]
+
     @cached_property
     def boundary_faces(self) -> np.ndarray:
         """Boundary faces as 6-node triangles (k, 6): corners a, b, c then midpoints ab, bc, ca,
@@ -526,7 +540,7 @@ def assemble_hessian(mesh: P2Mesh, H: np.ndarray) -> sp.csr_matrix:
 
 
 def assemble_gradient(mesh: P2Mesh, g: np.ndarray) -> np.ndarray:
-    dof = (3 * mesh.tets[:, :, None] + np.arange(3)).reshape(-1)
+    dof = (3 * mesh.elements[:, :, None] + np.arange(3)).reshape(-1)
     return np.bincount(dof, weights=g.ravel(), minlength=3 * mesh.n_nodes)
 
 

@@ -371,11 +371,12 @@ class SoftTargetModel(MembraneModel):
         device: str = "cpu",
         inflate_to: float | None = None,
         inflate_from: np.ndarray | None = None,
+        element: str = "p2_tet",
     ):
         if friction != 0.0:
             raise ValueError(f"friction = {friction}: friction against a soft target is not modelled (use 0)")
         super().__init__(dome, thickness, material, layers, pressure, target_radius, penalty, force_tol, 0.0, closed, volumetric,
-                         device=device, inflate_to=inflate_to, inflate_from=inflate_from)
+                         device=device, inflate_to=inflate_to, inflate_from=inflate_from, element=element)
         edge = float(np.median(np.linalg.norm(dome.vertices[dome.faces[:, 1]] - dome.vertices[dome.faces[:, 0]], axis=1)))
         h = target_mesh_size if target_mesh_size is not None else min(0.5 * edge, target_radius / 8)
         self.target = SoftSphere(target_radius, target_material if target_material is not None else SYLGARD_184, h, target_growth, target_core, device)

@@ -311,7 +311,7 @@ class Palpation:
             self.reference_dome = self._surface.dome(model.u)
             self.membrane_nodes = model.mesh.n_nodes
             # the membrane's corner tetrahedra (the P2 mesh without midside nodes), for export
-            self.membrane_mesh = TetMesh(model.mesh.nodes, model.mesh.tets[:, :4])
+            self.membrane_mesh = TetMesh(model.mesh.nodes, model.mesh.corner_tets)
         with timed(t, "chamber"):
             self.chamber = deployed_chamber(scene, self.membrane_dome) if chamber is None else chamber
             self.morpher = ChamberMorpher(self.chamber, self.membrane_dome)
@@ -547,7 +547,9 @@ def program_params(scene: Scene, spec: PalpationSpec | None = None, rig_path: st
     return {
         "palpation": d,
         "mesh": asdict(scene.mesh),
-        "membrane": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(scene.membrane).items()},
+        # the element only where it is not the one stores were written with before it existed
+        "membrane": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(scene.membrane).items()
+                     if not (k == "element" and v == "p2_tet")},
         "noise": asdict(scene.noise),
         "rig": str(rig_path) if rig_path else "scenes/bench_rig.xml",
         "n_records": segs[-1].start + segs[-1].n_frames,

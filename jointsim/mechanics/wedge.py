@@ -1,0 +1,425 @@
+"""Quadratic prisms (15-node serendipity wedges) through the membrane's thickness, with the
+element energy, gradient and Hessian in a Warp kernel — the alternative to fem.py's P2
+tetrahedra for the dome (``MembraneModel(element="wedge15")``).
+
+A prism layer of the membrane is one wedge per surface triangle instead of three P2 tetrahedra:
+no midside nodes on the quad faces' diagonals, so about 30 % fewer nodes at the same surface
+mesh, a sparser Hessian, and a factorisation ~2× cheaper (results/element_pattern.md).
+
+Locking: the volumetric energy U = κ/2 (θ − 1)² is taken of the dilatation θ projected, element
+by element, onto the linear polynomials {1, ξ, η, ζ} of the reference prism (L² with the element's
+volume weights) — a discontinuous linear pressure condensed out, as in the 15-node hybrid
+elements of commercial codes. Its four constraints per element against ~14 unknowns leave the
+nearly incompressible shell free to bend; with the pressure at every quadrature point (P2
+tetrahedra's "pointwise") the apex load on the dome is 2–3.5 % stiff at κ = 1000 μ, with this
+projection within 0.6 % of the axisymmetric reference on one layer (results/dome_apex_load.md).
+
+Hessian of the projected term: with B = Σ_q w_q φ(ξ_q) ∂J_q/∂u (4 × 45) and the Gram matrix
+G = Σ_q w_q φ φᵀ, θ_q = φ(ξ_q)ᵀ G⁻¹ Σ w φ J, and
+
+    ∂²E_vol = Σ_q w_q κ(θ_q − 1) ∂²J_q + κ Bᵀ G⁻¹ B,
+
+the first term in the material tangent's pressure slot (materials.tangent_with_pressure with
+k_local = 0), the second added per element.
+"""
+
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import scipy.sparse as sp
+
+from .._warp import wp
+from ..eit.solver import csr_pattern
+from .fem import KERNEL_THREADS, ElasticTerm, ElementState, HessianTarget, _pool, warp_device
+from .materials import Material, first_piola, strain_energy, tangent_with_pressure
+
+__all__ = ["WedgeMesh", "WedgeKernel", "WedgeElasticTerm", "wedge_shape", "WEDGE_POINTS", "WEDGE_WEIGHTS"]
+
+wp.set_module_options({"max_unroll": 1, "enable_backward": False})
+
+# node order: bottom corners 0 1 2, top corners 3 4 5, bottom midsides 01 12 20, top midsides
+# 34 45 53, vertical midsides 03 14 25. Reference prism: (ξ, η) in the unit triangle, ζ ∈ [−1, 1]
+_PAIRS = ((0, 1), (1, 2), (2, 0))
+_NODES, _DOFS = 15, 45
+
+
+def wedge_shape(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Shape functions N (q, 15) and their reference gradients ∂N/∂(ξ, η, ζ) (q, 15, 3) at
+    points (q, 3)."""
+    xi, eta, zeta = np.asarray(points, float).T
+    L = np.stack([1 - xi - eta, xi, eta])  # (3, q)
+    dL = np.array([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]])  # ∂L_i/∂(ξ, η)
+    q = len(xi)
+    N = np.zeros((q, _NODES))
+    dNdL = np.zeros((q, _NODES, 3))
+    dNdz = np.zeros((q, _NODES))
+    bubble = 1 - zeta**2
+    for i in range(3):
+        for s, off in ((-1.0, 0), (1.0, 3)):  # corners: ½ L (2L − 1)(1 ± ζ) − ½ L (1 − ζ²)
+            z = 1 + s * zeta
+            N[:, off + i] = 0.5 * L[i] * ((2 * L[i] - 1) * z - bubble)
+            dNdL[:, off + i, i] = 0.5 * ((4 * L[i] - 1) * z - bubble)
+            dNdz[:, off + i] = 0.5 * L[i] * (s * (2 * L[i] - 1) + 2 * zeta)
+        N[:, 12 + i] = L[i] * bubble  # vertical midsides
+        dNdL[:, 12 + i, i] = bubble
+        dNdz[:, 12 + i] = -2 * zeta * L[i]
+    for k, (i, j) in enumerate(_PAIRS):
+        for s, off in ((-1.0, 6), (1.0, 9)):  # in-plane midsides: 2 L_i L_j (1 ± ζ)
+            z = 1 + s * zeta
+            N[:, off + k] = 2 * L[i] * L[j] * z
+            dNdL[:, off + k, i] = 2 * L[j] * z
+            dNdL[:, off + k, j] = 2 * L[i] * z
+            dNdz[:, off + k] = s * 2 * L[i] * L[j]
+    dN = np.concatenate([dNdL @ dL, dNdz[:, :, None]], axis=2)
+    return N, dN
+
+
+def _quadrature() -> tuple[np.ndarray, np.ndarray]:
+    """3-point triangle (degree 2) × 3-point Gauss in ζ (degree 5): the stiffness of an affine
+    wedge exactly; weights sum to the reference prism's volume, 1."""
+    tri = np.array([[1 / 6, 1 / 6], [2 / 3, 1 / 6], [1 / 6, 2 / 3]])
+    z, wz = np.array([-np.sqrt(0.6), 0.0, np.sqrt(0.6)]), np.array([5.0, 8.0, 5.0]) / 9
+    pts = np.array([[a, b, c] for a, b in tri for c in z])
+    return pts, np.repeat(np.full(3, 1 / 6), 3) * np.tile(wz, 3)
+
+
+WEDGE_POINTS, WEDGE_WEIGHTS = _quadrature()
+_FLIP = np.array([0, 2, 1, 3, 5, 4, 8, 7, 6, 11, 10, 9, 12, 14, 13])  # the same prism, mirrored
+_FACE_BOTTOM, _FACE_TOP = [0, 1, 2, 6, 7, 8], [3, 4, 5, 9, 10, 11]
+
+
+@dataclass(frozen=True, eq=False)
+class WedgeMesh:
+    """``nodes`` (n, 3) reference positions in m; ``elements`` (m, 15) in the module's node
+    order; ``boundary_faces`` (k, 6): the triangular faces on the inner and outer surfaces
+    (corners a, b, c then midsides ab, bc, ca, outward) — the prisms' quad faces on the boundary
+    are the rim's, which is bonded. Isoparametric: midside nodes off their edge's midpoint curve
+    the element."""
+
+    nodes: np.ndarray
+    elements: np.ndarray
+    boundary_faces: np.ndarray
+
+    @classmethod
+    def on_membrane(cls, dome, thickness: float, layers: int, centre: np.ndarray | None, place) -> "WedgeMesh":
+        """The prism layers of :func:`~jointsim.mechanics.dome.membrane_mesh` (layer l's copy of
+        dome vertex i is node l·n + i) as wedges; the midside nodes (in-plane edges of every
+        level, then the vertical edges of every layer) placed by ``place`` (edge ends (k, 2, 3)
+        → nodes (k, 3); as for ``P2Mesh.from_linear``)."""
+        from .dome import membrane_mesh
+
+        lin, n = membrane_mesh(dome, thickness, layers, centre)
+        corners = lin.nodes
+        f = np.asarray(dome.faces)
+        edges, inv = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0, return_inverse=True)
+        face_edge = inv.ravel().reshape(3, -1).T  # (faces, 3): edges 01 12 20 of each face
+        levels = np.arange(layers + 1)
+        mids = place(corners[(levels[:, None, None] * n + edges[None]).reshape(-1, 2)])
+        column = np.arange(n)
+        vertical = place(np.stack([corners[(levels[:-1, None] * n + column).ravel()], corners[(levels[1:, None] * n + column).ravel()]], axis=1))
+        nodes = np.vstack([corners, mids, vertical])
+        mid0, vert0, ne = len(corners), len(corners) + len(mids), len(edges)
+        elements = np.vstack([
+            np.hstack([l * n + f, (l + 1) * n + f, mid0 + l * ne + face_edge, mid0 + (l + 1) * ne + face_edge, vert0 + l * n + f])
+            for l in range(layers)
+        ]).astype(np.int32)
+        # orient: ζ must run along the right-handed normal of the bottom triangle
+        dN = wedge_shape(np.array([[1 / 3, 1 / 3, 0.0]]))[1][0]
+        flip = np.linalg.det(np.einsum("mni,nk->mik", nodes[elements], dN)) < 0
+        elements[flip] = elements[flip][:, _FLIP]
+        nf = len(f)
+        faces = []
+        for rows, local in ((elements[:nf], _FACE_BOTTOM), (elements[-nf:], _FACE_TOP)):
+            face = rows[:, local]
+            p = nodes[face[:, :3]]
+            normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+            inward = np.einsum("ki,ki->k", normal, nodes[rows].mean(axis=1) - p.mean(axis=1)) > 0
+            face[inward] = face[inward][:, [0, 2, 1, 5, 4, 3]]  # a c b, midsides ac cb ba
+            faces.append(face)
+        return cls(nodes, elements, np.vstack(faces))
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.nodes)
+
+    @property
+    def n_elements(self) -> int:
+        return len(self.elements)
+
+    @cached_property
+    def jacobians(self) -> np.ndarray:
+        """det ∂X/∂ξ (m, q) at the quadrature points (> 0 in a valid element)."""
+        dN = wedge_shape(WEDGE_POINTS)[1]
+        return np.linalg.det(np.einsum("mni,qnk->mqik", self.nodes[self.elements], dN))
+
+    @cached_property
+    def centroid_gradients(self) -> np.ndarray:
+        """∇_X N (m, 15, 3) at each element's centroid (ξ = η = ⅓, ζ = 0): F there is I + Σ u_a ⊗ ∇N_a."""
+        dN = wedge_shape(np.array([[1 / 3, 1 / 3, 0.0]]))[1][0]
+        Jx = np.einsum("mni,nk->mik", self.nodes[self.elements], dN)
+        return np.einsum("nk,mkj->mnj", dN, np.linalg.inv(Jx))
+
+    @cached_property
+    def corner_tets(self) -> np.ndarray:
+        """Each prism's corners split into three tetrahedra (m·3, 4), conforming between
+        neighbours, positively oriented: a linear tetrahedral mesh of the membrane for output."""
+        from ..mesh.tetmesh import TetMesh
+        from .dome import _split_prisms
+
+        return TetMesh(self.nodes, _split_prisms(self.elements[:, :3], self.elements[:, 3:6])).oriented().tets
+
+    @cached_property
+    def sparsity(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(indptr, indices, slot) of the 3n × 3n Hessian: element entry (e, r, c) adds into
+        data[slot[e·2025 + 45 r + c]]."""
+        dof = (3 * self.elements[:, :, None] + np.arange(3)).reshape(-1, _DOFS).astype(np.int64)
+        return csr_pattern(np.repeat(dof, _DOFS, axis=1).ravel(), np.tile(dof, (1, _DOFS)).ravel(), 3 * self.n_nodes)
+
+
+_Mat15x3 = wp.types.matrix(shape=(15, 3), dtype=wp.float64)
+
+
+@wp.func
+def _jacobian(X: wp.array(dtype=wp.vec3d), els: wp.array2d(dtype=wp.int32), e: int, dN: wp.array3d(dtype=wp.float64), q: int) -> wp.mat33d:
+    Jx = wp.mat33d()
+    for a in range(15):
+        Jx += wp.outer(X[els[e, a]], wp.vec3d(dN[q, a, 0], dN[q, a, 1], dN[q, a, 2]))
+    return Jx
+
+
+@wp.func
+def _gradients(dN: wp.array3d(dtype=wp.float64), q: int, Jinv: wp.mat33d) -> _Mat15x3:
+    G = _Mat15x3()
+    for a in range(15):
+        ga = wp.transpose(Jinv) @ wp.vec3d(dN[q, a, 0], dN[q, a, 1], dN[q, a, 2])
+        for k in range(3):
+            G[a, k] = ga[k]
+    return G
+
+
+@wp.func
+def _deformation(u: wp.array(dtype=wp.vec3d), els: wp.array2d(dtype=wp.int32), e: int, G: _Mat15x3) -> wp.mat33d:
+    F = wp.identity(n=3, dtype=wp.float64)
+    for a in range(15):
+        F += wp.outer(u[els[e, a]], wp.vec3d(G[a, 0], G[a, 1], G[a, 2]))
+    return F
+
+
+@wp.kernel
+def _wedge_element(
+    X: wp.array(dtype=wp.vec3d),
+    u: wp.array(dtype=wp.vec3d),
+    els: wp.array2d(dtype=wp.int32),
+    params: wp.array2d(dtype=wp.float64),
+    dN: wp.array3d(dtype=wp.float64),
+    phi: wp.array2d(dtype=wp.float64),
+    qw: wp.array(dtype=wp.float64),
+    nq: int,
+    mode: int,
+    slot: wp.array2d(dtype=wp.int32),
+    offset: int,
+    energy: wp.array(dtype=wp.float64),
+    grad: wp.array2d(dtype=wp.float64),
+    hess_data: wp.array(dtype=wp.float64),
+    min_det: wp.array(dtype=wp.float64),
+    K: wp.array3d(dtype=wp.float64),
+    B: wp.array3d(dtype=wp.float64),
+):
+    # K (45 × 45) and B (4 × 45) live in per-element rows of global arrays: as local matrices
+    # they make the generated code (and its compile) explode
+    e = wp.tid() + offset
+    one = wp.float64(1.0)
+    zero = wp.float64(0.0)
+    c1 = params[e, 0]
+    c2 = params[e, 1]
+    c3 = params[e, 2]
+    kappa = params[e, 3]
+    # pass 1: the dilatation's projection onto φ = (1, ξ, η, ζ): θ(ξ) = φ(ξ)ᵀ G⁻¹ Σ_q w φ J
+    Gm = wp.mat44d()
+    moments = wp.vec4d()
+    jmin = wp.float64(1.0e30)
+    for q in range(nq):
+        Jx = _jacobian(X, els, e, dN, q)
+        w = qw[q] * wp.determinant(Jx)
+        J = wp.determinant(_deformation(u, els, e, _gradients(dN, q, wp.inverse(Jx))))
+        jmin = wp.min(jmin, J)
+        phq = wp.vec4d(phi[q, 0], phi[q, 1], phi[q, 2], phi[q, 3])
+        moments += w * J * phq
+        Gm += w * wp.outer(phq, phq)
+    Gi = wp.inverse(Gm)
+    coef = Gi @ moments
+    if mode != 0:
+        for r in range(45):
+            for c in range(45):
+                K[e, r, c] = zero
+            for m in range(4):
+                B[e, m, r] = zero
+    E = zero
+    for q in range(nq):
+        Jx = _jacobian(X, els, e, dN, q)
+        w = qw[q] * wp.determinant(Jx)
+        G = _gradients(dN, q, wp.inverse(Jx))
+        F = _deformation(u, els, e, G)
+        J = wp.determinant(F)
+        phq = wp.vec4d(phi[q, 0], phi[q, 1], phi[q, 2], phi[q, 3])
+        theta = wp.dot(phq, coef)
+        p = kappa * (theta - one)
+        E += w * (strain_energy(F, c1, c2, c3, zero) + wp.float64(0.5) * kappa * (theta - one) * (theta - one))
+        t = tangent_with_pressure(F, c1, c2, c3, p, zero)
+        P = first_piola(t)
+        for a in range(15):
+            ga = wp.vec3d(G[a, 0], G[a, 1], G[a, 2])
+            ra = w * (P @ ga)
+            for i in range(3):
+                grad[e, 3 * a + i] += ra[i]
+        if mode != 0:
+            # B += w φ_q ⊗ ∂J/∂u (∂J/∂u_a = J F^{-T} ∇N_a), then the isochoric and p·∂²J part of
+            # the tangent, block (a, b ≥ a), as in fem._p2_element
+            Dg = _Mat15x3()
+            Tg = _Mat15x3()
+            Pg = _Mat15x3()
+            Rg = _Mat15x3()
+            for a in range(15):
+                ga = wp.vec3d(G[a, 0], G[a, 1], G[a, 2])
+                da = t.D @ ga
+                ta = t.T @ ga
+                pa = t.c_dd * da - t.c_dt * ta
+                ra = t.c_tt * ta - t.c_dt * (t.F @ ga)
+                dj = w * J * ta
+                for i in range(3):
+                    Dg[a, i] = da[i]
+                    Tg[a, i] = ta[i]
+                    Pg[a, i] = pa[i]
+                    Rg[a, i] = ra[i]
+                    for m in range(4):
+                        B[e, m, 3 * a + i] = B[e, m, 3 * a + i] + phq[m] * dj[i]
+            for a in range(15):
+                da = wp.vec3d(Dg[a, 0], Dg[a, 1], Dg[a, 2])
+                ta = wp.vec3d(Tg[a, 0], Tg[a, 1], Tg[a, 2])
+                ga = wp.vec3d(G[a, 0], G[a, 1], G[a, 2])
+                for b in range(a, 15):
+                    tb = wp.vec3d(Tg[b, 0], Tg[b, 1], Tg[b, 2])
+                    pb = wp.vec3d(Pg[b, 0], Pg[b, 1], Pg[b, 2])
+                    rb = wp.vec3d(Rg[b, 0], Rg[b, 1], Rg[b, 2])
+                    block = w * (wp.outer(da, pb) + wp.outer(ta, rb) + t.c_outer * wp.outer(tb, ta))
+                    shear = w * t.c_e * wp.dot(ga, wp.vec3d(G[b, 0], G[b, 1], G[b, 2]))
+                    for i in range(3):
+                        for j in range(3):
+                            K[e, 3 * a + i, 3 * b + j] = K[e, 3 * a + i, 3 * b + j] + block[i, j]
+                        K[e, 3 * a + i, 3 * b + i] = K[e, 3 * a + i, 3 * b + i] + shear
+    energy[e] = E
+    min_det[e] = jmin
+    if mode != 0:
+        # κ Bᵀ G⁻¹ B into the upper blocks, then each entry (its mirror below the block diagonal)
+        for r in range(45):
+            gb = wp.vec4d(B[e, 0, r], B[e, 1, r], B[e, 2, r], B[e, 3, r])
+            gb = Gi @ gb
+            for c in range((r // 3) * 3, 45):
+                bc = wp.vec4d(B[e, 0, c], B[e, 1, c], B[e, 2, c], B[e, 3, c])
+                K[e, r, c] = K[e, r, c] + kappa * wp.dot(gb, bc)
+        for r in range(45):
+            for c in range(45):
+                v = K[e, r, c]
+                if c // 3 < r // 3:
+                    v = K[e, c, r]
+                at = int(slot[e, 45 * r + c])
+                if at >= 0:
+                    wp.atomic_add(hess_data, at, v)
+
+
+class WedgeKernel:
+    """Warp arrays for one wedge mesh and its material, reused across calls; called as
+    fem.ElementKernel is."""
+
+    volumetric = "projected"
+
+    def __init__(self, mesh: WedgeMesh, material: Material, device: str = "cpu"):
+        self.mesh = mesh
+        self.device = warp_device(device)
+        if np.any(mesh.jacobians <= 0):
+            raise ValueError("mesh: wedges must be positively oriented and curved midside nodes must not fold them")
+        m = mesh.n_elements
+        dN = wedge_shape(WEDGE_POINTS)[1]
+        phi = np.column_stack([np.ones(len(WEDGE_POINTS)), WEDGE_POINTS])
+        self.nq = len(WEDGE_POINTS)
+        self._X = wp.array(mesh.nodes, dtype=wp.vec3d, device=device)
+        self._els = wp.array(mesh.elements, dtype=wp.int32, device=device)
+        self._params = wp.array(np.tile([material.c1, material.c2, material.c3, material.bulk], (m, 1)), dtype=wp.float64, device=device)
+        self._dN = wp.array(dN, dtype=wp.float64, device=device)
+        self._phi = wp.array(phi, dtype=wp.float64, device=device)
+        self._qw = wp.array(WEDGE_WEIGHTS, dtype=wp.float64, device=device)
+        indptr, indices, slot = mesh.sparsity
+        self._indptr, self._indices = indptr, indices
+        self._slot = wp.array(slot.reshape(m, _DOFS * _DOFS).astype(np.int32), dtype=wp.int32, device=device)
+        self.pattern_target = HessianTarget(self._slot, len(indices))
+        self._energy = wp.zeros(m, dtype=wp.float64, device=device)
+        self._grad = wp.zeros((m, _DOFS), dtype=wp.float64, device=device)
+        self._mindet = wp.zeros(m, dtype=wp.float64, device=device)
+        self._K = wp.zeros((m, _DOFS, _DOFS), dtype=wp.float64, device=device)
+        self._B = wp.zeros((m, 4, _DOFS), dtype=wp.float64, device=device)
+        self._empty1 = wp.zeros(1, dtype=wp.float64, device=device)
+
+    def retarget(self, pattern_slot: np.ndarray, size: int) -> HessianTarget:
+        """As fem.ElementKernel.retarget."""
+        _, _, slot = self.mesh.sparsity
+        mapped = np.asarray(pattern_slot, np.int64)[slot].reshape(self.mesh.n_elements, _DOFS * _DOFS)
+        if mapped.max() >= size:
+            raise ValueError(f"pattern_slot: slots must be < size = {size}")
+        return HessianTarget(wp.array(mapped.astype(np.int32), dtype=wp.int32, device=self.device), int(size))
+
+    def __call__(self, u: np.ndarray, hessian: bool = True, elements: bool = False, target: HessianTarget | None = None) -> ElementState:
+        uw = wp.array(np.ascontiguousarray(u, dtype=np.float64), dtype=wp.vec3d, device=self.device)
+        hessian = hessian or elements or target is not None
+        to = target if target is not None else self.pattern_target
+        self._grad.zero_()
+        m = self.mesh.n_elements
+        cpu = self.device == "cpu"
+        # a wedge is ~6 P2 tetrahedra's work: chunks of a sixth of fem's MIN_CHUNK elements
+        chunks = max(1, min(KERNEL_THREADS, m // 170)) if cpu else 1
+        bounds = np.linspace(0, m, chunks + 1).astype(int)
+        data = [self._empty1] * chunks
+        host: list[np.ndarray] = []
+        if hessian:
+            if cpu:
+                host = [np.zeros(to.size) for _ in range(chunks)]
+                data = [wp.array(h, dtype=wp.float64, device=self.device, copy=False) for h in host]
+            else:
+                data = [wp.zeros(to.size, dtype=wp.float64, device=self.device)]
+        fixed = [self._X, uw, self._els, self._params, self._dN, self._phi, self._qw, self.nq, int(hessian), to.slot]
+
+        def launch(k: int) -> None:
+            wp.launch(_wedge_element, dim=int(bounds[k + 1] - bounds[k]), inputs=fixed + [int(bounds[k])],
+                      outputs=[self._energy, self._grad, data[k], self._mindet, self._K, self._B], device=self.device)
+
+        if chunks == 1:
+            launch(0)
+        else:
+            for f in [_pool().submit(launch, k) for k in range(chunks)]:
+                f.result()
+        H = values = per_element = None
+        if hessian:
+            values = host[0] if cpu else data[0].numpy()
+            for h in host[1:]:
+                values += h
+            if target is None:
+                n = 3 * self.mesh.n_nodes
+                H, values = sp.csr_matrix((values, self._indices, self._indptr), shape=(n, n)), None
+        if elements:  # the kernel's upper blocks, mirrored
+            Ku = self._K.numpy()
+            below = (np.arange(_DOFS)[None, :] // 3) < (np.arange(_DOFS)[:, None] // 3)
+            per_element = np.where(below, np.swapaxes(Ku, 1, 2), Ku)
+        return ElementState(self._energy.numpy().copy(), self._grad.numpy().copy(), H, self._mindet.numpy().copy(), per_element, values)
+
+
+class WedgeElasticTerm(ElasticTerm):
+    """The hyperelastic energy of a wedge mesh, as an energy term for the Newton solver (the
+    methods of fem.ElasticTerm, on :class:`WedgeKernel`)."""
+
+    def __init__(self, mesh: WedgeMesh, material: Material, device: str = "cpu"):
+        self.mesh = mesh
+        self.kernel = WedgeKernel(mesh, material, device)
+        self._targets: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
