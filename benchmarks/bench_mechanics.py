@@ -8,6 +8,8 @@ mesh size, wall time per step, Newton iterations, and the split between the Warp
 and the rest.
 
     python benchmarks/bench_mechanics.py            # writes results/mechanics_benchmark.{md,json}
+    python benchmarks/bench_mechanics.py --wedge    # the same study on 15-node wedges ([membrane] element =
+                                                    # "wedge15"): results/mechanics_benchmark_wedge15.{md,json}
     python benchmarks/bench_mechanics.py --flat     # the same study of the membrane moulded flat and
                                                     # inflated: results/mechanics_flat_benchmark.{md,json}
     python benchmarks/bench_mechanics.py --report   # rewrites the .md files from the .json
@@ -69,6 +71,11 @@ SOLVER_MESH, REPEATS = (92, 2, 0.0, "pointwise"), 2
 # moulding = "flat"); the last is the reference
 FLAT_RESOLUTIONS = [(32, 2, 0.0, "pointwise"), (48, 2, 0.0, "pointwise"), (64, 2, 0.0, "pointwise"), (92, 2, 0.0, "pointwise"),
                     (64, 3, 0.0, "pointwise"), (128, 2, 0.0, "pointwise"), (160, 2, 0.0, "pointwise")]
+# `--wedge`: the membrane's 15-node wedges (the form field "wedge15": MembraneModel element =
+# "wedge15"); one and two layers, the last the reference
+WEDGE_RESOLUTIONS = [(48, 1, 0.0, "wedge15"), (64, 1, 0.0, "wedge15"), (72, 1, 0.0, "wedge15"), (80, 1, 0.0, "wedge15"), (92, 1, 0.0, "wedge15"),
+                     (128, 1, 0.0, "wedge15"), (160, 1, 0.0, "wedge15"), (64, 2, 0.0, "wedge15"), (92, 2, 0.0, "wedge15"), (128, 2, 0.0, "wedge15"),
+                     (160, 2, 0.0, "wedge15")]
 GOAL_S, CONVERGED = 1.0, 0.02  # the issue's goal: ≤ 1 s per step at a mesh within 2 % in force
 DEPTHS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 
@@ -78,6 +85,7 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
     import jointsim.eit.solver as solver
     import jointsim.mechanics.fem as fem
     import jointsim.mechanics.newton as newton
+    import jointsim.mechanics.wedge as wedge
 
     newton.SINGLE_PRECISION, newton.PIVOT_2X2, newton.CHOLESKY_FIRST, threads, into, solver.PARDISO_TWO_LEVEL, newton.CHORD_STEPS = SOLVERS[linear]
     fem.KERNEL_THREADS = threads or fem.KERNEL_THREADS
@@ -99,6 +107,7 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
         return g
 
     fem.ElementKernel.__call__ = timed("kernel", fem.ElementKernel.__call__)
+    wedge.WedgeKernel.__call__ = timed("kernel", wedge.WedgeKernel.__call__)
     # try_factor (Cholesky that may fail) calls factor: each attempt counts once
     solver.PatternSolver.factor = timed("factorise+solve", solver.PatternSolver.factor, factorisations)
     solver.PatternSolver.solve = timed("factorise+solve", solver.PatternSolver.solve)
@@ -117,14 +126,15 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
                       **{f"{k}_s": v for k, v in timers.items()},
                       "force_mN": st.force[2] * 1e3, "displaced_mm3": st.displaced_volume * 1e9, "penetration_um": st.penetration * 1e6})
     return {"n_rim": n_rim, "layers": layers, "apex_mm": apex_mm, "volumetric": volumetric, "linear": linear, "device": device,
-            "moulding": moulding, "p2_nodes": model.mesh.n_nodes, "tets": model.mesh.n_tets, "setup_s": setup,
+            "moulding": moulding, "p2_nodes": model.mesh.n_nodes, "tets": model.mesh.n_elements, "setup_s": setup,
             "pressure_pa": model.pressure.pressure, "chamber_mm3": model.V0 * 1e9, "steps": steps}
 
 
 def _membrane(n_rim: int, layers: int, apex_mm: float, volumetric: str, device: str = "cpu", moulding: str = "cap", radius: float = 7.5e-3):
     """The paper's membrane on a cap of ``n_rim`` rim vertices under the 15 mm target (or one of ``radius``; its element
     kernel on the Warp ``device``), and the seconds MembraneModel.from_scene took (meshing, inflation).
-    ``moulding`` "flat": a flat disc of ``n_rim`` rim vertices inflated to the dome's height."""
+    ``moulding`` "flat": a flat disc of ``n_rim`` rim vertices inflated to the dome's height. ``volumetric``
+    "wedge15": the membrane of 15-node wedges (their own volumetric form), else P2 tetrahedra with that form."""
     from dataclasses import replace
 
     from jointsim.geometry import flat_disc, isotropic_cap
@@ -132,7 +142,9 @@ def _membrane(n_rim: int, layers: int, apex_mm: float, volumetric: str, device: 
     from jointsim.scene import load_scene
 
     scene = load_scene(ROOT / "scenes" / "paper_sensor.toml")
-    scene = replace(scene, membrane=replace(scene.membrane, layers=layers, volumetric=volumetric, moulding=moulding))
+    element = "wedge15" if volumetric == "wedge15" else "p2_tet"
+    form = "pointwise" if element == "wedge15" else volumetric
+    scene = replace(scene, membrane=replace(scene.membrane, layers=layers, volumetric=form, moulding=moulding, element=element))
     c = scene.chamber
     if moulding == "flat":
         dome = flat_disc(c.base_radius, n_rim)
@@ -173,7 +185,7 @@ def extrapolate(h: list[float], f: list[float]) -> tuple[float, float] | None:
 
 def main() -> int:
     if len(sys.argv) > 1 and sys.argv[1] == "--report":
-        for out in (OUT, FLAT_OUT):
+        for out in (OUT, FLAT_OUT, WEDGE_OUT):
             if out.with_suffix(".json").exists():
                 saved = json.loads(out.with_suffix(".json").read_text())
                 write(saved["rows"], saved["meta"], out)
@@ -202,6 +214,8 @@ def main() -> int:
         return solvers(int(sys.argv[2]) if len(sys.argv) > 2 else REPEATS)
     if len(sys.argv) > 2 and sys.argv[1] == "--pair":
         return pair(sys.argv[2], int(sys.argv[3]) if len(sys.argv) > 3 else 4)
+    if len(sys.argv) > 1 and sys.argv[1] == "--wedge":
+        return study(WEDGE_RESOLUTIONS, WEDGE_OUT, "cap", "python benchmarks/bench_mechanics.py --wedge")
     if len(sys.argv) > 1 and sys.argv[1] == "--flat":
         return study(FLAT_RESOLUTIONS, FLAT_OUT, "flat", "python benchmarks/bench_mechanics.py --flat")
     return study(RESOLUTIONS, OUT, "cap", "python benchmarks/bench_mechanics.py")
@@ -239,6 +253,7 @@ def study(resolutions: list[tuple], out: Path, moulding: str, command: str) -> i
 
 OUT = ROOT / "results" / "mechanics_benchmark"
 FLAT_OUT = ROOT / "results" / "mechanics_flat_benchmark"
+WEDGE_OUT = ROOT / "results" / "mechanics_benchmark_wedge15"
 SOLVERS_OUT = ROOT / "results" / "mechanics_solvers"
 
 
@@ -531,6 +546,7 @@ def write(rows: list[dict], meta: dict, out: Path = OUT) -> None:
     """``out``.{json,md} (results/mechanics_benchmark, or mechanics_flat_benchmark for the flat
     moulding) from the measured rows (``--report``: from the JSON)."""
     flat = meta.get("moulding", "cap") == "flat"
+    wedges = rows[-1]["volumetric"] == "wedge15"
     ref = rows[-1]
     depths = (1.0, 2.0, 3.0)
     per_step = {_label(r): np.mean([x["wall_s"] for x in r["steps"][1:]]) for r in rows}
@@ -561,6 +577,10 @@ def write(rows: list[dict], meta: dict, out: Path = OUT) -> None:
                    f"{first}; its own column). Membrane meshes: the inner surface as a uniform isotropic cap of edge 2π·20 mm / rim vertices,",
                    "P2 tetrahedra (isoparametric, on the true spheres) in prism layers through the 2 mm thickness, the volumetric energy",
                    "pointwise (the scene default; validated on this dome against an axisymmetric reference in results/dome_apex_load.md)."]
+        if wedges:
+            setting[-2:] = ["15-node quadratic wedges (isoparametric, on the true spheres), one per surface triangle and prism layer through the 2 mm",
+                            "thickness, the volumetric energy of the dilatation projected per element onto linear polynomials ([membrane] element =",
+                            "\"wedge15\", jointsim/mechanics/wedge.py; validated on this dome against an axisymmetric reference in results/dome_apex_load.md)."]
     title = "Mechanics benchmark and mesh convergence" + (": the membrane moulded flat" if flat else "")
     lines = ["# " + title, "", f"Command: `{meta['command']}`  ", f"Machine: {meta['machine']}; run {meta['date']}.  ",
              *setting,
@@ -573,7 +593,7 @@ def write(rows: list[dict], meta: dict, out: Path = OUT) -> None:
              "Reference workload (`benchmarks/_machine.py` speed_reference, a fixed sparse factorisation): "
              f"{meta['speed_reference_s_start_end'][0]:.3f} s at the start, {meta['speed_reference_s_start_end'][1]:.3f} s at the end; "
              "to compare with a run of another day, scale by the ratio of this figure.", "",
-             "| rim / layers | P2 nodes | s / step | Newton its / step (factorisations, where counted) | kernel s | factorise+solve s | first step s (its) | F 1 / 2 / 3 mm, mN | force error 1 / 2 / 3 mm | displaced mm³ at 3 mm | its error |"
+             f"| rim / layers | {'nodes' if wedges else 'P2 nodes'} | s / step | Newton its / step (factorisations, where counted) | kernel s | factorise+solve s | first step s (its) | F 1 / 2 / 3 mm, mN | force error 1 / 2 / 3 mm | displaced mm³ at 3 mm | its error |"
              + (" setup s | deploy pressure Pa | chamber mm³ |" if flat else ""),
              "|---|---|---|---|---|---|---|---|---|---|---|" + ("---|---|---|" if flat else "")]
     for r in rows:
@@ -630,9 +650,10 @@ def write(rows: list[dict], meta: dict, out: Path = OUT) -> None:
     if layered:
         lines += ["", "Layers through the thickness, same in-plane mesh (force at 3 mm): "
                   + ", ".join(f"{_label(q)} is {100 * (_at(q, 3.0) / _at(r, 3.0) - 1):+.1f} % on {_label(r)}" for r, q in layered)
-                  + f". The errors above are against a {ref['layers']}-layer reference, so they leave out this through-thickness "
-                  "part: against a mesh refined in both directions a mesh's force is that much further off (pointwise P2 at "
-                  "κ = 1000 μ stiffens a little on fewer layers; results/dome_apex_load.md)."]
+                  + (". The reference has two layers: the force changes by this much between one and two." if wedges else
+                     f". The errors above are against a {ref['layers']}-layer reference, so they leave out this through-thickness "
+                     "part: against a mesh refined in both directions a mesh's force is that much further off (pointwise P2 at "
+                     "κ = 1000 μ stiffens a little on fewer layers; results/dome_apex_load.md).")]
     write_pair(out, {"meta": meta, "rows": rows}, "\n".join(lines) + "\n")
     print("\n".join(lines))
 

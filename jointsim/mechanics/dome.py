@@ -271,7 +271,7 @@ class MembraneModel:
         # device: where Warp runs the element kernel ("cpu", or "cuda:0" where a GPU is); the
         # contact, pressure and sparse solves stay on the host
         if element == "wedge15":
-            self.mesh = WedgeMesh.on_membrane(dome, thickness, layers, centre, place if place is not None else lambda ends: ends.mean(axis=1))
+            self.mesh = WedgeMesh.on_membrane(dome, thickness, layers, centre, place)
             self.elastic = WedgeElasticTerm(self.mesh, material, device=device)
         else:
             self.mesh = P2Mesh.from_linear(lin, place)

@@ -113,8 +113,18 @@ class WedgeMesh:
         from .dome import membrane_mesh
 
         lin, n = membrane_mesh(dome, thickness, layers, centre)
-        corners = lin.nodes
-        f = np.asarray(dome.faces)
+        return cls.extrude(lin.nodes, np.asarray(dome.faces), layers, place)
+
+    @classmethod
+    def extrude(cls, corners: np.ndarray, faces: np.ndarray, layers: int, place=None) -> "WedgeMesh":
+        """Wedges between the ``layers + 1`` copies of a triangulated surface: ``corners``
+        ((layers + 1)·n, 3), level l's copy of vertex i at row l·n + i; ``faces`` (k, 3) the
+        surface's triangles. Midside nodes by ``place`` (edge ends (k, 2, 3) → nodes (k, 3);
+        None: the midpoints)."""
+        corners = np.asarray(corners, float)
+        f = np.asarray(faces)
+        n = len(corners) // (layers + 1)
+        place = place if place is not None else (lambda ends: ends.mean(axis=1))
         edges, inv = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0, return_inverse=True)
         face_edge = inv.ravel().reshape(3, -1).T  # (faces, 3): edges 01 12 20 of each face
         levels = np.arange(layers + 1)
@@ -132,15 +142,15 @@ class WedgeMesh:
         flip = np.linalg.det(np.einsum("mni,nk->mik", nodes[elements], dN)) < 0
         elements[flip] = elements[flip][:, _FLIP]
         nf = len(f)
-        faces = []
+        surfaces = []
         for rows, local in ((elements[:nf], _FACE_BOTTOM), (elements[-nf:], _FACE_TOP)):
             face = rows[:, local]
             p = nodes[face[:, :3]]
             normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
             inward = np.einsum("ki,ki->k", normal, nodes[rows].mean(axis=1) - p.mean(axis=1)) > 0
             face[inward] = face[inward][:, [0, 2, 1, 5, 4, 3]]  # a c b, midsides ac cb ba
-            faces.append(face)
-        return cls(nodes, elements, np.vstack(faces))
+            surfaces.append(face)
+        return cls(nodes, elements, np.vstack(surfaces))
 
     @property
     def n_nodes(self) -> int:
