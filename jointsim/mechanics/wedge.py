@@ -12,7 +12,7 @@ volume weights) — a discontinuous linear pressure condensed out, as in the 15-
 elements of commercial codes. Its four constraints per element against ~14 unknowns leave the
 nearly incompressible shell free to bend; with the pressure at every quadrature point (P2
 tetrahedra's "pointwise") the apex load on the dome is 2–3.5 % stiff at κ = 1000 μ, with this
-projection within 0.6 % of the axisymmetric reference on one layer (results/dome_apex_load.md).
+projection within 0.8 % of the axisymmetric reference on one to three layers (results/dome_apex_load.md).
 
 Hessian of the projected term: with B = Σ_q w_q φ(ξ_q) ∂J_q/∂u (4 × 45) and the Gram matrix
 G = Σ_q w_q φ φᵀ, θ_q = φ(ξ_q)ᵀ G⁻¹ Σ w φ J, and
