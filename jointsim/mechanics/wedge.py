@@ -88,8 +88,16 @@ def _quadrature() -> tuple[np.ndarray, np.ndarray]:
 
 
 WEDGE_POINTS, WEDGE_WEIGHTS = _quadrature()
+
+
+def _reference_geometry(nodes: np.ndarray, elements: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """∇_X N (m, q, 15, 3) and det ∂X/∂ξ (m, q) of the elements' reference maps at ``points`` (q, 3)."""
+    dN = wedge_shape(points)[1]
+    Jx = np.einsum("mni,qnk->mqik", nodes[elements], dN)
+    return np.einsum("qnk,mqkj->mqnj", dN, np.linalg.inv(Jx)), np.linalg.det(Jx)
 _FLIP = np.array([0, 2, 1, 3, 5, 4, 8, 7, 6, 11, 10, 9, 12, 14, 13])  # the same prism, mirrored
 _FACE_BOTTOM, _FACE_TOP = [0, 1, 2, 6, 7, 8], [3, 4, 5, 9, 10, 11]
+_CENTROID = np.array([[1 / 3, 1 / 3, 0.0]])
 
 
 @dataclass(frozen=True, eq=False)
@@ -138,8 +146,7 @@ class WedgeMesh:
             for l in range(layers)
         ]).astype(np.int32)
         # orient: ζ must run along the right-handed normal of the bottom triangle
-        dN = wedge_shape(np.array([[1 / 3, 1 / 3, 0.0]]))[1][0]
-        flip = np.linalg.det(np.einsum("mni,nk->mik", nodes[elements], dN)) < 0
+        flip = _reference_geometry(nodes, elements, _CENTROID)[1][:, 0] < 0
         elements[flip] = elements[flip][:, _FLIP]
         nf = len(f)
         surfaces = []
@@ -161,17 +168,20 @@ class WedgeMesh:
         return len(self.elements)
 
     @cached_property
+    def quadrature_geometry(self) -> tuple[np.ndarray, np.ndarray]:
+        """∇_X N (m, q, 15, 3) and det ∂X/∂ξ (m, q) at the quadrature points: the reference
+        geometry, fixed for the mesh, which the kernel reads instead of recomputing each call."""
+        return _reference_geometry(self.nodes, self.elements, WEDGE_POINTS)
+
+    @property
     def jacobians(self) -> np.ndarray:
         """det ∂X/∂ξ (m, q) at the quadrature points (> 0 in a valid element)."""
-        dN = wedge_shape(WEDGE_POINTS)[1]
-        return np.linalg.det(np.einsum("mni,qnk->mqik", self.nodes[self.elements], dN))
+        return self.quadrature_geometry[1]
 
     @cached_property
     def centroid_gradients(self) -> np.ndarray:
         """∇_X N (m, 15, 3) at each element's centroid (ξ = η = ⅓, ζ = 0): F there is I + Σ u_a ⊗ ∇N_a."""
-        dN = wedge_shape(np.array([[1 / 3, 1 / 3, 0.0]]))[1][0]
-        Jx = np.einsum("mni,nk->mik", self.nodes[self.elements], dN)
-        return np.einsum("nk,mkj->mnj", dN, np.linalg.inv(Jx))
+        return _reference_geometry(self.nodes, self.elements, _CENTROID)[0][:, 0]
 
     @cached_property
     def corner_tets(self) -> np.ndarray:
@@ -194,40 +204,22 @@ _Mat15x3 = wp.types.matrix(shape=(15, 3), dtype=wp.float64)
 
 
 @wp.func
-def _jacobian(X: wp.array(dtype=wp.vec3d), els: wp.array2d(dtype=wp.int32), e: int, dN: wp.array3d(dtype=wp.float64), q: int) -> wp.mat33d:
-    Jx = wp.mat33d()
-    for a in range(15):
-        Jx += wp.outer(X[els[e, a]], wp.vec3d(dN[q, a, 0], dN[q, a, 1], dN[q, a, 2]))
-    return Jx
-
-
-@wp.func
-def _gradients(dN: wp.array3d(dtype=wp.float64), q: int, Jinv: wp.mat33d) -> _Mat15x3:
-    G = _Mat15x3()
-    for a in range(15):
-        ga = wp.transpose(Jinv) @ wp.vec3d(dN[q, a, 0], dN[q, a, 1], dN[q, a, 2])
-        for k in range(3):
-            G[a, k] = ga[k]
-    return G
-
-
-@wp.func
-def _deformation(u: wp.array(dtype=wp.vec3d), els: wp.array2d(dtype=wp.int32), e: int, G: _Mat15x3) -> wp.mat33d:
+def _deformation(u: wp.array(dtype=wp.vec3d), els: wp.array2d(dtype=wp.int32), e: int, grads: wp.array3d(dtype=wp.vec3d), q: int) -> wp.mat33d:
     F = wp.identity(n=3, dtype=wp.float64)
     for a in range(15):
-        F += wp.outer(u[els[e, a]], wp.vec3d(G[a, 0], G[a, 1], G[a, 2]))
+        F += wp.outer(u[els[e, a]], grads[e, q, a])
     return F
 
 
 @wp.kernel
 def _wedge_element(
-    X: wp.array(dtype=wp.vec3d),
     u: wp.array(dtype=wp.vec3d),
     els: wp.array2d(dtype=wp.int32),
     params: wp.array2d(dtype=wp.float64),
-    dN: wp.array3d(dtype=wp.float64),
+    grads: wp.array3d(dtype=wp.vec3d),
+    weights: wp.array2d(dtype=wp.float64),
+    gram_inv: wp.array(dtype=wp.mat44d),
     phi: wp.array2d(dtype=wp.float64),
-    qw: wp.array(dtype=wp.float64),
     nq: int,
     mode: int,
     slot: wp.array2d(dtype=wp.int32),
@@ -248,19 +240,15 @@ def _wedge_element(
     c2 = params[e, 1]
     c3 = params[e, 2]
     kappa = params[e, 3]
-    # pass 1: the dilatation's projection onto φ = (1, ξ, η, ζ): θ(ξ) = φ(ξ)ᵀ G⁻¹ Σ_q w φ J
-    Gm = wp.mat44d()
+    # pass 1: the dilatation's projection onto φ = (1, ξ, η, ζ): θ(ξ) = φ(ξ)ᵀ G⁻¹ Σ_q w φ J, with
+    # the Gram matrix G = Σ_q w φ φᵀ of the reference geometry (gram_inv: its inverse)
+    Gi = gram_inv[e]
     moments = wp.vec4d()
     jmin = wp.float64(1.0e30)
     for q in range(nq):
-        Jx = _jacobian(X, els, e, dN, q)
-        w = qw[q] * wp.determinant(Jx)
-        J = wp.determinant(_deformation(u, els, e, _gradients(dN, q, wp.inverse(Jx))))
+        J = wp.determinant(_deformation(u, els, e, grads, q))
         jmin = wp.min(jmin, J)
-        phq = wp.vec4d(phi[q, 0], phi[q, 1], phi[q, 2], phi[q, 3])
-        moments += w * J * phq
-        Gm += w * wp.outer(phq, phq)
-    Gi = wp.inverse(Gm)
+        moments += weights[e, q] * J * wp.vec4d(phi[q, 0], phi[q, 1], phi[q, 2], phi[q, 3])
     coef = Gi @ moments
     if mode != 0:
         for r in range(45):
@@ -270,10 +258,8 @@ def _wedge_element(
                 B[e, m, r] = zero
     E = zero
     for q in range(nq):
-        Jx = _jacobian(X, els, e, dN, q)
-        w = qw[q] * wp.determinant(Jx)
-        G = _gradients(dN, q, wp.inverse(Jx))
-        F = _deformation(u, els, e, G)
+        w = weights[e, q]
+        F = _deformation(u, els, e, grads, q)
         J = wp.determinant(F)
         phq = wp.vec4d(phi[q, 0], phi[q, 1], phi[q, 2], phi[q, 3])
         theta = wp.dot(phq, coef)
@@ -282,8 +268,7 @@ def _wedge_element(
         t = tangent_with_pressure(F, c1, c2, c3, p, zero)
         P = first_piola(t)
         for a in range(15):
-            ga = wp.vec3d(G[a, 0], G[a, 1], G[a, 2])
-            ra = w * (P @ ga)
+            ra = w * (P @ grads[e, q, a])
             for i in range(3):
                 grad[e, 3 * a + i] += ra[i]
         if mode != 0:
@@ -294,7 +279,7 @@ def _wedge_element(
             Pg = _Mat15x3()
             Rg = _Mat15x3()
             for a in range(15):
-                ga = wp.vec3d(G[a, 0], G[a, 1], G[a, 2])
+                ga = grads[e, q, a]
                 da = t.D @ ga
                 ta = t.T @ ga
                 pa = t.c_dd * da - t.c_dt * ta
@@ -310,13 +295,13 @@ def _wedge_element(
             for a in range(15):
                 da = wp.vec3d(Dg[a, 0], Dg[a, 1], Dg[a, 2])
                 ta = wp.vec3d(Tg[a, 0], Tg[a, 1], Tg[a, 2])
-                ga = wp.vec3d(G[a, 0], G[a, 1], G[a, 2])
+                ga = grads[e, q, a]
                 for b in range(a, 15):
                     tb = wp.vec3d(Tg[b, 0], Tg[b, 1], Tg[b, 2])
                     pb = wp.vec3d(Pg[b, 0], Pg[b, 1], Pg[b, 2])
                     rb = wp.vec3d(Rg[b, 0], Rg[b, 1], Rg[b, 2])
                     block = w * (wp.outer(da, pb) + wp.outer(ta, rb) + t.c_outer * wp.outer(tb, ta))
-                    shear = w * t.c_e * wp.dot(ga, wp.vec3d(G[b, 0], G[b, 1], G[b, 2]))
+                    shear = w * t.c_e * wp.dot(ga, grads[e, q, b])
                     for i in range(3):
                         for j in range(3):
                             K[e, 3 * a + i, 3 * b + j] = K[e, 3 * a + i, 3 * b + j] + block[i, j]
@@ -353,15 +338,16 @@ class WedgeKernel:
         if np.any(mesh.jacobians <= 0):
             raise ValueError("mesh: wedges must be positively oriented and curved midside nodes must not fold them")
         m = mesh.n_elements
-        dN = wedge_shape(WEDGE_POINTS)[1]
+        grads, det = mesh.quadrature_geometry
+        w = WEDGE_WEIGHTS * det
         phi = np.column_stack([np.ones(len(WEDGE_POINTS)), WEDGE_POINTS])
         self.nq = len(WEDGE_POINTS)
-        self._X = wp.array(mesh.nodes, dtype=wp.vec3d, device=device)
+        self._grads = wp.array(np.ascontiguousarray(grads), dtype=wp.vec3d, device=device)
+        self._weights = wp.array(w, dtype=wp.float64, device=device)
+        self._gram_inv = wp.array(np.linalg.inv(np.einsum("mq,qi,qj->mij", w, phi, phi)), dtype=wp.mat44d, device=device)
         self._els = wp.array(mesh.elements, dtype=wp.int32, device=device)
         self._params = wp.array(np.tile([material.c1, material.c2, material.c3, material.bulk], (m, 1)), dtype=wp.float64, device=device)
-        self._dN = wp.array(dN, dtype=wp.float64, device=device)
         self._phi = wp.array(phi, dtype=wp.float64, device=device)
-        self._qw = wp.array(WEDGE_WEIGHTS, dtype=wp.float64, device=device)
         indptr, indices, slot = mesh.sparsity
         self._indptr, self._indices = indptr, indices
         self._slot = wp.array(slot.reshape(m, _DOFS * _DOFS).astype(np.int32), dtype=wp.int32, device=device)
@@ -399,7 +385,7 @@ class WedgeKernel:
                 data = [wp.array(h, dtype=wp.float64, device=self.device, copy=False) for h in host]
             else:
                 data = [wp.zeros(to.size, dtype=wp.float64, device=self.device)]
-        fixed = [self._X, uw, self._els, self._params, self._dN, self._phi, self._qw, self.nq, int(hessian), to.slot]
+        fixed = [uw, self._els, self._params, self._grads, self._weights, self._gram_inv, self._phi, self.nq, int(hessian), to.slot]
 
         def launch(k: int) -> None:
             wp.launch(_wedge_element, dim=int(bounds[k + 1] - bounds[k]), inputs=fixed + [int(bounds[k])],
