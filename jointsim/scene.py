@@ -146,6 +146,9 @@ MESH_PRESETS: dict[str, dict[str, float]] = {
     "fine": {"max_edge_mm": 0.75, "electrode_refinement": 10.0},
 }
 MOULDINGS = ("cap", "flat")  # [membrane] moulding: the membrane's stress-free shape
+# [membrane] element: each prism of a layer as three P2 tetrahedra (mechanics/fem.py) or as one
+# 15-node quadratic prism with its dilatation projected (mechanics/wedge.py)
+MEMBRANE_ELEMENTS = ("p2_tet", "wedge15")
 # the membrane mesh (rim vertices, 2 layers) each fidelity gets unless [membrane] rim_vertices
 # is given: 92, the coarsest within 2 % of the 160/2 mesh in force at 1-3 mm
 # (results/mechanics_benchmark.md); at the dataset fidelity (and in tests) 64, 2.4-5.8 % stiff
@@ -396,7 +399,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     rim_vertices = t.integer("rim_vertices", MEMBRANE_RIM_VERTICES[preset], 16, 1024)
     volumetric = t.choice("volumetric", "pointwise", ("pointwise", "mean_dilatation"))
     moulding = t.choice("moulding", "cap", MOULDINGS)
-    element = t.choice("element", "p2_tet", ("p2_tet", "wedge15"))
+    element = t.choice("element", "p2_tet", MEMBRANE_ELEMENTS)
     if element == "wedge15" and volumetric != "pointwise":
         raise SceneError(f"membrane.volumetric = {volumetric!r}: only 'pointwise' with membrane.element = 'wedge15' (its volumetric form is its own)")
     t.finish()

@@ -6,8 +6,9 @@ import os
 import numpy as np
 import pytest
 import warp as wp
+from conftest import check_element_derivatives
 
-from jointsim.mechanics.fem import ElasticTerm, ElementKernel, P2Mesh, assemble_gradient, assemble_hessian
+from jointsim.mechanics.fem import ElasticTerm, ElementKernel, P2Mesh
 from jointsim.mechanics.materials import Material
 from jointsim.mechanics.newton import NewtonError, NewtonSystem, NodalForce, minimize_energy, step_to
 from jointsim.mechanics.pressure import PressureTerm, linear_subtriangles
@@ -20,20 +21,7 @@ def test_element_gradient_and_hessian_match_finite_differences(volumetric):
     k = ElementKernel(m, Material.yeoh(9.8e3, 0.91e3, -0.16e3), volumetric=volumetric)
     rng = np.random.default_rng(0)
     u = 0.01 * rng.standard_normal((m.n_nodes, 3))
-    d = rng.standard_normal(u.shape)
-    eps = 1e-6
-    s = k(u)
-    g = assemble_gradient(m, s.grad)
-    dE = (k(u + eps * d, False).energy.sum() - k(u - eps * d, False).energy.sum()) / (2 * eps)
-    assert g @ d.ravel() == pytest.approx(dE, rel=1e-6)
-    dg = (assemble_gradient(m, k(u + eps * d, False).grad) - assemble_gradient(m, k(u - eps * d, False).grad)) / (2 * eps)
-    # closed-form tangent against a central difference of the gradient: the difference's
-    # truncation and round-off error at eps = 1e-6 is ~1e-9 relative
-    assert np.abs(s.hessian @ d.ravel() - dg).max() <= 1e-7 * np.abs(dg).max()
-    # the in-kernel assembly equals assembling the per-element matrices
-    e = k(u, True, elements=True)
-    assert np.allclose(assemble_hessian(m, e.element_hessians).toarray(), s.hessian.toarray(), rtol=0, atol=1e-12 * abs(s.hessian).max())
-    assert np.allclose(s.hessian.toarray(), s.hessian.toarray().T, rtol=0, atol=1e-12 * abs(s.hessian).max())
+    check_element_derivatives(k, m, u, rng.standard_normal(u.shape))
     assert k(np.zeros_like(u), False).energy.sum() == 0.0
 
 

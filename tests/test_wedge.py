@@ -4,8 +4,8 @@ and the membrane built of it."""
 
 import numpy as np
 import pytest
+from conftest import check_element_derivatives
 
-from jointsim.mechanics.fem import assemble_gradient, assemble_hessian
 from jointsim.mechanics.materials import Material
 from jointsim.mechanics.newton import NodalForce, minimize_energy, step_to
 from jointsim.mechanics.wedge import WEDGE_POINTS, WEDGE_WEIGHTS, WedgeElasticTerm, WedgeKernel, WedgeMesh, wedge_shape
@@ -67,19 +67,7 @@ def test_element_gradient_and_hessian_match_finite_differences(material):
     k = WedgeKernel(m, material)
     rng = np.random.default_rng(0)
     u = 0.01 * rng.standard_normal((m.n_nodes, 3))
-    d = rng.standard_normal(u.shape)
-    eps = 1e-6
-    s = k(u)
-    g = assemble_gradient(m, s.grad)
-    dE = (k(u + eps * d, False).energy.sum() - k(u - eps * d, False).energy.sum()) / (2 * eps)
-    assert g @ d.ravel() == pytest.approx(dE, rel=1e-6)
-    dg = (assemble_gradient(m, k(u + eps * d, False).grad) - assemble_gradient(m, k(u - eps * d, False).grad)) / (2 * eps)
-    # the central difference's truncation and round-off at eps = 1e-6: ~1e-9 relative
-    assert np.abs(s.hessian @ d.ravel() - dg).max() <= 1e-7 * np.abs(dg).max()
-    e = k(u, True, elements=True)
-    H = s.hessian.toarray()
-    np.testing.assert_allclose(assemble_hessian(m, e.element_hessians).toarray(), H, rtol=0, atol=1e-12 * np.abs(H).max())
-    np.testing.assert_allclose(H, H.T, rtol=0, atol=1e-12 * np.abs(H).max())
+    s = check_element_derivatives(k, m, u, rng.standard_normal(u.shape))
     # undeformed and rigidly translated: no energy (the projected dilatation is 1 to round-off)
     for rigid in (np.zeros_like(u), np.tile([0.3, -0.2, 0.1], (m.n_nodes, 1))):
         assert abs(k(rigid, False).energy.sum()) <= 1e-12 * abs(s.energy.sum())

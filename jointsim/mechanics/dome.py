@@ -16,6 +16,7 @@ import numpy as np
 
 from ..geometry import DomeSurface
 from ..mesh.tetmesh import TetMesh
+from ..scene import MEMBRANE_ELEMENTS
 from .contact import SphereContact, SphereFriction, nodal_areas
 from .fem import ElasticTerm, P2Mesh
 from .materials import Material
@@ -56,9 +57,7 @@ FORCE_RTOL = 1e-3
 # 0.15 s at the dataset and paper resolutions, 0.28 and 0.56 s in the run before)
 REGULARISE_MOVE = 0.05
 TOUCH_CLEARANCE = 1e-12  # × target radius: ~1000 ulps of the gap, physically nothing
-# the membrane's elements: "p2_tet" (each prism of a layer as three P2 tetrahedra, fem.py) or
-# "wedge15" (one 15-node quadratic prism, its dilatation projected: wedge.py)
-ELEMENTS = ("p2_tet", "wedge15")
+ELEMENTS = MEMBRANE_ELEMENTS  # the membrane's elements (scene.py)
 
 
 class UnreachablePose(ValueError):
