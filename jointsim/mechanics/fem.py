@@ -46,7 +46,7 @@ from .._cores import available_cores
 from .._warp import wp
 from ..eit.solver import csr_pattern
 from ..mesh.tetmesh import KEAST_POINTS, TET_EDGES, TetMesh, unique_edges
-from .materials import Material, first_piola, strain_energy, tangent_with_pressure
+from .materials import Material, first_piola, stiffness_block, strain_energy, tangent_with_pressure
 from .newton import NewtonSystem, SystemValues
 
 __all__ = ["P2Mesh", "ElementState", "HessianTarget", "ElementKernel", "ElasticTerm", "project_psd", "assemble_hessian", "assemble_gradient", "warp_device"]
@@ -357,12 +357,10 @@ def _p2_element(
                     tb = wp.vec3d(Tg[b, 0], Tg[b, 1], Tg[b, 2])
                     pb = wp.vec3d(Pg[b, 0], Pg[b, 1], Pg[b, 2])
                     rb = wp.vec3d(Rg[b, 0], Rg[b, 1], Rg[b, 2])
-                    block = w * (wp.outer(da, pb) + wp.outer(ta, rb) + t.c_outer * wp.outer(tb, ta))
-                    shear = w * t.c_e * wp.dot(ga, wp.vec3d(G[b, 0], G[b, 1], G[b, 2]))
+                    block = stiffness_block(t, w, da, ta, ga, tb, pb, rb, wp.vec3d(G[b, 0], G[b, 1], G[b, 2]))
                     for i in range(3):
                         for j in range(3):
                             K[3 * a + i, 3 * b + j] = K[3 * a + i, 3 * b + j] + block[i, j]
-                        K[3 * a + i, 3 * b + i] = K[3 * a + i, 3 * b + i] + shear
     if mean_dilatation != 0:
         # V·U(θ), and its stiffness U''(θ)/V · B Bᵀ (θ = v/V, ∂v/∂u = B)
         E += vol * wp.float64(0.5) * kappa * (theta - one) * (theta - one)

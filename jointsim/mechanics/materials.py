@@ -35,7 +35,7 @@ import numpy as np
 
 from .._warp import wp
 
-__all__ = ["Material", "Tangent", "first_piola", "strain_energy", "tangent_with_pressure"]
+__all__ = ["Material", "Tangent", "first_piola", "stiffness_block", "strain_energy", "tangent_with_pressure"]
 
 
 @dataclass(frozen=True)
@@ -132,6 +132,18 @@ def tangent_with_pressure(F: wp.mat33d, c1: wp.float64, c2: wp.float64, c3: wp.f
     t.c_e = wp.float64(2.0) * w1 * jm23
     t.c_vol = p * J
     return t
+
+
+@wp.func
+def stiffness_block(t: Tangent, w: wp.float64, da: wp.vec3d, ta: wp.vec3d, ga: wp.vec3d, tb: wp.vec3d, pb: wp.vec3d, rb: wp.vec3d,
+                    gb: wp.vec3d) -> wp.mat33d:
+    """K_ab at one quadrature point of weight w (the module docstring's closed form), from node a's
+    d_a = D g_a, t_a = T g_a, g_a and node b's t_b, p_b = c_dd d_b − c_dt t_b, r_b = c_tt t_b − c_dt F g_b, g_b."""
+    block = w * (wp.outer(da, pb) + wp.outer(ta, rb) + t.c_outer * wp.outer(tb, ta))
+    shear = w * t.c_e * wp.dot(ga, gb)
+    for i in range(3):
+        block[i, i] = block[i, i] + shear
+    return block
 
 
 @wp.func

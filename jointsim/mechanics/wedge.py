@@ -35,7 +35,7 @@ import scipy.sparse as sp
 from .._warp import wp
 from ..eit.solver import csr_pattern
 from .fem import KERNEL_THREADS, ElasticTerm, ElementState, HessianTarget, _pool, warp_device
-from .materials import Material, first_piola, strain_energy, tangent_with_pressure
+from .materials import Material, first_piola, stiffness_block, strain_energy, tangent_with_pressure
 
 __all__ = ["WedgeMesh", "WedgeKernel", "WedgeElasticTerm", "wedge_shape", "WEDGE_POINTS", "WEDGE_WEIGHTS"]
 
@@ -300,12 +300,10 @@ def _wedge_element(
                     tb = wp.vec3d(Tg[b, 0], Tg[b, 1], Tg[b, 2])
                     pb = wp.vec3d(Pg[b, 0], Pg[b, 1], Pg[b, 2])
                     rb = wp.vec3d(Rg[b, 0], Rg[b, 1], Rg[b, 2])
-                    block = w * (wp.outer(da, pb) + wp.outer(ta, rb) + t.c_outer * wp.outer(tb, ta))
-                    shear = w * t.c_e * wp.dot(ga, grads[e, q, b])
+                    block = stiffness_block(t, w, da, ta, ga, tb, pb, rb, grads[e, q, b])
                     for i in range(3):
                         for j in range(3):
                             K[e, 3 * a + i, 3 * b + j] = K[e, 3 * a + i, 3 * b + j] + block[i, j]
-                        K[e, 3 * a + i, 3 * b + i] = K[e, 3 * a + i, 3 * b + i] + shear
     energy[e] = E
     min_det[e] = jmin
     if mode != 0:
