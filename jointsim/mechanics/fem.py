@@ -470,45 +470,14 @@ class ElementKernel:
         self._grad.zero_()
         mode = NO_HESSIAN if not hessian else WITH_ELEMENTS if elements else ASSEMBLED
         m = self.mesh.n_tets
-        cpu = self.device == "cpu"
-        chunks = max(1, min(KERNEL_THREADS, m // MIN_CHUNK)) if cpu else 1
-        bounds = np.linspace(0, m, chunks + 1).astype(int)
-        data = [self._empty1] * chunks
-        host: list[np.ndarray] = []
-        if hessian:
-            # fresh buffers per call: the returned matrix must not change under a caller that
-            # keeps it while another Hessian is evaluated. On the CPU the kernel writes straight
-            # into numpy's (lazily zeroed) memory; on a GPU into one device buffer, copied back
-            if cpu:
-                host = [np.zeros(to.size) for _ in range(chunks)]
-                data = [wp.array(h, dtype=wp.float64, device=self.device, copy=False) for h in host]
-            else:
-                data = [wp.zeros(to.size, dtype=wp.float64, device=self.device)]
         hess = wp.zeros((m, 30, 30), dtype=wp.float64, device=self.device) if elements else self._empty3
         fixed = [self._X, uw, self._tets, self._params, self._qb, self._qw, mode, int(self.volumetric == "mean_dilatation"), to.slot]
-
-        def launch(k: int) -> None:
-            wp.launch(
-                _p2_element,
-                dim=int(bounds[k + 1] - bounds[k]),
-                inputs=fixed + [int(bounds[k])],
-                outputs=[self._energy, self._grad, data[k], hess, self._mindet],
-                device=self.device,
-            )
-
-        if chunks == 1:
-            launch(0)
-        else:
-            for f in [_pool().submit(launch, k) for k in range(chunks)]:
-                f.result()
-        H = values = None
-        if hessian:
-            values = host[0] if cpu else data[0].numpy()
-            for h in host[1:]:  # the other chunks' buffers (CPU only: elsewhere one chunk)
-                values += h
-            if target is None:
-                n = 3 * self.mesh.n_nodes
-                H, values = sp.csr_matrix((values, self._indices, self._indptr), shape=(n, n)), None
+        values = launch_elements(_p2_element, self.device, m, MIN_CHUNK, fixed, lambda data: [self._energy, self._grad, data, hess, self._mindet],
+                                 to.size if hessian else None, self._empty1)
+        H = None
+        if hessian and target is None:
+            n = 3 * self.mesh.n_nodes
+            H, values = sp.csr_matrix((values, self._indices, self._indptr), shape=(n, n)), None
         return ElementState(
             self._energy.numpy().copy(),
             self._grad.numpy().copy(),
@@ -517,6 +486,44 @@ class ElementKernel:
             hess.numpy() if elements else None,
             values,
         )
+
+
+def launch_elements(kernel, device: str, m: int, min_chunk: int, inputs: list, outputs: Callable[[wp.array], list], size: int | None,
+                    empty: wp.array) -> np.ndarray | None:
+    """Launch an element ``kernel`` over the ``m`` elements: ``inputs`` then the chunk's first
+    element; ``outputs(data)``: its outputs, with ``data`` the chunk's Hessian values buffer of
+    length ``size`` (None: no Hessian; ``empty`` is passed instead). On the CPU the elements are
+    split into up to KERNEL_THREADS chunks of at least ``min_chunk``, launched from as many
+    threads. The Hessian values summed over the chunks, or None."""
+    cpu = device == "cpu"
+    chunks = max(1, min(KERNEL_THREADS, m // min_chunk)) if cpu else 1
+    bounds = np.linspace(0, m, chunks + 1).astype(int)
+    data = [empty] * chunks
+    host: list[np.ndarray] = []
+    if size is not None:
+        # fresh buffers per call: the returned matrix must not change under a caller that
+        # keeps it while another Hessian is evaluated. On the CPU the kernel writes straight
+        # into numpy's (lazily zeroed) memory; on a GPU into one device buffer, copied back
+        if cpu:
+            host = [np.zeros(size) for _ in range(chunks)]
+            data = [wp.array(h, dtype=wp.float64, device=device, copy=False) for h in host]
+        else:
+            data = [wp.zeros(size, dtype=wp.float64, device=device)]
+
+    def launch(k: int) -> None:
+        wp.launch(kernel, dim=int(bounds[k + 1] - bounds[k]), inputs=inputs + [int(bounds[k])], outputs=outputs(data[k]), device=device)
+
+    if chunks == 1:
+        launch(0)
+    else:
+        for f in [_pool().submit(launch, k) for k in range(chunks)]:
+            f.result()
+    if size is None:
+        return None
+    values = host[0] if cpu else data[0].numpy()
+    for h in host[1:]:  # the other chunks' buffers (CPU only: elsewhere one chunk)
+        values += h
+    return values
 
 
 def project_psd(H: np.ndarray) -> np.ndarray:

@@ -34,7 +34,8 @@ import scipy.sparse as sp
 
 from .._warp import wp
 from ..eit.solver import csr_pattern
-from .fem import KERNEL_THREADS, ElasticTerm, ElementState, HessianTarget, _pool, warp_device
+from . import fem
+from .fem import ElasticTerm, ElementState, HessianTarget, warp_device
 from .materials import Material, first_piola, stiffness_block, strain_energy, tangent_with_pressure
 
 __all__ = ["WedgeMesh", "WedgeKernel", "WedgeElasticTerm", "wedge_shape", "WEDGE_POINTS", "WEDGE_WEIGHTS"]
@@ -371,37 +372,15 @@ class WedgeKernel:
         to = target if target is not None else self.pattern_target
         self._grad.zero_()
         m = self.mesh.n_elements
-        cpu = self.device == "cpu"
-        # a wedge is ~6 P2 tetrahedra's work: chunks of a sixth of fem's MIN_CHUNK elements
-        chunks = max(1, min(KERNEL_THREADS, m // 170)) if cpu else 1
-        bounds = np.linspace(0, m, chunks + 1).astype(int)
-        data = [self._empty1] * chunks
-        host: list[np.ndarray] = []
-        if hessian:
-            if cpu:
-                host = [np.zeros(to.size) for _ in range(chunks)]
-                data = [wp.array(h, dtype=wp.float64, device=self.device, copy=False) for h in host]
-            else:
-                data = [wp.zeros(to.size, dtype=wp.float64, device=self.device)]
         fixed = [uw, self._els, self._params, self._grads, self._weights, self._gram_inv, self._phi, self.nq, int(hessian), to.slot]
-
-        def launch(k: int) -> None:
-            wp.launch(_wedge_element, dim=int(bounds[k + 1] - bounds[k]), inputs=fixed + [int(bounds[k])],
-                      outputs=[self._energy, self._grad, data[k], self._mindet, self._K, self._B], device=self.device)
-
-        if chunks == 1:
-            launch(0)
-        else:
-            for f in [_pool().submit(launch, k) for k in range(chunks)]:
-                f.result()
-        H = values = per_element = None
-        if hessian:
-            values = host[0] if cpu else data[0].numpy()
-            for h in host[1:]:
-                values += h
-            if target is None:
-                n = 3 * self.mesh.n_nodes
-                H, values = sp.csr_matrix((values, self._indices, self._indptr), shape=(n, n)), None
+        # a wedge is ~6 P2 tetrahedra's work: chunks of a sixth of fem's MIN_CHUNK elements
+        values = fem.launch_elements(_wedge_element, self.device, m, fem.MIN_CHUNK // 6, fixed,
+                                     lambda data: [self._energy, self._grad, data, self._mindet, self._K, self._B],
+                                     to.size if hessian else None, self._empty1)
+        H = per_element = None
+        if hessian and target is None:
+            n = 3 * self.mesh.n_nodes
+            H, values = sp.csr_matrix((values, self._indices, self._indptr), shape=(n, n)), None
         if elements:  # the kernel's upper blocks, mirrored
             Ku = self._K.numpy()
             below = (np.arange(_DOFS)[None, :] // 3) < (np.arange(_DOFS)[:, None] // 3)
