@@ -455,7 +455,7 @@ class ElementKernel:
         """The target that puts entry k of the mesh's CSR pattern at ``pattern_slot[k]`` of a
         values array of length ``size`` (−1: left out)."""
         _, _, slot = self.mesh.sparsity
-        mapped = np.asarray(pattern_slot, np.int64)[slot].reshape(self.mesh.n_tets, 900)
+        mapped = np.asarray(pattern_slot, np.int64)[slot].reshape(self.mesh.n_elements, -1)
         if mapped.max() >= size:
             raise ValueError(f"pattern_slot: slots must be < size = {size}")
         return HessianTarget(wp.array(mapped.astype(np.int32), dtype=wp.int32, device=self.device), int(size))

@@ -325,9 +325,9 @@ def _wedge_element(
                     wp.atomic_add(hess_data, at, v)
 
 
-class WedgeKernel:
+class WedgeKernel(fem.ElementKernel):
     """Warp arrays for one wedge mesh and its material, reused across calls; called as
-    fem.ElementKernel is."""
+    fem.ElementKernel is (whose ``retarget`` it shares)."""
 
     volumetric = "projected"
 
@@ -357,14 +357,6 @@ class WedgeKernel:
         self._K = wp.zeros((m, _DOFS, _DOFS), dtype=wp.float64, device=device)
         self._B = wp.zeros((m, 4, _DOFS), dtype=wp.float64, device=device)
         self._empty1 = wp.zeros(1, dtype=wp.float64, device=device)
-
-    def retarget(self, pattern_slot: np.ndarray, size: int) -> HessianTarget:
-        """As fem.ElementKernel.retarget."""
-        _, _, slot = self.mesh.sparsity
-        mapped = np.asarray(pattern_slot, np.int64)[slot].reshape(self.mesh.n_elements, _DOFS * _DOFS)
-        if mapped.max() >= size:
-            raise ValueError(f"pattern_slot: slots must be < size = {size}")
-        return HessianTarget(wp.array(mapped.astype(np.int32), dtype=wp.int32, device=self.device), int(size))
 
     def __call__(self, u: np.ndarray, hessian: bool = True, elements: bool = False, target: HessianTarget | None = None) -> ElementState:
         uw = wp.array(np.ascontiguousarray(u, dtype=np.float64), dtype=wp.vec3d, device=self.device)
