@@ -34,6 +34,7 @@ __all__ = [
     "scene_from_dict",
     "MESH_PRESETS",
     "MEMBRANE_RIM_VERTICES",
+    "MEMBRANE_LAYERS",
 ]
 
 MM = 1e-3
@@ -87,15 +88,17 @@ class Drive:
 @dataclass(frozen=True)
 class Membrane:
     """The dome membrane's material (SI): ``law`` "neo-hookean" (``shear_modulus``) or "yeoh"
-    (``yeoh_c``), ``bulk_ratio`` κ/μ, prism ``layers`` through the thickness, and the
+    (``yeoh_c``), ``bulk_ratio`` κ/μ, prism ``layers`` through the thickness (by default the
+    element's, :data:`MEMBRANE_LAYERS`), and the
     reservoir's hydrostatic ``reservoir_pressure`` on the inner surface (Pa); ``chamber``
     "open" (the reservoir takes the displaced saline) or "closed" (the saline volume is held by
     the pressure); ``rim_vertices`` sets the membrane mesh (edge ≈ 2π·base radius / rim_vertices;
     by default the mesh preset's, :data:`MEMBRANE_RIM_VERTICES`);
-    ``volumetric``: how the P2 elements integrate the volumetric energy, "pointwise" or
-    "mean_dilatation" (jointsim/mechanics/fem.py); ``element``: "p2_tet" (each prism of a
-    layer as three P2 tetrahedra) or "wedge15" (one 15-node quadratic prism with a projected
-    dilatation, jointsim/mechanics/wedge.py; ``volumetric`` must then be "pointwise"); ``moulding``: the stress-free shape, "cap" (moulded
+    ``element``: "wedge15" (one 15-node quadratic prism per surface triangle and layer, its
+    dilatation projected per element, jointsim/mechanics/wedge.py; the default) or "p2_tet"
+    (each prism as three P2 tetrahedra, jointsim/mechanics/fem.py); ``volumetric``: how the P2
+    tetrahedra integrate the volumetric energy, "pointwise" or "mean_dilatation" (wedges:
+    "pointwise" only, their volumetric form is their own); ``moulding``: the stress-free shape, "cap" (moulded
     as the dome, inflated by the reservoir pressure) or "flat" (a flat sheet inflated until its
     apex reaches the dome height; the pressure that takes replaces ``reservoir_pressure``)."""
 
@@ -103,13 +106,13 @@ class Membrane:
     shear_modulus: float = 22e3
     yeoh_c: tuple[float, float, float] = (9.8e3, 0.91e3, -0.16e3)
     bulk_ratio: float = 1000.0
-    layers: int = 2
+    layers: int = 1
     reservoir_pressure: float = 0.0
     chamber: str = "open"
     rim_vertices: int = 64
     volumetric: str = "pointwise"
     moulding: str = "cap"
-    element: str = "p2_tet"
+    element: str = "wedge15"
 
     def scaled(self, factor: float) -> "Membrane":
         """The same membrane with its moduli (either law's) multiplied by ``factor``."""
@@ -146,14 +149,18 @@ MESH_PRESETS: dict[str, dict[str, float]] = {
     "fine": {"max_edge_mm": 0.75, "electrode_refinement": 10.0},
 }
 MOULDINGS = ("cap", "flat")  # [membrane] moulding: the membrane's stress-free shape
-# [membrane] element: each prism of a layer as three P2 tetrahedra (mechanics/fem.py) or as one
-# 15-node quadratic prism with its dilatation projected (mechanics/wedge.py)
+# [membrane] element: one 15-node quadratic prism per surface triangle and layer, its dilatation
+# projected (mechanics/wedge.py; the default), or each prism as three P2 tetrahedra (mechanics/fem.py)
 MEMBRANE_ELEMENTS = ("p2_tet", "wedge15")
-# the membrane mesh (rim vertices, 2 layers) each fidelity gets unless [membrane] rim_vertices
-# is given: 92, the coarsest within 2 % of the 160/2 mesh in force at 1-3 mm
-# (results/mechanics_benchmark.md); at the dataset fidelity (and in tests) 64, 2.4-5.8 % stiff
-# but ~2x faster per step, so a coupled frame stays within its 1 s goal there. "custom" (a
-# chamber tuned by hand) gets the converged one
+# the prism layers through the 2 mm thickness each element gets unless [membrane] layers is given:
+# wedges 1 (a second changes the force at 3 mm by <= 0.4 %, results/mechanics_benchmark_wedge15.md),
+# tetrahedra 2 (one layer of pointwise P2 tetrahedra locks in bending, results/locking_cantilever.md)
+MEMBRANE_LAYERS: dict[str, int] = {"p2_tet": 2, "wedge15": 1}
+# the membrane mesh's rim vertices each fidelity gets unless [membrane] rim_vertices is given.
+# Wedges, one layer: 92 is within 0.7 % of the 160/2 mesh in force at 1-3 mm (0.4 s per step), 64
+# within 2.0 % (0.2 s; results/mechanics_benchmark_wedge15.md). Tetrahedra, two layers: 92 within 2 %,
+# 64 2.4-5.8 % stiff (results/mechanics_benchmark.md). 64 at the dataset fidelity and in tests, 92 at
+# "paper" and finer; "custom" (a chamber tuned by hand) gets the converged one
 MEMBRANE_RIM_VERTICES: dict[str, int] = {"test": 64, "dataset": 64, "paper": 92, "fine": 92, "custom": 92}
 
 
@@ -393,15 +400,16 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     if law == "yeoh" and yc[0] <= 0:
         raise SceneError(f"membrane.yeoh_c_kpa[0] = {yc[0]:g}: must be > 0 (C1 is half the shear modulus)")
     bulk_ratio = t.number("bulk_ratio", 1000.0, 1.0, 1e5)
-    layers = t.integer("layers", 2, 1, 8)
     p_res = t.number("reservoir_pressure_pa", 0.0, -1e4, 1e5)
     closed = t.choice("chamber", "open", ("open", "closed"))
     rim_vertices = t.integer("rim_vertices", MEMBRANE_RIM_VERTICES[preset], 16, 1024)
     volumetric = t.choice("volumetric", "pointwise", ("pointwise", "mean_dilatation"))
     moulding = t.choice("moulding", "cap", MOULDINGS)
-    element = t.choice("element", "p2_tet", MEMBRANE_ELEMENTS)
+    element = t.choice("element", "wedge15", MEMBRANE_ELEMENTS)
     if element == "wedge15" and volumetric != "pointwise":
-        raise SceneError(f"membrane.volumetric = {volumetric!r}: only 'pointwise' with membrane.element = 'wedge15' (its volumetric form is its own)")
+        raise SceneError(f"membrane.volumetric = {volumetric!r}: only 'pointwise' with membrane.element = 'wedge15' "
+                         "(the default; its volumetric form is its own): give element = \"p2_tet\" for the tetrahedra's")
+    layers = t.integer("layers", MEMBRANE_LAYERS[element], 1, 8)
     t.finish()
 
     target = _target(data.get("target", {}), base_r)

@@ -263,27 +263,29 @@ def test_a_palpation_hold_with_friction_is_steady():
 
 
 def test_force_and_shape_converge_under_mesh_refinement():
-    """Refining the membrane (isotropic caps of 24, 32, 48 rim vertices, one P2 layer) the
-    contact force and the displaced volume at 1 mm change less and less (measured: force 29.5 →
-    24.8 → 25.6 mN, volume 90.5 → 71.2 → 70.8 mm³; the second change 0.17 and 0.02 of the first),
-    and the apex deflection stays within 3 % (0.788, 0.775, 0.798 mm: the apex vertex's
-    neighbourhood differs between the caps, so it does not contract). The full study at two
-    layers is results/mechanics_benchmark.md."""
+    """Refining the membrane (isotropic caps of 32, 48, 64, 96 rim vertices, one layer of the
+    default wedges), the contact force, the displaced volume and the apex deflection at 1 mm
+    settle: from 48 rim vertices on, the force is within 2.5 % of the 96-rim mesh's and the
+    volume and the apex within 3.5 % (measured: force +1.3 / +2.0 %, volume +2.5 / +3.1 %, apex
+    -2.5 / +0.3 % at 48 / 64), while the 32-rim mesh is further off in each (14, 14, 10 %: a
+    contact patch of ~4 mm radius on 4 mm triangles). The apex is one node whose neighbourhood
+    differs between the caps and the volume at 1 mm is a small patch's, hence their wider
+    band; the benchmark's force at 1-3 mm against a 160-rim, two-layer reference is the finer
+    statement (2 %, results/mechanics_benchmark_wedge15.md)."""
     from jointsim.geometry import isotropic_cap
 
     out = []
-    for n in (24, 32, 48):
+    for n in (32, 48, 64, 96):
         dome = isotropic_cap(0.02, 0.01, n)
-        model = MembraneModel(dome, 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3)
+        model = MembraneModel(dome, 2e-3, pressure=50.0, target_radius=7.5e-3)
         top = model.first_contact_height((0.0, 0.0))
         for d in (0.5e-3, 1.0e-3):
             st = model.press(np.array([0.0, 0.0, top - d]))
         apex = np.argmax(dome.vertices[:, 2])
         out.append((st.force[2], st.displaced_volume, st.dome.vertices[apex, 2] - dome.vertices[apex, 2]))
-    out = np.array(out)
-    steps = np.abs(np.diff(out, axis=0))
-    assert np.all(steps[1, :2] < 0.75 * steps[0, :2])
-    assert np.ptp(out[:, 2]) < 0.03 * np.abs(out[:, 2]).max()
+    error = np.abs(np.array(out) / out[-1] - 1)
+    assert np.all(error[1:3] < [0.025, 0.035, 0.035]), error
+    assert np.all(error[0] > error[1:3].max(axis=0)), error
 
 
 def test_a_move_below_the_newton_tolerance_is_answered_by_the_membrane_not_the_penalty(monkeypatch):
@@ -460,7 +462,7 @@ def test_the_first_contact_is_solved_just_past_the_touch_and_changes_no_equilibr
     touch = model._touch_step(frm, to)
     assert touch == pytest.approx(frm - [0, 0, eps], abs=1e-12)
     model.contact.centre = touch
-    assert 0 < model.contact.penetration(model.u) <= eps
+    assert 0 < model.contact.penetration(model.u) <= eps * (1 + 1e-9)  # at the touch: eps to rounding
     # from 1 mm above, the target travels the 1 mm gap first; a move too short to gain is not split
     assert model._touch_step(frm + [0, 0, 1e-3], to)[2] == pytest.approx(top - eps, abs=1e-9)
     assert model._touch_step(frm, frm - [0, 0, 1.5 * eps]) is None

@@ -159,7 +159,10 @@ def test_the_wedge_membrane_presses_the_paper_dome_and_converges():
     assert vol == pytest.approx((m.jacobians * WEDGE_WEIGHTS).sum(), rel=0.01)
 
 
-def test_the_scene_selects_the_wedge_element_and_refuses_another_volumetric_form():
+def test_the_scene_defaults_to_one_wedge_layer_and_refuses_another_volumetric_form():
+    """Wedges are the default element, one layer unless given; the tetrahedra keep their two
+    (one layer of them locks in bending); a volumetric form other than pointwise with wedges,
+    an unknown element and a layer count outside [1, 8] are refused by name."""
     import tomllib
     from pathlib import Path
 
@@ -168,16 +171,27 @@ def test_the_scene_selects_the_wedge_element_and_refuses_another_volumetric_form
     from jointsim.scene import SceneError, scene_from_dict
 
     d = tomllib.loads((Path(__file__).resolve().parents[1] / "scenes" / "paper_sensor.toml").read_text())
-    d.setdefault("membrane", {})["element"] = "wedge15"
-    assert scene_from_dict(d).membrane.element == "wedge15"
+    d["membrane"].pop("layers", None)
+    d["membrane"].pop("element", None)
+    m = scene_from_dict(d).membrane
+    assert (m.element, m.layers) == ("wedge15", 1)
+    assert (scene_from_dict({}).membrane.element, scene_from_dict({}).membrane.layers) == ("wedge15", 1)
+    d["membrane"]["element"] = "p2_tet"
+    assert scene_from_dict(d).membrane.layers == 2
+    d["membrane"]["element"] = "wedge15"
     d["membrane"]["volumetric"] = "mean_dilatation"
-    with pytest.raises(SceneError, match="volumetric"):
+    with pytest.raises(SceneError, match="volumetric.*p2_tet"):
         scene_from_dict(d)
     d["membrane"]["volumetric"], d["membrane"]["element"] = "pointwise", "hex27"
     with pytest.raises(SceneError, match="element"):
         scene_from_dict(d)
 
+    cap = isotropic_cap(0.02, 0.01, 32)
+    assert isinstance(MembraneModel(cap, 2e-3).mesh, WedgeMesh)
+    assert MembraneModel(cap, 2e-3).mesh.n_nodes < MembraneModel(cap, 2e-3, element="p2_tet").mesh.n_nodes
     with pytest.raises(ValueError, match="volumetric"):
-        MembraneModel(isotropic_cap(0.02, 0.01, 32), 2e-3, layers=1, volumetric="mean_dilatation", element="wedge15")
+        MembraneModel(cap, 2e-3, layers=1, volumetric="mean_dilatation")
     with pytest.raises(ValueError, match="element"):
-        MembraneModel(isotropic_cap(0.02, 0.01, 32), 2e-3, layers=1, element="hex27")
+        MembraneModel(cap, 2e-3, layers=1, element="hex27")
+    with pytest.raises(ValueError, match=r"layers = 0.*\[1, 8\]"):
+        MembraneModel(cap, 2e-3, layers=0)

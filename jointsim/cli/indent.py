@@ -67,10 +67,11 @@ def run(args: argparse.Namespace) -> int:
         )
     out: Path = args.out
     rows = []
-    corners = TetMesh(model.mesh.nodes, model.mesh.tets[:, :4])
+    corners = TetMesh(model.mesh.nodes, model.mesh.corner_tets)  # ParaView's view of the quadratic elements
     print(
         f"jointsim indent: scene {scene.name}, target r = {radius:g} mm at ({args.x_mm:g}, {args.y_mm:g}) mm, "
-        f"membrane {model.mesh.n_nodes} P2 nodes ({scene.membrane.rim_vertices} rim vertices, {scene.membrane.layers} layers)"
+        f"membrane {model.mesh.n_nodes} nodes ({scene.membrane.element}, {scene.membrane.rim_vertices} rim vertices, "
+        f"{scene.membrane.layers} layers)"
     )
     for i, d in enumerate(tqdm(depths, unit="step", disable=None)):
         st = model.press(np.array([xy[0], xy[1], top - d * 1e-3]))

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..geometry import DomeSurface
 from ..mesh.tetmesh import TetMesh
-from ..scene import MEMBRANE_ELEMENTS
+from ..scene import MEMBRANE_ELEMENTS, MEMBRANE_LAYERS
 from .contact import SphereContact, SphereFriction, nodal_areas
 from .fem import ElasticTerm, P2Mesh
 from .materials import Material
@@ -225,7 +225,8 @@ def membrane_material(membrane) -> Material:
 
 class MembraneModel:
     """The membrane of a dome with its loads; call :meth:`press` for target poses in order
-    (each solve warm-starts from the previous one)."""
+    (each solve warm-starts from the previous one). ``element`` "wedge15" (the default) or
+    "p2_tet"; ``layers`` through the thickness, by default the element's (scene.MEMBRANE_LAYERS)."""
 
     TANGENT_PREDICTOR = True  # see _tangent_guess; a subclass with other unknowns turns it off
 
@@ -234,7 +235,7 @@ class MembraneModel:
         dome: DomeSurface,
         thickness: float = 2e-3,
         material: Material = ECOFLEX_00_50,
-        layers: int = 2,
+        layers: int | None = None,
         pressure: float = 0.0,
         target_radius: float = 7.5e-3,
         penalty: float | None = None,
@@ -246,10 +247,13 @@ class MembraneModel:
         device: str = "cpu",
         inflate_to: float | None = None,
         inflate_from: np.ndarray | None = None,
-        element: str = "p2_tet",
+        element: str = "wedge15",
     ):
         if element not in ELEMENTS:
             raise ValueError(f"element = {element!r}: allowed values are {ELEMENTS}")
+        layers = MEMBRANE_LAYERS[element] if layers is None else layers
+        if not (isinstance(layers, (int, np.integer)) and 1 <= layers <= 8):
+            raise ValueError(f"layers = {layers!r}: must be an integer in [1, 8]")
         if element == "wedge15" and volumetric != "pointwise":
             raise ValueError(f"volumetric = {volumetric!r}: the wedge15 element has its own (projected) volumetric form; "
                              "volumetric applies to element = 'p2_tet' only")

@@ -354,7 +354,7 @@ class SoftTargetModel(MembraneModel):
         dome: DomeSurface,
         thickness: float = 2e-3,
         material: Material = ECOFLEX_00_50,
-        layers: int = 2,
+        layers: int | None = None,
         pressure: float = 0.0,
         target_radius: float = 7.5e-3,
         target_material: Material | None = None,
@@ -371,7 +371,7 @@ class SoftTargetModel(MembraneModel):
         device: str = "cpu",
         inflate_to: float | None = None,
         inflate_from: np.ndarray | None = None,
-        element: str = "p2_tet",
+        element: str = "wedge15",
     ):
         if friction != 0.0:
             raise ValueError(f"friction = {friction}: friction against a soft target is not modelled (use 0)")
