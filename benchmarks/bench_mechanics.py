@@ -1,7 +1,8 @@
 """Mechanics benchmark and mesh-convergence study: quasi-static 0.5 mm steps (one 50 Hz frame
 at 25 mm/s) of a rigid 15 mm target pressed on the axis of the paper's dome, warm-started, on
-uniform membrane meshes of increasing resolution (P2, the pointwise volumetric form: the scene
-default, validated on the dome in results/dome_apex_load.md). Reports the contact force and the
+uniform membrane meshes of increasing resolution (P2 tetrahedra, the pointwise volumetric form,
+validated on the dome in results/dome_apex_load.md; `--wedge`: the scene's default element, 15-node
+wedges). Reports the contact force and the
 displaced volume at 1, 2 and 3 mm against the finest mesh, an extrapolation of the force to zero
 mesh size, wall time per step, Newton iterations, and the split between the Warp element kernel
 (which also assembles the elastic Hessian into its sparse pattern), the sparse factorisations
@@ -576,11 +577,13 @@ def write(rows: list[dict], meta: dict, out: Path = OUT) -> None:
                    "to 3 mm, each warm-started from the previous (tangent predictor). Per-step means exclude the first step (first contact:",
                    f"{first}; its own column). Membrane meshes: the inner surface as a uniform isotropic cap of edge 2π·20 mm / rim vertices,",
                    "P2 tetrahedra (isoparametric, on the true spheres) in prism layers through the 2 mm thickness, the volumetric energy",
-                   "pointwise (the scene default; validated on this dome against an axisymmetric reference in results/dome_apex_load.md)."]
+                   "pointwise ([membrane] element = \"p2_tet\", the scene default before 2026-11-23; validated on this dome against an",
+                   "axisymmetric reference in results/dome_apex_load.md)."]
         if wedges:
-            setting[-2:] = ["15-node quadratic wedges (isoparametric, on the true spheres), one per surface triangle and prism layer through the 2 mm",
+            setting[-3:] = ["15-node quadratic wedges (isoparametric, on the true spheres), one per surface triangle and prism layer through the 2 mm",
                             "thickness, the volumetric energy of the dilatation projected per element onto linear polynomials ([membrane] element =",
-                            "\"wedge15\", jointsim/mechanics/wedge.py; validated on this dome against an axisymmetric reference in results/dome_apex_load.md)."]
+                            "\"wedge15\", the scene default, jointsim/mechanics/wedge.py; validated on this dome against an axisymmetric reference in",
+                            "results/dome_apex_load.md)."]
     title = "Mechanics benchmark and mesh convergence" + (": the membrane moulded flat" if flat else "")
     lines = ["# " + title, "", f"Command: `{meta['command']}`  ", f"Machine: {meta['machine']}; run {meta['date']}.  ",
              *setting,

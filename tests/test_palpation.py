@@ -90,25 +90,27 @@ def test_zero_indentation_gives_zero_dv(pal, run):
 
 def _rotation_spread(dv):
     """Spread of each measurement over the 16 injections once every injection is rotated back
-    to injection 0, relative to its mean (zero for a 16-fold symmetric frame): (256 // 16,)."""
+    to injection 0, relative to the frame's RMS voltage change (zero for a 16-fold symmetric
+    frame): (256 // 16,). Relative to the frame's, not each measurement's own mean, which is
+    small on the driven electrodes (at 1 mm on the 32-rim wedges 0.4× the frame's median),
+    where a small absolute spread would read as a large one."""
     D = dv.reshape(16, 16)
     aligned = np.array([np.roll(D[i], -i) for i in range(16)])
-    return aligned.std(axis=0) / np.abs(aligned.mean(axis=0))
+    return aligned.std(axis=0) / np.sqrt(np.mean(aligned.mean(axis=0) ** 2))
 
 
 def test_an_on_axis_target_gives_16_fold_symmetric_voltage_changes(pal, run):
     """Neither the unstructured chamber mesh nor the 32-vertex membrane mesh is 16-fold
-    symmetric, so the 16 rotated copies differ by discretisation error. Measured over two
-    fresh test meshes: median spread 0.8-1.9 % for the FEM frames (0.2 % for an exactly
-    axisymmetric geometric dent), largest 2.8-7.9 % (on the driven electrodes, where the coarse
-    mesh is least converged, tests/test_eit.py); a dent 1 mm off the axis has a median spread of
-    ~5 %, 2 mm off ~17 %."""
+    symmetric, so the 16 rotated copies differ by discretisation error. Measured on a fresh
+    test mesh, 1-2 mm presses: median spread 0.7-1.1 % of the frame's RMS change, largest
+    7.5-11 % (P2 tetrahedra, one layer: 0.7-1.0 % and 7-9.5 %); a geometric dent 1 mm off the
+    axis has a median spread of 2.9 %, 2 mm off 9.3 %."""
     rec, _ = run
     for dv in rec["dv_clean"][rec["depth"] > 0.5e-3]:
         spread = _rotation_spread(dv)
-        assert np.median(spread) < 0.03 and spread.max() < 0.12
+        assert np.median(spread) < 0.025 and spread.max() < 0.18
     off = indent_dome(pal.reference_dome, (2e-3, 0.0), 2e-3, 7.5e-3, 2e-3)
-    assert np.median(_rotation_spread(pal.voltages(pal.morpher(off.dome)) - pal.v_ref)) > 0.1
+    assert np.median(_rotation_spread(pal.voltages(pal.morpher(off.dome)) - pal.v_ref)) > 0.05
 
 
 def test_dv_grows_with_depth_and_with_target_size(run):
