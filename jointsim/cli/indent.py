@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"jointsim indent: scene {scene.name}, target r = {radius:g} mm at ({args.x_mm:g}, {args.y_mm:g}) mm, "
         f"membrane {model.mesh.n_nodes} nodes ({scene.membrane.element}, {scene.membrane.rim_vertices} rim vertices, "
-        f"{scene.membrane.layers} layers)"
+        f"{scene.membrane.layers} layer{'' if scene.membrane.layers == 1 else 's'})"
     )
     for i, d in enumerate(tqdm(depths, unit="step", disable=None)):
         st = model.press(np.array([xy[0], xy[1], top - d * 1e-3]))
