@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _machine import cpu_name, speed_reference
+from _machine import atomic_write, cpu_name, speed_reference
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -71,7 +71,7 @@ def bench(preset: str, n_frames: int) -> dict:
         "chamber_tets": int(pal.reference.mesh.n_tets),
         "chamber_nodes": int(pal.reference.mesh.n_nodes),
         "membrane_p2_nodes": int(pal.membrane_nodes),
-        "membrane": {"rim_vertices": scene.membrane.rim_vertices, "layers": scene.membrane.layers},
+        "membrane": {"rim_vertices": scene.membrane.rim_vertices, "layers": scene.membrane.layers, "element": scene.membrane.element},
         "grid_cells": int(pal.grid.n_cells),
         "setup_s": setup,
         "setup_stages_s": pal.setup_timings,
@@ -98,11 +98,13 @@ def _stats(rows: list[dict]) -> dict:
     }
 
 
-def write(results: list[dict], command: str, speed: list[float]) -> None:
-    machine = f"{platform.machine()} {cpu_name()}, {_cores()} cores, Python {platform.python_version()}"
-    date = time.strftime("%Y-%m-%d")
+def write(results: list[dict], command: str, speed: list[float], machine: str | None = None, date: str | None = None) -> None:
+    """results/palpation_benchmark.{json,md}; ``machine`` and ``date`` default to this run's
+    (given: a report re-rendered from the JSON)."""
+    machine = machine or f"{platform.machine()} {cpu_name()}, {_cores()} cores, Python {platform.python_version()}"
+    date = date or time.strftime("%Y-%m-%d")
     res = ROOT / "results"
-    (res / "palpation_benchmark.json").write_text(json.dumps(
+    atomic_write(res / "palpation_benchmark.json", json.dumps(
         {"command": command, "machine": machine, "date": date, "goals_s": GOALS, "mesh_goal_s": MESH_GOAL,
          "speed_reference_s_start_end": speed, "results": results},
         indent=2, default=float))
@@ -123,7 +125,7 @@ def write(results: list[dict], command: str, speed: list[float]) -> None:
         "",
         "Press: frames that move the target 0.5 mm into the dome; hold: frames at constant depth.",
         "",
-        "| chamber | tets | membrane P2 nodes | frames | MuJoCo | mechanics | mesh | forward | reconstruction | total | total without mechanics | goal | load avg before → after |",
+        "| chamber | tets | membrane nodes | frames | MuJoCo | mechanics | mesh | forward | reconstruction | total | total without mechanics | goal | load avg before → after |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
@@ -133,8 +135,9 @@ def write(results: list[dict], command: str, speed: list[float]) -> None:
             cell = lambda k: f"{1e3 * st[k]['median']:.0f} ({1e3 * st[k]['min']:.0f}–{1e3 * st[k]['max']:.0f})" if st[k]['median'] >= 0.01 else f"{1e3 * st[k]['median']:.2f} ({1e3 * st[k]['min']:.2f}–{1e3 * st[k]['max']:.2f})"  # noqa: E731
             first = which == "all"
             lines.append(
-                (f"| {r['preset']} | {r['chamber_tets']:,} | {r['membrane_p2_nodes']:,} ({r['membrane']['rim_vertices']} rim, "
-                 f"{r['membrane']['layers']} layers) | " if first else "| | | | ")
+                (f"| {r['preset']} | {r['chamber_tets']:,} | {r['membrane_p2_nodes']:,} ({r['membrane'].get('element', 'p2_tet')}, "
+                 f"{r['membrane']['rim_vertices']} rim, {r['membrane']['layers']} layer{'' if r['membrane']['layers'] == 1 else 's'}) | "
+                 if first else "| | | | ")
                 + f"{which}: {st['total']['n']} | " + " | ".join(cell(k) for k in (*STAGES, "total"))
                 + (f" | {1e3 * r['without_mechanics_median']:.0f} | ≤ {1e3 * GOALS[r['preset']]:g} | "
                    f"{r['load_average_before'][0]:.1f} → {r['load_average_after'][0]:.1f} |" if first else " | | | |")
@@ -167,10 +170,12 @@ def write(results: list[dict], command: str, speed: list[float]) -> None:
             f"factorisation, 16 lead fields) {st['forward']['median']:.2f} s; the image and its metrics "
             f"{st['reconstruction']['median'] * 1e3:.0f} ms; MuJoCo {st['mujoco']['median'] * 1e3:.1f} ms."
         )
-    lines.append("- The mechanics (the membrane's Newton solve, independent of the chamber resolution) is the bottleneck; "
-                 "its speed-up is work in progress elsewhere (results/mechanics_benchmark.md). Hold frames need fewer "
-                 "Newton iterations than pressing frames.")
-    (res / "palpation_benchmark.md").write_text("\n".join(lines) + "\n")
+    largest = {r["preset"]: max(STAGES, key=lambda k: r["stats"][k]["median"]) for r in results}
+    lines.append("- The largest stage: " + ", ".join(f"{k} at the {p} resolution" for p, k in largest.items())
+                 + ". The membrane's Newton solve does not depend on the chamber resolution, only on the membrane mesh "
+                 "(results/mechanics_benchmark_wedge15.md for the default element). Hold frames need fewer Newton "
+                 "iterations than pressing frames.")
+    atomic_write(res / "palpation_benchmark.md", "\n".join(lines) + "\n")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -178,7 +183,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="dataset resolution only, 4 frames; does not write results/")
     p.add_argument("--frames", type=int, default=8, help="frames per resolution incl. frame 0 (default 8: press to 2 mm, 3 hold)")
     p.add_argument("--paper-frames", type=int, default=8, help="frames at the paper's resolution (default 8)")
+    p.add_argument("--report", action="store_true", help="rewrite results/palpation_benchmark.md from its .json")
     args = p.parse_args(argv)
+    if args.report:
+        d = json.loads((ROOT / "results" / "palpation_benchmark.json").read_text())
+        write(d["results"], d["command"], d["speed_reference_s_start_end"], d["machine"], d["date"])
+        return 0
     if args.quick:
         bench("dataset", 4)
         return 0
