@@ -69,3 +69,17 @@ def chamber_fields(test_chamber):
     model = ForwardModel.from_chamber(ch, scene)
     sigma = np.full(ch.mesh.n_tets, scene.saline.conductivity)
     return scene, ch, model, model.solve(sigma)
+
+
+def wedge_grid(xs, ys, zs):
+    """15-node wedges on a tensor grid: the (xs, ys) rectangle's cells split into 2 triangles
+    each, extruded through the levels zs (bottom first)."""
+    from jointsim.mechanics.wedge import WedgeMesh
+
+    x, y = np.meshgrid(xs, ys, indexing="ij")
+    v = np.column_stack([x.ravel(), y.ravel()])
+    idx = np.arange(len(xs) * len(ys)).reshape(len(xs), len(ys))
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.vstack([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    corners = np.vstack([np.column_stack([v, np.full(len(v), zl)]) for zl in zs])
+    return WedgeMesh.extrude(corners, faces, len(zs) - 1)

@@ -6,7 +6,7 @@ import os
 import numpy as np
 import pytest
 import warp as wp
-from conftest import check_element_derivatives
+from conftest import check_element_derivatives, wedge_grid
 
 from jointsim.mechanics.fem import ElasticTerm, ElementKernel, P2Mesh
 from jointsim.mechanics.materials import Material
@@ -181,16 +181,23 @@ def test_a_device_warp_does_not_have_is_refused_by_name():
 
 
 @pytest.mark.skipif(not wp.is_cuda_available(), reason="no CUDA device on this machine")
-@pytest.mark.parametrize("volumetric", ["mean_dilatation", "pointwise"])
-def test_the_kernel_on_cuda_equals_the_cpu(volumetric):
+@pytest.mark.parametrize("element", ["p2_tet mean_dilatation", "p2_tet pointwise", "wedge15"])
+def test_the_kernel_on_cuda_equals_the_cpu(element):
     """Where a GPU is: the element kernel on Warp's CUDA device gives the CPU's energies,
     gradients and Hessians (the Hessian into a Newton system too), to round-off (another
-    compiler's contractions, atomic additions in another order)."""
+    compiler's contractions, atomic additions in another order); P2 tetrahedra by either
+    volumetric form and the default 15-node wedges."""
     import scipy.sparse as sp
 
-    m = P2Mesh.from_linear(box_mesh((1.0, 1.0, 1.0), (3, 3, 3)))
     mat = Material.yeoh(9.8e3, 0.91e3, -0.16e3)
-    cpu, gpu = (ElasticTerm(m, mat, volumetric=volumetric, device=d) for d in ("cpu", "cuda"))
+    if element == "wedge15":
+        from jointsim.mechanics.wedge import WedgeElasticTerm
+
+        m = wedge_grid(*[np.linspace(0.0, 1.0, 4)] * 3)
+        cpu, gpu = (WedgeElasticTerm(m, mat, device=d) for d in ("cpu", "cuda"))
+    else:
+        m = P2Mesh.from_linear(box_mesh((1.0, 1.0, 1.0), (3, 3, 3)))
+        cpu, gpu = (ElasticTerm(m, mat, volumetric=element.split()[1], device=d) for d in ("cpu", "cuda"))
     u = 0.02 * np.random.default_rng(6).standard_normal((m.n_nodes, 3))
     a, b = cpu.kernel(u, True, elements=True), gpu.kernel(u, True, elements=True)
     scale = np.abs(a.element_hessians).max()

@@ -6,7 +6,7 @@ import numpy as np
 
 from .tetmesh import TetMesh
 
-__all__ = ["box_mesh", "grid_mesh", "graded_axis", "cylinder_mesh", "shell_octant", "spherical_midsides"]
+__all__ = ["box_mesh", "grid_mesh", "graded_axis", "cylinder_mesh", "octant_triangles", "shell_octant", "spherical_midsides"]
 
 # Kuhn subdivision of the unit cube into 6 tetrahedra sharing the diagonal 0-7; conforming
 # across neighbouring cubes because every cube is split the same way.
@@ -59,15 +59,10 @@ def cylinder_mesh(radius: float, length: float, n_radial: int, n_axial: int) -> 
     return TetMesh(nodes, m.tets).oriented()
 
 
-def shell_octant(inner: float, outer: float, n: int, layers: int) -> TetMesh:
-    """The octant x, y, z ≥ 0 of the spherical shell inner ≤ r ≤ outer about the origin: the flat
-    triangle with its corners on the three axes cut into n² triangles, projected onto the sphere
-    and extruded through ``layers`` equal radial layers, each prism cut into three tets. The cuts
-    of a prism's side faces follow the node numbers (the diagonal from the larger-numbered
-    bottom node to the smaller-numbered top one), so neighbouring prisms conform. Nodes on the
-    coordinate planes lie on them exactly: symmetry conditions apply there."""
-    if not (0 < inner < outer and n >= 1 and layers >= 1):
-        raise ValueError("shell_octant: need 0 < inner < outer, n >= 1 and layers >= 1")
+def octant_triangles(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The flat triangle with its corners on the three axes cut into n² triangles, its vertices
+    projected onto the unit sphere: (unit directions (k, 3), triangles (n², 3) with sorted
+    vertex numbers). Vertices on the coordinate planes lie on them exactly."""
     i, j = np.triu_indices(n + 1)  # (i, j - i): every pair with i + (j - i) ≤ n
     j = j - i
     flat = np.column_stack([i, j, n - i - j]) / n
@@ -79,7 +74,19 @@ def shell_octant(inner: float, outer: float, n: int, layers: int) -> TetMesh:
     up = np.column_stack([idx[a, b], idx[a + 1, b], idx[a, b + 1]])
     d = a + b < n - 1
     down = np.column_stack([idx[a + 1, b][d], idx[a + 1, b + 1][d], idx[a, b + 1][d]])
-    tri = np.sort(np.vstack([up, down]), axis=1)
+    return direction, np.sort(np.vstack([up, down]), axis=1)
+
+
+def shell_octant(inner: float, outer: float, n: int, layers: int) -> TetMesh:
+    """The octant x, y, z ≥ 0 of the spherical shell inner ≤ r ≤ outer about the origin:
+    :func:`octant_triangles` extruded through ``layers`` equal radial layers (level l's copy of
+    vertex i is node l·k + i), each prism cut into three tets. The cuts of a prism's side faces
+    follow the node numbers (the diagonal from the larger-numbered bottom node to the
+    smaller-numbered top one), so neighbouring prisms conform. Nodes on the coordinate planes
+    lie on them exactly: symmetry conditions apply there."""
+    if not (0 < inner < outer and n >= 1 and layers >= 1):
+        raise ValueError("shell_octant: need 0 < inner < outer, n >= 1 and layers >= 1")
+    direction, tri = octant_triangles(n)
     ns = len(direction)
     nodes = (np.linspace(inner, outer, layers + 1)[:, None, None] * direction).reshape(-1, 3)
     lo = (ns * np.arange(layers))[:, None, None] + tri[None]  # (layers, k, 3) bottom corners
