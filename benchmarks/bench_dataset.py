@@ -148,7 +148,8 @@ def main(argv: list[str] | None = None) -> int:
         "command": shlex.join(["python", "benchmarks/bench_dataset.py", *(sys.argv[1:] if argv is None else argv)]),
         "machine": {"cpu": cpu_name(), "cores": os.cpu_count(), "python": platform.python_version(), "host": platform.node()},
         "scene": scene.name, "mesh": scene.mesh.preset,
-        "membrane": f"{scene.membrane.rim_vertices} rim vertices, {scene.membrane.layers} layers",
+        "membrane": f"{scene.membrane.element}, {scene.membrane.rim_vertices} rim vertices, {scene.membrane.layers} "
+                    + ("layer" if scene.membrane.layers == 1 else "layers"),
         "samples_per_press": scene.dataset.samples_per_press, "seed": args.seed,
         "runs": runs,
         "efficiency_total": eff("rate_total_per_h"),
