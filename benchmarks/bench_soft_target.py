@@ -3,7 +3,7 @@ process, same dome), and a soft sphere on a rigid flat against Hertz over d/R = 
 
     python benchmarks/bench_soft_target.py          # writes results/soft_target_cost.{md,json}
 
-Dome: isotropic cap 20 mm base radius, 10 mm height, 32 rim vertices, one layer, 50 Pa
+Dome: isotropic cap 20 mm base radius, 10 mm height, 32 rim vertices, one layer of the default wedges, 50 Pa
 reservoir; r = 7.5 mm sphere on the axis in 0.5 mm steps, rigid and soft with E = 100× the
 membrane's Young's modulus (6.6 MPa). Hertz: a neo-Hookean sphere R = 10 mm, E = 66 kPa,
 ν = 0.49, 0.5 mm cells at its lowest point, its cut face bonded as in the model (the test,
@@ -76,7 +76,7 @@ def main() -> int:
     rigid = cost[0]["step_s"]
     lines = ["# Soft targets: step cost and Hertz", "", f"Command: `{meta['command']}`  ", f"Machine: {meta['machine']}; run {meta['date']}; "
              f"1-min load average {load0:.1f} at the start, {meta['load_average_start_end'][1]:.1f} at the end.  ",
-             "Dome: isotropic cap 20 mm base radius, 10 mm height, 32 rim vertices, one layer (coarse: the test dome), 50 Pa reservoir;",
+             "Dome: isotropic cap 20 mm base radius, 10 mm height, 32 rim vertices, one layer of the default 15-node wedges (coarse: the test dome), 50 Pa reservoir;",
              "r = 7.5 mm sphere on the axis. Times in one process; read the ratio, not the seconds.", "",
              "| target | target P2 nodes | step to 0.5 mm (first contact) s | step to 1 mm s | ratio to rigid (1 mm step) | F 0.5 / 1.0 mm, mN |",
              "|---|---|---|---|---|---|"]
