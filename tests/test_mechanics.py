@@ -6,11 +6,11 @@ import os
 import numpy as np
 import pytest
 import warp as wp
-from conftest import check_element_derivatives, wedge_grid
+from conftest import cantilever_tip_ratio, check_element_derivatives, inflate_octant, press_block, uniaxial_nominal_stress, wedge_grid
 
 from jointsim.mechanics.fem import ElasticTerm, ElementKernel, P2Mesh
 from jointsim.mechanics.materials import Material
-from jointsim.mechanics.newton import NewtonError, NewtonSystem, NodalForce, minimize_energy, step_to
+from jointsim.mechanics.newton import NewtonError, NewtonSystem, NodalForce, minimize_energy
 from jointsim.mechanics.pressure import PressureTerm, linear_subtriangles
 from jointsim.mesh.shapes import box_mesh
 
@@ -233,33 +233,13 @@ def test_cholesky_first_reaches_the_equilibrium_ldlt_reaches(monkeypatch):
     np.testing.assert_allclose(forces[True], forces[False], rtol=2e-3)
 
 
-def _uniaxial(material, stretches):
-    L = 1e-2
-    m = P2Mesh.from_linear(box_mesh((L, L, L), (1, 1, 1)))
-    term = ElasticTerm(m, material)
-    X = m.nodes
-    fixed = np.zeros_like(X, bool)
-    for ax in range(3):
-        fixed[np.isclose(X[:, ax], 0), ax] = True  # symmetry planes: lateral faces free
-    right = np.isclose(X[:, 0], L)
-    fixed[right, 0] = True
-    u = np.zeros_like(X)
-    out = []
-    for lam in stretches:
-        target = u.copy()
-        target[right, 0] = (lam - 1) * L
-        res = step_to([term], u, fixed, target)
-        u = res.u
-        out.append(res.gradient.reshape(-1, 3)[right, 0].sum() / L**2)  # reaction / A₀
-    return np.array(out)
-
-
 @pytest.mark.parametrize(
     "material", [Material.neo_hookean(22e3), Material.yeoh(9.8e3, 0.91e3, -0.16e3)], ids=["neo-Hookean", "Yeoh"]
 )
 def test_uniaxial_nominal_stress(material):
-    lam = np.array([1.1, 1.5, 2.0])
-    P = _uniaxial(material, lam)
+    lam, L = np.array([1.1, 1.5, 2.0]), 1e-2
+    m = P2Mesh.from_linear(box_mesh((L, L, L), (1, 1, 1)))
+    P = uniaxial_nominal_stress(m, ElasticTerm(m, material), L, lam)
     # the closed form is incompressible; κ = 1000 μ leaves an O(μ/κ) compressibility (~0.1 %)
     np.testing.assert_allclose(P, material.uniaxial_nominal_stress(lam), rtol=5e-3)
     if material.c2 == 0:
@@ -268,35 +248,19 @@ def test_uniaxial_nominal_stress(material):
 
 @pytest.mark.parametrize("volumetric", ["pointwise", "mean_dilatation"])
 def test_pressurised_thick_sphere(volumetric):
-    """An octant of the shell A ≤ r ≤ B under cavity pressure, on its symmetry planes (each
-    plane's nodes free in the plane only), against the exact inflation. The cavity volume is
-    that of the cone from the origin to the loaded octant of its surface: the symmetry faces
-    pass through the origin and add nothing to ∮ x·n."""
+    """An octant of the shell A ≤ r ≤ B under cavity pressure, on its symmetry planes, against
+    the exact inflation (conftest.inflate_octant)."""
     from jointsim.mesh.shapes import shell_octant, spherical_midsides
 
     A, B, mu = 5e-3, 10e-3, 22e3
     # 1200 curved (isoparametric) P2 tets: 10² triangles per sphere, 4 layers through the wall
     m = P2Mesh.from_linear(shell_octant(A, B, 10, 4), spherical_midsides)
-    X, bf = m.nodes, m.boundary_faces
-    on_plane = np.any(np.all(np.abs(X[bf[:, :3]]) < 1e-9 * B, axis=1), axis=1)
-    r = np.linalg.norm(X[bf[:, :3]].mean(axis=1), axis=1)
-    # the cavity's faces point into it (out of the solid): sign −1 for the cavity volume
-    pressure = PressureTerm(X, linear_subtriangles(bf[~on_plane & (r < (A + B) / 2)]), sign=-1.0)
-    elastic = ElasticTerm(m, Material.neo_hookean(mu), volumetric=volumetric)
-    fixed = np.abs(X) < 1e-9 * B  # u_x = 0 on x = 0, and so on
-    u = np.zeros_like(X)
-    V0 = pressure.volume(u)
-    assert V0 == pytest.approx(np.pi / 6 * A**3, rel=5e-3)  # the octant of the cavity
-    for p in (4e3, 8e3, 12e3):
-        pressure.pressure = p
-        u = minimize_energy([elastic, pressure], u, fixed).u
-        la = (pressure.volume(u) / V0) ** (1 / 3)
-        lb = (1 + (la**3 - 1) * (A / B) ** 3) ** (1 / 3)
-        exact = 2 * mu * ((1 / lb + 1 / (4 * lb**4)) - (1 / la + 1 / (4 * la**4)))
-        # measured 0.3-0.9 % high pointwise, 0.8-1.1 % low by mean dilatation (its element-wise
-        # constant pressure against a pressure falling through the wall); both fall under
-        # refinement (the full shell in 5 k unstructured tets: 0.8-1.5 % and 0.07-0.13 %)
-        assert p == pytest.approx(exact, rel=0.02)
+    pressures = np.array([4e3, 8e3, 12e3])
+    exact, _, _ = inflate_octant(m, ElasticTerm(m, Material.neo_hookean(mu), volumetric=volumetric), A, B, mu, pressures)
+    # measured 0.3-0.9 % high pointwise, 0.8-1.1 % low by mean dilatation (its element-wise
+    # constant pressure against a pressure falling through the wall); both fall under
+    # refinement (the full shell in 5 k unstructured tets: 0.8-1.5 % and 0.07-0.13 %)
+    np.testing.assert_allclose(pressures, exact, rtol=0.02)
 
 
 def test_a_nearly_incompressible_cantilever_bends_without_locking():
@@ -307,19 +271,8 @@ def test_a_nearly_incompressible_cantilever_bends_without_locking():
     (benchmarks/bench_locking.py)."""
     L, t, mu, P = 20e-3, 2e-3, 22e3, 1e-5
     m = P2Mesh.from_linear(box_mesh((L, t, t), (10, 2, 2)))
-    X = m.nodes
-    fixed = np.zeros_like(X, bool)
-    fixed[np.isclose(X[:, 0], 0)] = True
-    tip = np.isclose(X[:, 0], L)
-    f = np.zeros_like(X)
-    f[tip, 2] = P / tip.sum()
-    timoshenko = P * L**3 / (3 * 3 * mu * t**4 / 12) + P * L / (5 / 6 * mu * t * t)
-    deflection = {}
-    for volumetric in ("mean_dilatation", "pointwise"):
-        elastic = ElasticTerm(m, Material.neo_hookean(mu), volumetric=volumetric)
-        # atol: the gradient's round-off floor is ~1e-13 N (κ·L² ~ 1e4 N·m⁻¹·m²·1e-16)
-        u = minimize_energy([elastic, NodalForce(f)], np.zeros_like(X), fixed, rtol=0.0, atol=1e-10).u
-        deflection[volumetric] = u[tip, 2].mean() / timoshenko
+    deflection = {v: cantilever_tip_ratio(m, ElasticTerm(m, Material.neo_hookean(mu), volumetric=v), L, t, mu, P)
+                  for v in ("mean_dilatation", "pointwise")}
     assert deflection["mean_dilatation"] == pytest.approx(1.0, abs=0.03)
     assert deflection["pointwise"] < 0.9
 
@@ -402,7 +355,6 @@ def test_chord_steps_reach_the_same_equilibrium_with_fewer_factorisations(monkey
 
 
 def test_rigid_sphere_into_a_thick_block_follows_hertz():
-    from jointsim.mechanics.contact import SphereContact, nodal_areas
     from jointsim.mesh.shapes import graded_axis, grid_mesh
 
     R, W, h0, d, mu = 10e-3, 55e-3, 0.25e-3, 0.2e-3, 22e3
@@ -412,25 +364,12 @@ def test_rigid_sphere_into_a_thick_block_follows_hertz():
     # the contact by 1.4× per cell
     ax = graded_axis(W, h0, 1.4)
     m = P2Mesh.from_linear(grid_mesh(ax, ax, -ax[::-1]))
-    bf = m.boundary_faces
-    top = bf[np.all(np.isclose(m.nodes[bf[:, :3], 2], 0.0), axis=1)]
-    nodes, w = nodal_areas(m.nodes, linear_subtriangles(top))
-    contact = SphereContact(m.nodes, nodes, w, R, stiffness=100 * E / h0)
-    contact.centre = np.array([0.0, 0.0, R - d])
-    X = m.nodes
-    fixed = np.zeros_like(X, bool)
-    fixed[np.isclose(X[:, 0], 0), 0] = True  # symmetry planes
-    fixed[np.isclose(X[:, 1], 0), 1] = True
-    fixed[np.isclose(X[:, 2], -W), :] = True  # the base
-    system = NewtonSystem(*m.sparsity[:2], ~fixed.ravel())  # the analysis once, not per iteration
-    res = minimize_energy([ElasticTerm(m, Material.neo_hookean(mu)), contact], np.zeros_like(X), fixed, system=system)
-    F = 4 * contact.force(res.u)[2]
+    F, penetration, a = press_block(m, ElasticTerm(m, Material.neo_hookean(mu)), R, W, h0, d, E)
     hertz = 16 / 9 * E * np.sqrt(R) * d**1.5
     # d/R = 0.02: measured +2.4 % (+1.5 % on the 16 cm block; small-strain theory, finite block,
     # 7 cells across the contact)
     assert F == pytest.approx(hertz, rel=0.05)
-    assert contact.penetration(res.u) < 0.01 * d
-    a = np.sqrt(4 * contact.contact_area(res.u) / np.pi)  # a quarter of the contact disc
+    assert penetration < 0.01 * d
     assert a == pytest.approx(np.sqrt(R * d), rel=0.15)
 
 

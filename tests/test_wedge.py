@@ -4,10 +4,9 @@ and the membrane built of it."""
 
 import numpy as np
 import pytest
-from conftest import check_element_derivatives, wedge_grid
+from conftest import cantilever_tip_ratio, check_element_derivatives, inflate_octant, press_block, uniaxial_nominal_stress, wedge_grid
 
 from jointsim.mechanics.materials import Material
-from jointsim.mechanics.newton import NodalForce, minimize_energy, step_to
 from jointsim.mechanics.wedge import WEDGE_POINTS, WEDGE_WEIGHTS, WedgeElasticTerm, WedgeKernel, WedgeMesh, wedge_shape
 
 # the reference prism's nodes in the module's order (ξ, η, ζ)
@@ -71,24 +70,9 @@ def test_uniaxial_nominal_stress(material):
     """A cube of two wedges stretched along x (symmetry planes at 0, lateral faces free): the
     deformation is homogeneous, so the elements are exact and the reaction per reference area
     is the closed-form nominal stress, up to the O(μ/κ) compressibility of κ = 1000 μ (~0.1 %)."""
-    L = 1e-2
+    L, lam = 1e-2, np.array([1.1, 1.5, 2.0])
     m = _block((L, L, L))
-    term = WedgeElasticTerm(m, material)
-    X = m.nodes
-    fixed = np.zeros_like(X, bool)
-    for ax in range(3):
-        fixed[np.isclose(X[:, ax], 0), ax] = True
-    right = np.isclose(X[:, 0], L)
-    fixed[right, 0] = True
-    u = np.zeros_like(X)
-    lam = np.array([1.1, 1.5, 2.0])
-    P = []
-    for s in lam:
-        target = u.copy()
-        target[right, 0] = (s - 1) * L
-        res = step_to([term], u, fixed, target)
-        u = res.u
-        P.append(res.gradient.reshape(-1, 3)[right, 0].sum() / L**2)  # reaction / A₀
+    P = uniaxial_nominal_stress(m, WedgeElasticTerm(m, material), L, lam)
     np.testing.assert_allclose(P, material.uniaxial_nominal_stress(lam), rtol=5e-3)
 
 
@@ -101,15 +85,7 @@ def test_a_nearly_incompressible_cantilever_bends_without_locking():
     (tests/test_mechanics.py). Within 2 % of the 3-D limit: locking would be ≥ 10 %."""
     L, t, mu, P = 20e-3, 2e-3, 22e3, 1e-5
     m = _block((L, t, t), (10, 1), layers=1)
-    X = m.nodes
-    fixed = np.zeros_like(X, bool)
-    fixed[np.isclose(X[:, 0], 0)] = True
-    tip = np.isclose(X[:, 0], L)
-    f = np.zeros_like(X)
-    f[tip, 2] = P / tip.sum()
-    timoshenko = P * L**3 / (3 * 3 * mu * t**4 / 12) + P * L / (5 / 6 * mu * t * t)
-    u = minimize_energy([WedgeElasticTerm(m, Material.neo_hookean(mu)), NodalForce(f)], np.zeros_like(X), fixed, rtol=0.0, atol=1e-10).u
-    assert u[tip, 2].mean() / timoshenko == pytest.approx(0.98, abs=0.02)
+    assert cantilever_tip_ratio(m, WedgeElasticTerm(m, Material.neo_hookean(mu)), L, t, mu, P) == pytest.approx(0.98, abs=0.02)
 
 
 def _paper_membrane(rim: int, layers: int = 1, **membrane):
@@ -196,31 +172,17 @@ def test_pressurised_thick_sphere():
     the exact inflation p = 2μ[(1/λb + 1/(4λb⁴)) − (1/λa + 1/(4λa⁴))] (≤ 2 %, the issue's
     bound). Measured: -0.7 to -0.8 % at 4-12 kPa (λa up to 1.25); the P2 tetrahedra on four
     layers are +0.3-0.9 % (pointwise), -0.8-1.1 % (mean dilatation)."""
-    from jointsim.mechanics.pressure import PressureTerm, linear_subtriangles
     from jointsim.mesh.shapes import octant_triangles, spherical_midsides
 
     A, B, mu, layers = 5e-3, 10e-3, 22e3, 2
     direction, tri = octant_triangles(10)
     corners = (np.linspace(A, B, layers + 1)[:, None, None] * direction).reshape(-1, 3)
     m = WedgeMesh.extrude(corners, tri, layers, spherical_midsides)
-    X, bf = m.nodes, m.boundary_faces
-    cavity = bf[np.linalg.norm(X[bf[:, :3]].mean(axis=1), axis=1) < (A + B) / 2]
-    assert len(cavity) == len(tri)
-    pressure = PressureTerm(X, linear_subtriangles(cavity), sign=-1.0)  # faces out of the solid
-    elastic = WedgeElasticTerm(m, Material.neo_hookean(mu))
-    fixed = np.abs(X) < 1e-9 * B  # u_x = 0 on x = 0, and so on
-    u = np.zeros_like(X)
-    V0 = pressure.volume(u)
-    assert V0 == pytest.approx(np.pi / 6 * A**3, rel=5e-3)
-    errors = []
-    for p in (4e3, 8e3, 12e3):
-        pressure.pressure = p
-        u = minimize_energy([elastic, pressure], u, fixed).u
-        la = (pressure.volume(u) / V0) ** (1 / 3)
-        lb = (1 + (la**3 - 1) * (A / B) ** 3) ** (1 / 3)
-        errors.append(p / (2 * mu * ((1 / lb + 1 / (4 * lb**4)) - (1 / la + 1 / (4 * la**4)))) - 1)
+    pressures = np.array([4e3, 8e3, 12e3])
+    exact, la, cavity_faces = inflate_octant(m, WedgeElasticTerm(m, Material.neo_hookean(mu)), A, B, mu, pressures)
+    assert cavity_faces == len(tri)
     assert la > 1.2
-    np.testing.assert_allclose(errors, 0.0, atol=0.02)
+    np.testing.assert_allclose(pressures / exact - 1, 0.0, atol=0.02)
 
 
 def test_rigid_sphere_into_a_thick_block_follows_hertz():
@@ -230,28 +192,13 @@ def test_rigid_sphere_into_a_thick_block_follows_hertz():
     block), the contact radius against √(Rd) (≤ 15 %: ~7 cells across it), penetration below
     1 % of the depth. Measured: force +0.6 % (the tetrahedra on the same grid +2.4 %), contact
     radius +5.4 %, penetration 0.2 %."""
-    from jointsim.mechanics.contact import SphereContact, nodal_areas
-    from jointsim.mechanics.newton import NewtonSystem
-    from jointsim.mechanics.pressure import linear_subtriangles
     from jointsim.mesh.shapes import graded_axis
 
     R, W, h0, d, mu = 10e-3, 55e-3, 0.25e-3, 0.2e-3, 22e3
     E = 3 * mu  # ν = 0.5
     ax = graded_axis(W, h0, 1.4)
     m = wedge_grid(ax, ax, -ax[::-1])
-    X, bf = m.nodes, m.boundary_faces
-    top = bf[np.all(np.isclose(X[bf[:, :3], 2], 0.0), axis=1)]
-    nodes, w = nodal_areas(X, linear_subtriangles(top))
-    contact = SphereContact(X, nodes, w, R, stiffness=100 * E / h0)
-    contact.centre = np.array([0.0, 0.0, R - d])
-    fixed = np.zeros_like(X, bool)
-    fixed[np.isclose(X[:, 0], 0), 0] = True  # symmetry planes
-    fixed[np.isclose(X[:, 1], 0), 1] = True
-    fixed[np.isclose(X[:, 2], -W), :] = True  # the base
-    system = NewtonSystem(*m.sparsity[:2], ~fixed.ravel())
-    res = minimize_energy([WedgeElasticTerm(m, Material.neo_hookean(mu)), contact], np.zeros_like(X), fixed, system=system)
-    F = 4 * contact.force(res.u)[2]
+    F, penetration, a = press_block(m, WedgeElasticTerm(m, Material.neo_hookean(mu)), R, W, h0, d, E)
     assert F == pytest.approx(16 / 9 * E * np.sqrt(R) * d**1.5, rel=0.05)
-    assert contact.penetration(res.u) < 0.01 * d
-    a = np.sqrt(4 * contact.contact_area(res.u) / np.pi)  # a quarter of the contact disc
+    assert penetration < 0.01 * d
     assert a == pytest.approx(np.sqrt(R * d), rel=0.15)
