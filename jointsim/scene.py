@@ -35,6 +35,7 @@ __all__ = [
     "MESH_PRESETS",
     "MEMBRANE_RIM_VERTICES",
     "MEMBRANE_LAYERS",
+    "MEMBRANE_MAX_LAYERS",
 ]
 
 MM = 1e-3
@@ -156,6 +157,7 @@ MEMBRANE_ELEMENTS = ("p2_tet", "wedge15")
 # wedges 1 (a second changes the force at 3 mm by <= 0.4 %, results/mechanics_benchmark_wedge15.md),
 # tetrahedra 2 (one layer of pointwise P2 tetrahedra locks in bending, results/locking_cantilever.md)
 MEMBRANE_LAYERS: dict[str, int] = {"p2_tet": 2, "wedge15": 1}
+MEMBRANE_MAX_LAYERS = 8  # [membrane] layers is in [1, MEMBRANE_MAX_LAYERS]
 # the membrane mesh's rim vertices each fidelity gets unless [membrane] rim_vertices is given.
 # Wedges, one layer: 92 is within 0.7 % of the 160/2 mesh in force at 1-3 mm (0.4 s per step), 64
 # within 2.0 % (0.2 s; results/mechanics_benchmark_wedge15.md). Tetrahedra, two layers: 92 within 2 %,
@@ -409,7 +411,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     if element == "wedge15" and volumetric != "pointwise":
         raise SceneError(f"membrane.volumetric = {volumetric!r}: only 'pointwise' with membrane.element = 'wedge15' "
                          "(the default; its volumetric form is its own): give element = \"p2_tet\" for the tetrahedra's")
-    layers = t.integer("layers", MEMBRANE_LAYERS[element], 1, 8)
+    layers = t.integer("layers", MEMBRANE_LAYERS[element], 1, MEMBRANE_MAX_LAYERS)
     t.finish()
 
     target = _target(data.get("target", {}), base_r)

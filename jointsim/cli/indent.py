@@ -17,6 +17,7 @@ from tqdm import tqdm
 
 from .. import __version__
 from ..io.export import atomic_path, write_npz, write_vtu
+from ..scene import MEMBRANE_MAX_LAYERS
 from .common import add_scene_arguments, add_target_size_arguments, scene_from_args, target_radius_mm
 
 HELP = "force-indentation sweep of the dome membrane (FEM): CSV, PNG, VTU"
@@ -52,8 +53,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--dome-rim = {args.dome_rim}: must be in [16, 1024]")
         scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=args.dome_rim))
     if args.layers is not None:
-        if not 1 <= args.layers <= 8:
-            raise ValueError(f"--layers = {args.layers}: must be in [1, 8]")
+        if not 1 <= args.layers <= MEMBRANE_MAX_LAYERS:
+            raise ValueError(f"--layers = {args.layers}: must be in [1, {MEMBRANE_MAX_LAYERS}]")
         scene = replace(scene, membrane=replace(scene.membrane, layers=args.layers))
     c = scene.chamber
     model = MembraneModel.from_scene(scene, radius * 1e-3, device=device)

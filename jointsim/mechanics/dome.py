@@ -16,7 +16,7 @@ import numpy as np
 
 from ..geometry import DomeSurface
 from ..mesh.tetmesh import TetMesh
-from ..scene import MEMBRANE_ELEMENTS, MEMBRANE_LAYERS
+from ..scene import MEMBRANE_ELEMENTS, MEMBRANE_LAYERS, MEMBRANE_MAX_LAYERS
 from .contact import SphereContact, SphereFriction, nodal_areas
 from .fem import ElasticTerm, P2Mesh
 from .materials import Material
@@ -252,8 +252,8 @@ class MembraneModel:
         if element not in ELEMENTS:
             raise ValueError(f"element = {element!r}: allowed values are {ELEMENTS}")
         layers = MEMBRANE_LAYERS[element] if layers is None else layers
-        if not (isinstance(layers, (int, np.integer)) and 1 <= layers <= 8):
-            raise ValueError(f"layers = {layers!r}: must be an integer in [1, 8]")
+        if not (isinstance(layers, (int, np.integer)) and 1 <= layers <= MEMBRANE_MAX_LAYERS):
+            raise ValueError(f"layers = {layers!r}: must be an integer in [1, {MEMBRANE_MAX_LAYERS}]")
         if element == "wedge15" and volumetric != "pointwise":
             raise ValueError(f"volumetric = {volumetric!r}: the wedge15 element has its own (projected) volumetric form; "
                              "volumetric applies to element = 'p2_tet' only")
