@@ -28,6 +28,8 @@ and the rest.
                                                     # the touch sub-step (dome.FIRST_CONTACT), 3 target
                                                     # radii × 5 positions on 64/2, N rounds interleaved:
                                                     # results/mechanics_first_contact.{md,json}
+    python benchmarks/bench_mechanics.py --cuda     # where Warp sees a GPU: the wedge press with the element kernel on
+                                                    # the CPU and on cuda:0, forces compared: results/mechanics_cuda.{md,json}
     python benchmarks/bench_mechanics.py --one 92 2 0 pointwise [SETTING] [--device cuda:0] [--moulding flat]
                                                     # one mesh's press, printed as JSON (the element
                                                     # kernel on that Warp device; default cpu)
@@ -198,6 +200,9 @@ def main() -> int:
         if SOLVERS_OUT.with_suffix(".json").exists():
             saved = json.loads(SOLVERS_OUT.with_suffix(".json").read_text())
             write_solvers(saved["runs"], saved["meta"])
+        if CUDA_OUT.with_suffix(".json").exists():
+            saved = json.loads(CUDA_OUT.with_suffix(".json").read_text())
+            write_cuda(saved["rows"], saved["meta"])
         for path in sorted((ROOT / "results").glob(PAIR_PREFIX + "*.json")):
             saved = json.loads(path.read_text())
             write_pair_study(saved["runs"], saved["meta"])
@@ -212,6 +217,8 @@ def main() -> int:
                 del args[i : i + 2]
         print(json.dumps(run(int(args[0]), int(args[1]), float(args[2]), args[3], *args[4:5], **opts)))
         return 0
+    if len(sys.argv) > 1 and sys.argv[1] == "--cuda":
+        return cuda()
     if len(sys.argv) > 1 and sys.argv[1] == "--assembly":
         return assembly(int(sys.argv[2]) if len(sys.argv) > 2 else 10)
     if len(sys.argv) > 1 and sys.argv[1] == "--first-contact":
@@ -264,6 +271,70 @@ FLAT_OUT = ROOT / "results" / "mechanics_flat_benchmark"
 WEDGE_OUT = ROOT / "results" / "mechanics_benchmark_wedge15"
 FLAT_WEDGE_OUT = ROOT / "results" / "mechanics_flat_benchmark_wedge15"
 SOLVERS_OUT = ROOT / "results" / "mechanics_solvers"
+CUDA_OUT = ROOT / "results" / "mechanics_cuda"
+# `--cuda`: the dataset's and the paper's default wedge meshes, and a finer one where the kernel's share grows
+CUDA_MESHES = [(64, 1, 0.0, "wedge15"), (92, 1, 0.0, "wedge15"), (160, 1, 0.0, "wedge15")]
+
+
+def cuda(device: str = "cuda:0") -> int:
+    """``--cuda``: the press on each of CUDA_MESHES twice, the element kernel on Warp's CPU device
+    and on ``device`` (one process each; everything else, the sparse solves included, on the CPU);
+    results/mechanics_cuda.{md,json}, rewritten after every run (a run cut short keeps its rows)."""
+    import subprocess
+
+    import jointsim.eit.solver as solver
+    from jointsim._warp import wp
+
+    if not wp.is_cuda_available():
+        print("--cuda: Warp sees no CUDA device on this machine", file=sys.stderr)
+        return 2
+    meta = {**_new_meta("python benchmarks/bench_mechanics.py --cuda"), "gpu": wp.get_device(device).name,
+            "warp": wp.config.version, "linear_backend": solver.default_backend()}
+    rows = []
+    for mesh in CUDA_MESHES:
+        for dev in ("cpu", device):
+            r = subprocess.run([sys.executable, __file__, "--one", *map(str, mesh), "--device", dev], capture_output=True, text=True)
+            if r.returncode:
+                print(r.stderr[-2000:], file=sys.stderr)
+                return 1
+            rows.append(json.loads(r.stdout.strip().splitlines()[-1]))
+            s = rows[-1]["steps"][1:]
+            print(f"{_label(rows[-1])} on {dev}: {np.mean([x['wall_s'] for x in s]):.2f} s/step, kernel {np.mean([x['kernel_s'] for x in s]):.3f} s", flush=True)
+            _finish_meta(meta)
+            write_cuda(rows, meta)
+    return 0
+
+
+def write_cuda(rows: list[dict], meta: dict) -> None:
+    """results/mechanics_cuda.{json,md}: per mesh and Warp device, the step's time and its split,
+    and how far the GPU's forces and volumes are from the CPU's."""
+    cpu = {_label(r): r for r in rows if r["device"] == "cpu"}
+    lines = ["# The element kernel on Warp's CUDA device", "", f"Command: `{meta['command']}`  ",
+             f"Machine: {meta['machine']}; GPU {meta['gpu']}; Warp {meta['warp']}; run {meta['date']}.  ",
+             "The press of results/mechanics_benchmark_wedge15 (rigid 15 mm sphere on the axis of the paper's dome, 0.5 mm steps to",
+             "3 mm, 15-node wedges), run twice per mesh: the Warp element kernel (energy, gradient, SPD-projected Hessian assembled",
+             "into the Newton system) on the CPU and on the GPU; the sparse factorisations stay on the CPU "
+             f"({meta['linear_backend']} here{'' if meta['linear_backend'] == 'pardiso' else ': PARDISO was not installed on this machine'}).",
+             "Per-step means exclude the first step. Kernel s includes the host–device copies of the displacement and of the results.",
+             "Force and volume differences: the largest over the six steps, GPU against CPU.", "",
+             "| rim / layers | device | nodes | s / step | Newton its / step | kernel s | factorise+solve s | F 1 / 2 / 3 mm, mN | max force difference | max volume difference |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        s, ref = r["steps"][1:], cpu.get(_label(r))
+        diff = ("—", "—")
+        if ref is not None and ref is not r:
+            diff = tuple(f"{max(abs(x[k] / y[k] - 1) for x, y in zip(r['steps'], ref['steps'])):.1e}" for k in ("force_mN", "displaced_mm3"))
+        lines.append(f"| {_label(r)} | {r['device']} | {r['p2_nodes']:,} | {np.mean([x['wall_s'] for x in s]):.2f} | "
+                     f"{np.mean([x['iterations'] for x in s]):.1f} | {np.mean([x['kernel_s'] for x in s]):.3f} | "
+                     f"{np.mean([x['factorise+solve_s'] for x in s]):.2f} | " + " / ".join(f"{_at(r, d):.2f}" for d in (1.0, 2.0, 3.0))
+                     + f" | {diff[0]} | {diff[1]} |")
+    pairs = [(cpu[_label(r)], r) for r in rows if r["device"] != "cpu" and _label(r) in cpu]
+    if pairs:
+        kernel = lambda r: np.mean([x["kernel_s"] for x in r["steps"][1:]])  # noqa: E731
+        lines += ["", "Kernel time, CPU over GPU (the same machine, the same run): "
+                  + ", ".join(f"{_label(a)} {kernel(a) / kernel(b):.1f}×" for a, b in pairs) + "."]
+    atomic_write(CUDA_OUT.with_suffix(".json"), json.dumps({"meta": meta, "rows": rows}, indent=2))
+    atomic_write(CUDA_OUT.with_suffix(".md"), "\n".join(lines) + "\n")
 
 
 def solvers(repeats: int = REPEATS) -> int:
