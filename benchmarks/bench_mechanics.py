@@ -30,9 +30,10 @@ and the rest.
                                                     # results/mechanics_first_contact.{md,json}
     python benchmarks/bench_mechanics.py --cuda     # where Warp sees a GPU: the wedge press with the element kernel on
                                                     # the CPU and on cuda:0, forces compared: results/mechanics_cuda.{md,json}
-    python benchmarks/bench_mechanics.py --one 92 2 0 pointwise [SETTING] [--device cuda:0] [--moulding flat]
+    python benchmarks/bench_mechanics.py --one 92 2 0 pointwise [SETTING] [--device cuda:0] [--moulding flat] [--backend superlu]
                                                     # one mesh's press, printed as JSON (the element
-                                                    # kernel on that Warp device; default cpu)
+                                                    # kernel on that Warp device, default cpu; the
+                                                    # sparse solves by SuperLU as without PARDISO)
 
 Each mesh runs in its own process; finished rows are kept in results/mechanics_benchmark.partial.json,
 so an interrupted run resumes where it stopped (delete that file to start over).
@@ -89,7 +90,7 @@ DEPTHS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 
 
 def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatation", linear: str = "default", device: str = "cpu",
-        moulding: str = "cap") -> dict:
+        moulding: str = "cap", backend: str = "auto") -> dict:
     import jointsim.eit.solver as solver
     import jointsim.mechanics.fem as fem
     import jointsim.mechanics.newton as newton
@@ -97,6 +98,10 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
 
     newton.SINGLE_PRECISION, newton.PIVOT_2X2, newton.CHOLESKY_FIRST, threads, into, solver.PARDISO_TWO_LEVEL, newton.CHORD_STEPS = SOLVERS[linear]
     fem.KERNEL_THREADS = threads or fem.KERNEL_THREADS
+    if backend == "superlu":  # as on a machine without PARDISO (aarch64, macOS on Arm)
+        solver.available_backends = lambda: ["superlu"]
+    elif backend != "auto":
+        raise SystemExit(f"--backend = {backend!r}: 'auto' or 'superlu'")
     if not into:  # Newton then takes the Hessian on the mesh's pattern and gathers its values
         del fem.ElasticTerm.evaluate_into
 
@@ -134,7 +139,7 @@ def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatat
                       **{f"{k}_s": v for k, v in timers.items()},
                       "force_mN": st.force[2] * 1e3, "displaced_mm3": st.displaced_volume * 1e9, "penetration_um": st.penetration * 1e6})
     return {"n_rim": n_rim, "layers": layers, "apex_mm": apex_mm, "volumetric": volumetric, "linear": linear, "device": device,
-            "moulding": moulding, "p2_nodes": model.mesh.n_nodes, "tets": model.mesh.n_elements, "setup_s": setup,
+            "moulding": moulding, "backend": solver.default_backend(), "p2_nodes": model.mesh.n_nodes, "tets": model.mesh.n_elements, "setup_s": setup,
             "pressure_pa": model.pressure.pressure, "chamber_mm3": model.V0 * 1e9, "steps": steps}
 
 
@@ -209,7 +214,7 @@ def main() -> int:
         return 0
     if len(sys.argv) > 1 and sys.argv[1] == "--one":
         args = sys.argv[2:]
-        opts = {"device": "cpu", "moulding": "cap"}
+        opts = {"device": "cpu", "moulding": "cap", "backend": "auto"}
         for name in opts:
             if f"--{name}" in args:
                 i = args.index(f"--{name}")

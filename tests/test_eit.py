@@ -486,3 +486,39 @@ def test_cholesky_fails_exactly_on_a_matrix_that_is_not_positive_definite(single
             with pytest.raises(RuntimeError, match="factor"):
                 solver.solve(np.ones(m**3))
     solver.free()
+
+
+def test_without_pardiso_superlu_reports_the_inertia_and_stands_in_for_cholesky():
+    """The SuperLU path of PatternSolver (every machine without PARDISO: aarch64, macOS on Arm),
+    on the grid Laplacians above (12³ unknowns, eigenvalues in closed form): its diagonal-pivot
+    factor of L − σI counts the eigenvalues below σ (Sylvester's law of inertia) and solves
+    backward stably in double (‖Ax − b‖ ≤ 100·ε·‖A‖₂·‖x‖); as a Cholesky solver it factors
+    L − 0.9 λ₁ and refuses L − 1.1 λ₁ (one eigenvalue −0.1 λ₁), leaving no stale factor."""
+    from jointsim.eit.solver import PatternSolver
+
+    m = 12
+    L, eig = _grid_laplacian(m)
+    levels = np.unique(np.round(eig, 10))
+    sigma = 0.5 * (levels[9] + levels[10])
+    upper = sp.triu(L - sigma * sp.identity(m**3), format="csr")
+    upper.sort_indices()
+    solver = PatternSolver(upper.indptr, upper.indices, spd=False, backend="superlu")
+    solver.factor(upper.data)
+    assert solver.negative_eigenvalues == int((eig < sigma).sum()) > 10
+    b = np.random.default_rng(0).standard_normal(m**3)
+    x = solver.solve(b)
+    eps = np.finfo(float).eps / 2
+    assert np.linalg.norm((L - sigma * sp.identity(m**3)) @ x - b) <= 100 * eps * np.abs(eig - sigma).max() * np.linalg.norm(x)
+
+    upper = sp.triu(L, format="csr")
+    upper.sort_indices()
+    cholesky = PatternSolver(upper.indptr, upper.indices, spd=True, backend="superlu")
+    diag = upper.indptr[:-1]
+    for factor, definite in ((0.9, True), (1.1, False), (0.9, True)):
+        data = upper.data.copy()
+        data[diag] -= factor * eig.min()
+        assert cholesky.try_factor(data) is definite
+        if not definite:
+            with pytest.raises(RuntimeError, match="factor"):
+                cholesky.solve(b)
+    assert cholesky.negative_eigenvalues is None  # a Cholesky solver reports definiteness only

@@ -193,8 +193,10 @@ class PatternSolver:
     Hessians on a fixed mesh. The pattern is the upper triangle ``(indptr, indices)`` (CSR,
     sorted); PARDISO's ordering and symbolic analysis are done once and each :meth:`factor`
     is numerical only, which at 30 k unknowns of P2 elasticity saves ~40 % of a factorisation.
-    Without PARDISO every factor call is a fresh SuperLU. ``mtype``: 2 SPD, −2 indefinite.
-    ``negative_eigenvalues`` (PARDISO, indefinite) is the inertia of the last factor.
+    Without PARDISO every factor call is a fresh SuperLU, with diagonal pivots only (see
+    :meth:`_factor_superlu`), so that it too reports the inertia and can stand in for Cholesky.
+    ``spd``: 2 SPD, −2 indefinite (PARDISO's mtype). ``negative_eigenvalues`` (indefinite
+    solvers) is the inertia of the last factor, None where it is unknown.
 
     ``single``: PARDISO factors and solves in single precision (results returned in double):
     1.6× faster factorisations of P2 elasticity (the 92-rim, 2-layer membrane's press:
@@ -229,13 +231,13 @@ class PatternSolver:
         self._analysed = False
         self._A: sp.csr_matrix | None = None
         self._lu = None
+        self._definite = False
 
     def factor(self, data: np.ndarray) -> None:
         A = sp.csr_matrix((np.asarray(data, self._dtype), self.indices, self.indptr), shape=(self.n, self.n))
         self._A = A
         if self.backend != "pardiso":
-            full = A + sp.triu(A, k=1).T
-            self._lu = factorize(full, "superlu", spd=self.spd)
+            self._factor_superlu(A)
             return
         if self._solver is None:
             self._solver = _pardiso_solver(2 if self.spd else -2)
@@ -250,12 +252,33 @@ class PatternSolver:
         # iparm(23) (1-based): the number of negative pivots of the LDLᵀ factor
         self.negative_eigenvalues = None if self.spd else int(self._solver.iparm[22])
 
+    def _factor_superlu(self, A: sp.csr_matrix) -> None:
+        """SuperLU of the symmetric matrix (``A`` its upper triangle) under a symmetric
+        fill-reducing ordering, with diagonal pivots only (static pivoting, as PARDISO's): then
+        PAPᵀ = LU with U = D·Lᵀ, and U's diagonal has as many negative entries as A has negative
+        eigenvalues (Sylvester's law of inertia) and is all positive exactly where A is positive
+        definite — what Newton's tests of definiteness read. Where SuperLU met a zero pivot and
+        left the diagonal, the rows are permuted apart from the columns: inertia unknown."""
+        lu = spla.splu((A + sp.triu(A, k=1).T).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                       options={"SymmetricMode": True})
+        self._lu = lu
+        pivots = lu.U.diagonal() if np.array_equal(lu.perm_r, lu.perm_c) else np.array([np.nan])
+        known = bool(np.all(np.isfinite(pivots)) and np.all(pivots != 0))
+        self._definite = known and bool(np.all(pivots > 0))
+        self.negative_eigenvalues = None if self.spd or not known else int((pivots < 0).sum())
+
     def try_factor(self, data: np.ndarray) -> bool:
-        """:meth:`factor` a matrix that may not be positive definite (``spd`` solvers, PARDISO):
-        False where Cholesky meets a non-positive pivot (PARDISO error −4), which in exact
-        arithmetic happens exactly when the matrix is not positive definite."""
-        if not (self.spd and self.backend == "pardiso"):
-            raise ValueError("try_factor: for PARDISO Cholesky (spd=True) only")
+        """:meth:`factor` a matrix that may not be positive definite (``spd`` solvers):
+        False where Cholesky meets a non-positive pivot (PARDISO error −4; SuperLU's diagonal
+        pivots, the same test), which in exact arithmetic happens exactly when the matrix is not
+        positive definite."""
+        if not self.spd:
+            raise ValueError("try_factor: for Cholesky solvers (spd=True) only")
+        if self.backend != "pardiso":
+            self.factor(data)
+            if not self._definite:
+                self._A, self._lu = None, None  # no factor to solve with
+            return self._definite
         try:
             self.factor(data)
         except Exception as e:
@@ -269,7 +292,7 @@ class PatternSolver:
         if self._A is None:
             raise RuntimeError("factor() first")
         if self.backend != "pardiso":
-            return self._lu(b)
+            return self._lu.solve(np.asarray(b, float))
         self._solver.set_phase(33)
         x = self._solver._call_pardiso(self._A, np.asfortranarray(b, dtype=self._dtype))
         return x.astype(float, copy=False).reshape(np.shape(b))
@@ -279,9 +302,7 @@ class PatternSolver:
             _release_pardiso(self._solver)
             self._solver = None
         self._analysed = False
-        if self._lu is not None:
-            self._lu.free()
-            self._lu = None
+        self._lu = None
 
     def __del__(self):
         try:

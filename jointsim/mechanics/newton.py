@@ -222,7 +222,7 @@ class NewtonSystem:
         a press's first step every full Newton step's Hessian was positive definite (traced
         there, 0.5 mm steps to 3 mm); where it fails, LDLᵀ and its inertia."""
         self.tangent_ready, self.tangent_u = False, u
-        if CHOLESKY_FIRST and self.projected.backend == "pardiso" and self.projected.try_factor(data):
+        if CHOLESKY_FIRST and self.projected.try_factor(data):
             self.tangent, self.tangent_ready = self.projected, True
             return True
         self.full.factor(data)
@@ -286,8 +286,8 @@ def _regularised_step(data: np.ndarray, free, g, system: NewtonSystem) -> np.nda
     the projection needs a batched 30 × 30 eigendecomposition of every element each time —
     three factorisations' worth — while one or two shifted factorisations do (measured on the
     64-rim membrane: 0.47 s against 0.1–0.2 s per step, same Newton iteration counts)."""
-    if system.full.backend != "pardiso" or system.diagonal is None:
-        return None  # SuperLU gives no inertia to test the shift with
+    if system.diagonal is None:
+        return None
     diag = system.diagonal
     scale = np.abs(data[diag])
     sigma = system.shift
@@ -300,6 +300,8 @@ def _regularised_step(data: np.ndarray, free, g, system: NewtonSystem) -> np.nda
         else:
             solver = system.full
             solver.factor(shifted)
+            if solver.negative_eigenvalues is None:
+                return None  # no inertia to test the shift with (SuperLU left the diagonal)
             definite = solver.negative_eigenvalues == 0
         system.tangent_ready = False
         if definite:
