@@ -222,7 +222,8 @@ class NewtonSystem:
         a press's first step every full Newton step's Hessian was positive definite (traced
         there, 0.5 mm steps to 3 mm); where it fails, LDLᵀ and its inertia."""
         self.tangent_ready, self.tangent_u = False, u
-        if CHOLESKY_FIRST and self.projected.try_factor(data):
+        # SuperLU's one factorisation is both tests (its pivots are the LDLᵀ's): no Cholesky first
+        if CHOLESKY_FIRST and self.projected.backend == "pardiso" and self.projected.try_factor(data):
             self.tangent, self.tangent_ready = self.projected, True
             return True
         self.full.factor(data)
