@@ -11,6 +11,7 @@ import hashlib
 import json
 import math
 import tomllib
+import warnings
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -158,6 +159,28 @@ MEMBRANE_ELEMENTS = ("p2_tet", "wedge15")
 # tetrahedra 2 (one layer of pointwise P2 tetrahedra locks in bending, results/locking_cantilever.md)
 MEMBRANE_LAYERS: dict[str, int] = {"p2_tet": 2, "wedge15": 1}
 MEMBRANE_MAX_LAYERS = 8  # [membrane] layers is in [1, MEMBRANE_MAX_LAYERS]
+MEMBRANE_RIM_RANGE = (16, 1024)
+# below this a wedge membrane's force is well off the converged one (a contact patch of a few
+# triangles): warn_coarse_membrane
+WEDGE_MIN_RIM_VERTICES = 48
+
+
+def membrane_rim_vertices(n: int, element: str, name: str = "membrane.rim_vertices") -> int:
+    """``n`` rim vertices for the membrane, checked: outside MEMBRANE_RIM_RANGE a ValueError
+    naming ``name``, below what the ``element`` needs for its force a warning."""
+    lo, hi = MEMBRANE_RIM_RANGE
+    if not lo <= n <= hi:
+        raise SceneError(f"{name} = {n}: must be in [{lo}, {hi}]")
+    warn_coarse_membrane(n, element, name)
+    return n
+
+
+def warn_coarse_membrane(n: int, element: str, name: str = "membrane.rim_vertices") -> None:
+    """Warn where one layer of wedges on ``n`` rim vertices is too coarse for its force."""
+    if element == "wedge15" and n < WEDGE_MIN_RIM_VERTICES:
+        warnings.warn(f"{name} = {n}: wedge membranes coarser than {WEDGE_MIN_RIM_VERTICES} rim vertices are soft (at 32, "
+                      "the force at 1 mm is 14 % below the 96-rim mesh's; from 48 on within 2.5 %: tests/test_membrane.py); "
+                      "give >= 48 for forces within a few per cent", UserWarning, stacklevel=3)
 # the membrane mesh's rim vertices each fidelity gets unless [membrane] rim_vertices is given.
 # Wedges, one layer: 92 is within 0.7 % of the 160/2 mesh in force at 1-3 mm (0.4 s per step), 64
 # within 2.0 % (0.2 s; results/mechanics_benchmark_wedge15.md). Tetrahedra, two layers: 92 within 2 %,
@@ -404,7 +427,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     bulk_ratio = t.number("bulk_ratio", 1000.0, 1.0, 1e5)
     p_res = t.number("reservoir_pressure_pa", 0.0, -1e4, 1e5)
     closed = t.choice("chamber", "open", ("open", "closed"))
-    rim_vertices = t.integer("rim_vertices", MEMBRANE_RIM_VERTICES[preset], 16, 1024)
+    rim_vertices = t.integer("rim_vertices", MEMBRANE_RIM_VERTICES[preset], *MEMBRANE_RIM_RANGE)
     volumetric = t.choice("volumetric", "pointwise", ("pointwise", "mean_dilatation"))
     moulding = t.choice("moulding", "cap", MOULDINGS)
     element = t.choice("element", "wedge15", MEMBRANE_ELEMENTS)
@@ -412,6 +435,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         raise SceneError(f"membrane.volumetric = {volumetric!r}: only 'pointwise' with membrane.element = 'wedge15' "
                          "(the default; its volumetric form is its own): give element = \"p2_tet\" for the tetrahedra's")
     layers = t.integer("layers", MEMBRANE_LAYERS[element], 1, MEMBRANE_MAX_LAYERS)
+    warn_coarse_membrane(rim_vertices, element)
     t.finish()
 
     target = _target(data.get("target", {}), base_r)

@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from .. import __version__
 from ..io.export import atomic_path, write_npz, write_vtu
-from ..scene import MEMBRANE_MAX_LAYERS
+from ..scene import MEMBRANE_MAX_LAYERS, membrane_rim_vertices
 from .common import add_scene_arguments, add_target_size_arguments, scene_from_args, target_radius_mm
 
 HELP = "force-indentation sweep of the dome membrane (FEM): CSV, PNG, VTU"
@@ -49,9 +49,7 @@ def run(args: argparse.Namespace) -> int:
     if not 0 < args.step_mm <= args.depth_mm:
         raise ValueError(f"--step-mm = {args.step_mm}: must be in (0, --depth-mm = {args.depth_mm}]")
     if args.dome_rim is not None:
-        if not 16 <= args.dome_rim <= 1024:
-            raise ValueError(f"--dome-rim = {args.dome_rim}: must be in [16, 1024]")
-        scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=args.dome_rim))
+        scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=membrane_rim_vertices(args.dome_rim, scene.membrane.element, "--dome-rim")))
     if args.layers is not None:
         if not 1 <= args.layers <= MEMBRANE_MAX_LAYERS:
             raise ValueError(f"--layers = {args.layers}: must be in [1, {MEMBRANE_MAX_LAYERS}]")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 
 from ..scene import SceneError
 from . import calibrate, dataset, forward, indent, mesh, palpate, protocol_study, stiffness_study
@@ -42,10 +43,21 @@ def _reported(e: Exception) -> bool:
     return isinstance(e, (SceneError, ValueError) + loaded)
 
 
+def _warning_line(command: str):
+    """warnings.showwarning as one line like the errors' (the package's advice on a setting, such as
+    a membrane too coarse for its force), not a source location and its code line."""
+    def show(message, category, filename, lineno, file=None, line=None):
+        kind = "" if category is UserWarning else f"{category.__name__}: "
+        print(f"jointsim {command}: warning: {kind}{message}", file=sys.stderr)
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return int(args.handler(args) or 0)
+        with warnings.catch_warnings():
+            warnings.showwarning = _warning_line(args.command)
+            return int(args.handler(args) or 0)
     except Exception as e:
         if not _reported(e):
             raise

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..scene import MEMBRANE_MAX_LAYERS, PALPATION_MODES, scene_toml
+from ..scene import MEMBRANE_MAX_LAYERS, PALPATION_MODES, membrane_rim_vertices, scene_toml
 from .common import add_scene_arguments, scene_from_args
 
 HELP = "virtual palpation with the MuJoCo rig (paper Fig. 4): HDF5 frames, VTU series, PNG, summary"
@@ -57,9 +57,7 @@ def configure(args: argparse.Namespace):
     scene = scene_from_args(args)
     m = scene.membrane
     if args.membrane_rim is not None:
-        if not 16 <= args.membrane_rim <= 1024:
-            raise ValueError(f"--membrane-rim = {args.membrane_rim}: must be in [16, 1024]")
-        m = replace(m, rim_vertices=args.membrane_rim)
+        m = replace(m, rim_vertices=membrane_rim_vertices(args.membrane_rim, m.element, "--membrane-rim"))
     if args.membrane_layers is not None:
         if not 1 <= args.membrane_layers <= MEMBRANE_MAX_LAYERS:
             raise ValueError(f"--membrane-layers = {args.membrane_layers}: must be in [1, {MEMBRANE_MAX_LAYERS}]")
