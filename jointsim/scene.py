@@ -37,6 +37,11 @@ __all__ = [
     "MEMBRANE_RIM_VERTICES",
     "MEMBRANE_LAYERS",
     "MEMBRANE_MAX_LAYERS",
+    "MEMBRANE_RIM_RANGE",
+    "WEDGE_MIN_RIM_VERTICES",
+    "UNRECORDED_ELEMENT",
+    "membrane_rim_vertices",
+    "warn_coarse_membrane",
 ]
 
 MM = 1e-3
@@ -158,6 +163,10 @@ MEMBRANE_ELEMENTS = ("p2_tet", "wedge15")
 # wedges 1 (a second changes the force at 3 mm by <= 0.4 %, results/mechanics_benchmark_wedge15.md),
 # tetrahedra 2 (one layer of pointwise P2 tetrahedra locks in bending, results/locking_cantilever.md)
 MEMBRANE_LAYERS: dict[str, int] = {"p2_tet": 2, "wedge15": 1}
+# the element of the records (dataset stores, palpation runs) made before [membrane] element
+# existed: they record no element, and a run records it only where it differs from this, so
+# that those records still resume and read right
+UNRECORDED_ELEMENT = "p2_tet"
 MEMBRANE_MAX_LAYERS = 8  # [membrane] layers is in [1, MEMBRANE_MAX_LAYERS]
 MEMBRANE_RIM_RANGE = (16, 1024)
 # below this a wedge membrane's force is well off the converged one (a contact patch of a few

@@ -58,7 +58,7 @@ from ..mesh.chamber import ChamberMesh
 from ..mesh.electrodes import ElectrodePatch, disc_patches
 from ..mesh.morph import MeshInversionError
 from ..palpation.pipeline import Palpation, metric_fields, timed
-from ..scene import DatasetSpec, Scene
+from ..scene import UNRECORDED_ELEMENT, DatasetSpec, Scene
 
 __all__ = ["SCHEMA_NAME", "SCHEMA_VERSION", "STAGES", "GroupDraw", "DatasetSetup", "draw_group", "dataset_schema",
            "dataset_params", "group_indices", "n_groups"]
@@ -175,7 +175,7 @@ def dataset_schema(n_electrodes: int, n_meas: int, n_cells: int | None) -> Schem
 
 # scene values added after stores were first written, with the behaviour before they existed:
 # recorded only where they differ from it, so a store written before still resumes
-LATER_KEYS: dict[tuple[str, str], object] = {("membrane", "moulding"): "cap", ("membrane", "element"): "p2_tet"}
+LATER_KEYS: dict[tuple[str, str], object] = {("membrane", "moulding"): "cap", ("membrane", "element"): UNRECORDED_ELEMENT}
 
 
 def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str) -> dict[str, Any]:

@@ -65,7 +65,7 @@ from ..metrics import ImageMetrics, image_metrics, rms
 from ..reconstruction.grid import ChamberGrid
 from ..reconstruction.tikhonov import SVD, Reconstructor, choose_lambda
 from ..rig import Controller, Rig, RigFrame, load_rig, press_hold_retract
-from ..scene import PalpationSpec, Scene
+from ..scene import UNRECORDED_ELEMENT, PalpationSpec, Scene
 
 __all__ = [
     "STAGES",
@@ -547,9 +547,8 @@ def program_params(scene: Scene, spec: PalpationSpec | None = None, rig_path: st
     return {
         "palpation": d,
         "mesh": asdict(scene.mesh),
-        # the element only where it is not the one stores were written with before it existed
         "membrane": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(scene.membrane).items()
-                     if not (k == "element" and v == "p2_tet")},
+                     if not (k == "element" and v == UNRECORDED_ELEMENT)},
         "noise": asdict(scene.noise),
         "rig": str(rig_path) if rig_path else "scenes/bench_rig.xml",
         "n_records": segs[-1].start + segs[-1].n_frames,

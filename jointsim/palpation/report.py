@@ -19,6 +19,7 @@ import numpy as np
 
 from .. import __version__
 from ..io.export import atomic_path, write_npz, write_voxels_vtu, write_vtu
+from ..scene import UNRECORDED_ELEMENT
 from ..io.store import Records
 from ..mesh.tetmesh import TetMesh
 from ..metrics import largest_cluster
@@ -251,7 +252,7 @@ def _markdown(path: Path, meta: dict[str, Any]) -> Path:
         f"Mode **{mode}**: {prog}, at (x, y) = ({p['xy'][0] * 1e3:g}, {p['xy'][1] * 1e3:g}) mm, frames at "
         f"{s['frame_rate_hz']:g} Hz.  ",
         f"Chamber mesh: {s['chamber_tets']:,} tets (preset `{meta['params']['mesh']['preset']}`); membrane "
-        f"{s['membrane_p2_nodes']:,} nodes ({meta['params']['membrane'].get('element', 'p2_tet')}, "
+        f"{s['membrane_p2_nodes']:,} nodes ({meta['params']['membrane'].get('element', UNRECORDED_ELEMENT)}, "
         f"{meta['params']['membrane']['rim_vertices']} rim vertices, "
         f"{meta['params']['membrane']['layers']} layers); image on {s['grid_cells']:,} voxels of {s['voxel_mm']:.2f} mm, "
         f"λ = {s['lambda']:.3g} ({s['lambda_method']} CV on a geometric {s['lambda_press']['depth'] * 1e3:g} mm press "
