@@ -27,7 +27,8 @@ and the rest.
     python benchmarks/bench_mechanics.py --first-contact [N]  # the first 0.5 mm frame solved with and without
                                                     # the touch sub-step (dome.FIRST_CONTACT), 3 target
                                                     # radii × 5 positions on 64/2, N rounds interleaved:
-                                                    # results/mechanics_first_contact.{md,json}
+                                                    # results/mechanics_first_contact.{md,json}; with
+                                                    # --wedge on 64/1 wedges: mechanics_first_contact_wedge15
     python benchmarks/bench_mechanics.py --cuda     # where Warp sees a GPU: the wedge press with the element kernel on
                                                     # the CPU and on cuda:0, forces compared: results/mechanics_cuda.{md,json}
     python benchmarks/bench_mechanics.py --one 92 2 0 pointwise [SETTING] [--device cuda:0] [--moulding flat] [--backend superlu]
@@ -227,7 +228,8 @@ def main() -> int:
     if len(sys.argv) > 1 and sys.argv[1] == "--assembly":
         return assembly(int(sys.argv[2]) if len(sys.argv) > 2 else 10)
     if len(sys.argv) > 1 and sys.argv[1] == "--first-contact":
-        return first_contact(int(sys.argv[2]) if len(sys.argv) > 2 else 2)
+        args = [a for a in sys.argv[2:] if a != "--wedge"]
+        return first_contact(int(args[0]) if args else 2, wedge="--wedge" in sys.argv)
     if len(sys.argv) > 1 and sys.argv[1] == "--solvers":
         return solvers(int(sys.argv[2]) if len(sys.argv) > 2 else REPEATS)
     if len(sys.argv) > 2 and sys.argv[1] == "--pair":
@@ -494,15 +496,16 @@ def write_solvers(runs: list[dict], meta: dict) -> None:
 
 # `--first-contact`: the mesh, target radii (m) and positions (x, y mm) of the first-frame comparison
 CONTACT_MESH, CONTACT_RADII = (64, 2, 0.0, "pointwise"), (4e-3, 7.5e-3, 12e-3)
+CONTACT_MESH_WEDGE = (64, 1, 0.0, "wedge15")  # `--first-contact N --wedge`: the dataset fidelity's default membrane
 CONTACT_XY = ((0, 0), (5, 0), (0, 8), (-6, 6), (10, 3))
 
 
-def first_contact(rounds: int) -> int:
-    """The first 0.5 mm frame of a press from the touch, on CONTACT_MESH for every target radius
-    and position, solved with the touch sub-step (the package's) and in one step
-    (dome.FIRST_CONTACT out of reach), the two alternating ``rounds`` times on the same models:
-    factorisations, Newton iterations, wall time and the force each reaches.
-    results/mechanics_first_contact.{md,json}."""
+def first_contact(rounds: int, wedge: bool = False) -> int:
+    """The first 0.5 mm frame of a press from the touch, on CONTACT_MESH (``wedge``:
+    CONTACT_MESH_WEDGE) for every target radius and position, solved with the touch sub-step
+    (the package's) and in one step (dome.FIRST_CONTACT out of reach), the two alternating
+    ``rounds`` times on the same models: factorisations, Newton iterations, wall time and the
+    force each reaches. results/mechanics_first_contact{,_wedge15}.{md,json}."""
     import jointsim.eit.solver as solver
     import jointsim.mechanics.dome as dome_mod
 
@@ -515,11 +518,12 @@ def first_contact(rounds: int) -> int:
 
     solver.PatternSolver.factor = counted
     split = dome_mod.FIRST_CONTACT
-    meta = {**_new_meta(f"python benchmarks/bench_mechanics.py --first-contact {rounds}"), "speed_reference_s_start_end": [speed_reference(), None],
-            "rounds": rounds}
+    mesh = CONTACT_MESH_WEDGE if wedge else CONTACT_MESH
+    meta = {**_new_meta(f"python benchmarks/bench_mechanics.py --first-contact {rounds}" + (" --wedge" if wedge else "")),
+            "speed_reference_s_start_end": [speed_reference(), None], "rounds": rounds, "mesh": list(mesh)}
     models = {}
     for R in CONTACT_RADII:  # one model per radius, its untouched state restored before each press
-        m = _membrane(*CONTACT_MESH, radius=R)[0]
+        m = _membrane(*mesh, radius=R)[0]
         models[R] = (m, m.get_state())
     runs = []
     for k in range(rounds):
@@ -548,11 +552,13 @@ def write_first_contact(runs: list[dict], meta: dict) -> None:
     total = lambda rs, key: float(sum(r[key] for r in rs))
     one = by["one step"]
     split, whole = (np.array([r["force_mN"] for r in by[v] if r["round"] == 0]) for v in by)
+    mesh = meta.get("mesh", CONTACT_MESH)  # runs before the wedges' (2026-11-23) were on CONTACT_MESH
+    element = "15-node wedges" if mesh[3] == "wedge15" else "P2 tetrahedra"
     lines = ["# Mechanics: the first contact frame", "", f"Command: `{meta['command']}`  ",
              f"Machine: {meta['machine']}; run {meta['date']}; 1-min load average {meta['load_average_start_end'][0]:.1f} at the start, "
              f"{meta['load_average_start_end'][1]:.1f} at the end; speed_reference {meta['speed_reference_s_start_end'][0]:.3f} / "
              f"{meta['speed_reference_s_start_end'][1]:.3f} s at the start / end (`benchmarks/_machine.py`).  ",
-             f"The first 0.5 mm frame of a press from the touch on the {_label(dict(zip(('n_rim', 'layers'), CONTACT_MESH)))} membrane "
+             f"The first 0.5 mm frame of a press from the touch on the {_label(dict(zip(('n_rim', 'layers'), mesh)))} membrane of {element} "
              f"(the dataset fidelity's), rigid targets of radius {', '.join(f'{R * 1e3:g}' for R in CONTACT_RADII)} mm at "
              f"{len(CONTACT_XY)} positions each ({'; '.join(f'{x}, {y}' for x, y in CONTACT_XY)} mm), {len(CONTACT_RADII) * len(CONTACT_XY)} "
              f"presses per variant and round, {meta['rounds']} rounds, the variants alternating on the same models. Touch sub-step (the "
@@ -567,7 +573,8 @@ def write_first_contact(runs: list[dict], meta: dict) -> None:
     lines += ["", f"Per press, the sub-step took more factorisations than one step in {worse} of {len(one)}. "
               f"Forces: the largest difference between the variants is {np.max(np.abs(split - whole) / whole):.1e} of the force "
               f"(Newton stops at 1e-3 of the contact force); forces {whole.min():.1f}–{whole.max():.1f} mN."]
-    write_pair(ROOT / "results" / "mechanics_first_contact", {"meta": meta, "runs": runs}, "\n".join(lines) + "\n")
+    stem = "mechanics_first_contact" + ("_wedge15" if mesh[3] == "wedge15" else "")
+    write_pair(ROOT / "results" / stem, {"meta": meta, "runs": runs}, "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
