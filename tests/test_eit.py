@@ -493,7 +493,8 @@ def test_without_pardiso_superlu_reports_the_inertia_and_stands_in_for_cholesky(
     on the grid Laplacians above (12³ unknowns, eigenvalues in closed form): its diagonal-pivot
     factor of L − σI counts the eigenvalues below σ (Sylvester's law of inertia) and solves
     backward stably in double (‖Ax − b‖ ≤ 100·ε·‖A‖₂·‖x‖); as a Cholesky solver it factors
-    L − 0.9 λ₁ and refuses L − 1.1 λ₁ (one eigenvalue −0.1 λ₁), leaving no stale factor."""
+    L − 0.9 λ₁ and refuses L − 1.1 λ₁ (one eigenvalue −0.1 λ₁), leaving no stale factor, and a
+    singular matrix (SuperLU's "exactly singular") is refused too, not raised."""
     from jointsim.eit.solver import PatternSolver
 
     m = 12
@@ -522,3 +523,6 @@ def test_without_pardiso_superlu_reports_the_inertia_and_stands_in_for_cholesky(
             with pytest.raises(RuntimeError, match="factor"):
                 cholesky.solve(b)
     assert cholesky.negative_eigenvalues is None  # a Cholesky solver reports definiteness only
+    data = upper.data.copy()
+    data[upper.indptr[0] : upper.indptr[1]] = 0.0  # row 0 of the upper triangle: the first row and column zero, singular
+    assert cholesky.try_factor(data) is False

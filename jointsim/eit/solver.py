@@ -275,7 +275,10 @@ class PatternSolver:
         if not self.spd:
             raise ValueError("try_factor: for Cholesky solvers (spd=True) only")
         if self.backend != "pardiso":
-            self.factor(data)
+            try:
+                self.factor(data)
+            except RuntimeError:  # SuperLU: "Factor is exactly singular", not positive definite either
+                self._definite = False
             if not self._definite:
                 self._A, self._lu = None, None  # no factor to solve with
             return self._definite
