@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import numbers
 import tomllib
 import warnings
 from dataclasses import asdict, dataclass, field, replace
@@ -40,6 +41,7 @@ __all__ = [
     "MEMBRANE_RIM_RANGE",
     "WEDGE_MIN_RIM_VERTICES",
     "UNRECORDED_ELEMENT",
+    "membrane_layers",
     "membrane_rim_vertices",
     "warn_coarse_membrane",
 ]
@@ -173,6 +175,21 @@ MEMBRANE_RIM_RANGE = (16, 1024)
 # triangles): warn_coarse_membrane
 WEDGE_MIN_RIM_VERTICES = 48
 
+# the membrane mesh's rim vertices each fidelity gets unless [membrane] rim_vertices is given.
+# Wedges, one layer: 92 is within 0.7 % of the 160/2 mesh in force at 1-3 mm (0.4 s per step), 64
+# within 2.0 % (0.2 s; results/mechanics_benchmark_wedge15.md). Tetrahedra, two layers: 92 within 2 %,
+# 64 2.4-5.8 % stiff (results/mechanics_benchmark.md). 64 at the dataset fidelity and in tests, 92 at
+# "paper" and finer; "custom" (a chamber tuned by hand) gets the converged one
+MEMBRANE_RIM_VERTICES: dict[str, int] = {"test": 64, "dataset": 64, "paper": 92, "fine": 92, "custom": 92}
+
+
+def membrane_layers(n: int, name: str = "membrane.layers") -> int:
+    """``n`` prism layers through the membrane, checked: an integer in [1, MEMBRANE_MAX_LAYERS],
+    else a ValueError naming ``name``."""
+    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or not 1 <= n <= MEMBRANE_MAX_LAYERS:
+        raise SceneError(f"{name} = {n!r}: must be an integer in [1, {MEMBRANE_MAX_LAYERS}]")
+    return int(n)
+
 
 def membrane_rim_vertices(n: int, element: str, name: str = "membrane.rim_vertices") -> int:
     """``n`` rim vertices for the membrane, checked: outside MEMBRANE_RIM_RANGE a ValueError
@@ -190,12 +207,6 @@ def warn_coarse_membrane(n: int, element: str, name: str = "membrane.rim_vertice
         warnings.warn(f"{name} = {n}: wedge membranes coarser than {WEDGE_MIN_RIM_VERTICES} rim vertices are soft (at 32, "
                       "the force at 1 mm is 14 % below the 96-rim mesh's; from 48 on within 2.5 %: tests/test_membrane.py); "
                       "give >= 48 for forces within a few per cent", UserWarning, stacklevel=3)
-# the membrane mesh's rim vertices each fidelity gets unless [membrane] rim_vertices is given.
-# Wedges, one layer: 92 is within 0.7 % of the 160/2 mesh in force at 1-3 mm (0.4 s per step), 64
-# within 2.0 % (0.2 s; results/mechanics_benchmark_wedge15.md). Tetrahedra, two layers: 92 within 2 %,
-# 64 2.4-5.8 % stiff (results/mechanics_benchmark.md). 64 at the dataset fidelity and in tests, 92 at
-# "paper" and finer; "custom" (a chamber tuned by hand) gets the converged one
-MEMBRANE_RIM_VERTICES: dict[str, int] = {"test": 64, "dataset": 64, "paper": 92, "fine": 92, "custom": 92}
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from .. import __version__
 from ..io.export import atomic_path, write_npz, write_vtu
-from ..scene import MEMBRANE_MAX_LAYERS, membrane_rim_vertices
+from ..scene import membrane_layers, membrane_rim_vertices
 from .common import add_scene_arguments, add_target_size_arguments, scene_from_args, target_radius_mm
 
 HELP = "force-indentation sweep of the dome membrane (FEM): CSV, PNG, VTU"
@@ -51,9 +51,7 @@ def run(args: argparse.Namespace) -> int:
     if args.dome_rim is not None:
         scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=membrane_rim_vertices(args.dome_rim, scene.membrane.element, "--dome-rim")))
     if args.layers is not None:
-        if not 1 <= args.layers <= MEMBRANE_MAX_LAYERS:
-            raise ValueError(f"--layers = {args.layers}: must be in [1, {MEMBRANE_MAX_LAYERS}]")
-        scene = replace(scene, membrane=replace(scene.membrane, layers=args.layers))
+        scene = replace(scene, membrane=replace(scene.membrane, layers=membrane_layers(args.layers, "--layers")))
     c = scene.chamber
     model = MembraneModel.from_scene(scene, radius * 1e-3, device=device)
     xy = np.array([args.x_mm, args.y_mm]) * 1e-3

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..scene import MEMBRANE_MAX_LAYERS, PALPATION_MODES, membrane_rim_vertices, scene_toml
+from ..scene import PALPATION_MODES, membrane_layers, membrane_rim_vertices, scene_toml
 from .common import add_scene_arguments, scene_from_args
 
 HELP = "virtual palpation with the MuJoCo rig (paper Fig. 4): HDF5 frames, VTU series, PNG, summary"
@@ -59,9 +59,7 @@ def configure(args: argparse.Namespace):
     if args.membrane_rim is not None:
         m = replace(m, rim_vertices=membrane_rim_vertices(args.membrane_rim, m.element, "--membrane-rim"))
     if args.membrane_layers is not None:
-        if not 1 <= args.membrane_layers <= MEMBRANE_MAX_LAYERS:
-            raise ValueError(f"--membrane-layers = {args.membrane_layers}: must be in [1, {MEMBRANE_MAX_LAYERS}]")
-        m = replace(m, layers=args.membrane_layers)
+        m = replace(m, layers=membrane_layers(args.membrane_layers, "--membrane-layers"))
     spec = scene.palpation
     c = scene.chamber
     if args.targets is not None:

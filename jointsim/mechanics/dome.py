@@ -16,7 +16,7 @@ import numpy as np
 
 from ..geometry import DomeSurface
 from ..mesh.tetmesh import TetMesh
-from ..scene import MEMBRANE_ELEMENTS, MEMBRANE_LAYERS, MEMBRANE_MAX_LAYERS
+from ..scene import MEMBRANE_ELEMENTS, MEMBRANE_LAYERS, membrane_layers
 from .contact import SphereContact, SphereFriction, nodal_areas
 from .fem import ElasticTerm, P2Mesh
 from .materials import Material
@@ -57,7 +57,6 @@ FORCE_RTOL = 1e-3
 # 0.15 s at the dataset and paper resolutions, 0.28 and 0.56 s in the run before)
 REGULARISE_MOVE = 0.05
 TOUCH_CLEARANCE = 1e-12  # × target radius: ~1000 ulps of the gap, physically nothing
-ELEMENTS = MEMBRANE_ELEMENTS  # the membrane's elements (scene.py)
 
 
 class UnreachablePose(ValueError):
@@ -249,11 +248,9 @@ class MembraneModel:
         inflate_from: np.ndarray | None = None,
         element: str = "wedge15",
     ):
-        if element not in ELEMENTS:
-            raise ValueError(f"element = {element!r}: allowed values are {ELEMENTS}")
-        layers = MEMBRANE_LAYERS[element] if layers is None else layers
-        if not (isinstance(layers, (int, np.integer)) and 1 <= layers <= MEMBRANE_MAX_LAYERS):
-            raise ValueError(f"layers = {layers!r}: must be an integer in [1, {MEMBRANE_MAX_LAYERS}]")
+        if element not in MEMBRANE_ELEMENTS:
+            raise ValueError(f"element = {element!r}: allowed values are {MEMBRANE_ELEMENTS}")
+        layers = membrane_layers(MEMBRANE_LAYERS[element] if layers is None else layers, "layers")
         if element == "wedge15" and volumetric != "pointwise":
             raise ValueError(f"volumetric = {volumetric!r}: the wedge15 element has its own (projected) volumetric form; "
                              "volumetric applies to element = 'p2_tet' only")
