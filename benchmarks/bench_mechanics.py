@@ -246,8 +246,6 @@ def main() -> int:
 def study(resolutions: list[tuple], out: Path, moulding: str, command: str) -> int:
     """The press on each mesh of ``resolutions`` (one process each), written to ``out``.{md,json};
     finished rows kept in its .partial.json (an interrupted run resumes)."""
-    import subprocess
-
     partial = out.with_suffix(".partial.json")
     saved = json.loads(partial.read_text()) if partial.exists() else {"rows": [], "meta": {}}
     meta = saved["meta"] or {**_new_meta(command), "moulding": moulding, "speed_reference_s_start_end": [speed_reference(), None]}
@@ -255,12 +253,10 @@ def study(resolutions: list[tuple], out: Path, moulding: str, command: str) -> i
     for n_rim, layers, apex, volumetric in resolutions:
         if any((r["n_rim"], r["layers"], r["apex_mm"], r["volumetric"]) == (n_rim, layers, apex, volumetric) for r in rows):
             continue
-        r = subprocess.run([sys.executable, __file__, "--one", str(n_rim), str(layers), str(apex), volumetric, "--moulding", moulding],
-                           capture_output=True, text=True)
-        if r.returncode:
-            print(r.stderr[-2000:], file=sys.stderr)
+        row = _one_press(n_rim, layers, apex, volumetric, "--moulding", moulding)
+        if row is None:
             return 1
-        rows.append(json.loads(r.stdout.strip().splitlines()[-1]))
+        rows.append(row)
         atomic_write(partial, json.dumps({"meta": meta, "rows": rows}, indent=2))
         s = rows[-1]["steps"]
         print(f"{n_rim} rim, {layers} layers, apex {apex} mm, {volumetric}: {np.mean([x['wall_s'] for x in s[1:]]):.2f} s/step, F(3 mm) {s[-1]['force_mN']:.2f} mN", flush=True)
@@ -288,8 +284,6 @@ def cuda(device: str = "cuda:0") -> int:
     """``--cuda``: the press on each of CUDA_MESHES twice, the element kernel on Warp's CPU device
     and on ``device`` (one process each; everything else, the sparse solves included, on the CPU);
     results/mechanics_cuda.{md,json}, rewritten after every run (a run cut short keeps its rows)."""
-    import subprocess
-
     import jointsim.eit.solver as solver
     from jointsim._warp import wp
 
@@ -301,11 +295,10 @@ def cuda(device: str = "cuda:0") -> int:
     rows = []
     for mesh in CUDA_MESHES:
         for dev in ("cpu", device):
-            r = subprocess.run([sys.executable, __file__, "--one", *map(str, mesh), "--device", dev], capture_output=True, text=True)
-            if r.returncode:
-                print(r.stderr[-2000:], file=sys.stderr)
+            row = _one_press(*mesh, "--device", dev)
+            if row is None:
                 return 1
-            rows.append(json.loads(r.stdout.strip().splitlines()[-1]))
+            rows.append(row)
             s = rows[-1]["steps"][1:]
             print(f"{_label(rows[-1])} on {dev}: {np.mean([x['wall_s'] for x in s]):.2f} s/step, kernel {np.mean([x['kernel_s'] for x in s]):.3f} s", flush=True)
             _finish_meta(meta)
@@ -383,15 +376,21 @@ def pair_out(setting: str) -> Path:
     return ROOT / "results" / (PAIR_PREFIX + re.sub(r"[^a-z0-9]+", "_", setting.lower()).strip("_"))
 
 
-def _press_run(linear: str) -> dict | None:
-    """SOLVER_MESH's press with the ``linear`` setting, in a fresh process (None: it failed)."""
+def _one_press(*args) -> dict | None:
+    """``--one *args`` (a mesh, then its options) in a fresh process: its row, or None where it
+    failed (its stderr's tail printed)."""
     import subprocess
 
-    r = subprocess.run([sys.executable, __file__, "--one", *map(str, SOLVER_MESH), linear], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, __file__, "--one", *map(str, args)], capture_output=True, text=True)
     if r.returncode:
         print(r.stderr[-2000:], file=sys.stderr)
         return None
     return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def _press_run(linear: str) -> dict | None:
+    """SOLVER_MESH's press with the ``linear`` setting, in a fresh process (None: it failed)."""
+    return _one_press(*SOLVER_MESH, linear)
 
 
 def pair(setting: str, pairs: int) -> int:
