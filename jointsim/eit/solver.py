@@ -133,13 +133,8 @@ def factorize(A: sp.spmatrix, backend: str = "auto", spd: bool = True) -> Factor
         backend = default_backend(A.shape[0], A.nnz)
     A = sp.csc_matrix(A)
     if backend == "superlu":
-        # a symmetric fill-reducing ordering; no pivoting when A is SPD (LU = LDLᵀ in effect)
-        lu = spla.splu(
-            A,
-            permc_spec="MMD_AT_PLUS_A",
-            diag_pivot_thresh=0.0 if spd else 0.01,
-            options={"SymmetricMode": True},
-        )
+        # no pivoting when A is SPD (LU = LDLᵀ in effect)
+        lu = _superlu(A, 0.0 if spd else 0.01)
         return Factorization(lambda b: lu.solve(np.asarray(b, float)))
     if backend == "cholmod":
         if not spd:
@@ -164,6 +159,12 @@ def factorize(A: sp.spmatrix, backend: str = "auto", spd: bool = True) -> Factor
 
         return Factorization(solve, lambda: _release_pardiso(solver))
     raise ValueError(f"backend = {backend!r}: allowed values are {available_backends()}")
+
+
+def _superlu(A: sp.csc_matrix, diag_pivot_thresh: float):
+    """SuperLU of the symmetric ``A`` under a symmetric fill-reducing ordering, preferring
+    diagonal pivots (all of them at ``diag_pivot_thresh`` 0)."""
+    return spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=diag_pivot_thresh, options={"SymmetricMode": True})
 
 
 def _set_iparm(solver, refinement: int, single: bool = False, two_by_two: bool = True, two_level: bool = False) -> None:
@@ -259,8 +260,7 @@ class PatternSolver:
         eigenvalues (Sylvester's law of inertia) and is all positive exactly where A is positive
         definite — what Newton's tests of definiteness read. Where SuperLU met a zero pivot and
         left the diagonal, the rows are permuted apart from the columns: inertia unknown."""
-        lu = spla.splu((A + sp.triu(A, k=1).T).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                       options={"SymmetricMode": True})
+        lu = _superlu((A + sp.triu(A, k=1).T).tocsc(), 0.0)
         self._lu = lu
         pivots = lu.U.diagonal() if np.array_equal(lu.perm_r, lu.perm_c) else np.array([np.nan])
         known = bool(np.all(np.isfinite(pivots)) and np.all(pivots != 0))
