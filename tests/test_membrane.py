@@ -374,6 +374,25 @@ def test_a_small_move_ends_on_the_tangent_so_the_next_frame_needs_no_factorisati
     assert st.force[2] == pytest.approx(regularised.force[2], rel=3 * dome_module.FORCE_RTOL)
 
 
+def test_a_move_of_round_off_is_a_hold_that_leaves_the_membrane_bit_for_bit(pressed):
+    """A target moved by no more than dome.HOLD_MOVE × radius (a held servo's round-off: 1e-20 m
+    laterally on an on-axis press) leaves the membrane exactly where it was, so a hold's state
+    does not depend on how the CPU rounds; the first move past it is solved as before."""
+    model, _ = pressed
+    saved = model.get_state()
+    c = model.contact.centre.copy()
+    before = model.state()
+    R = model.contact.radius
+    for move in ([1e-20, -1e-20, 0.0], [0.0, 0.0, 0.9 * dome_module.HOLD_MOVE * R]):
+        held = model.press(c + move)
+        assert held.iterations == 0
+        np.testing.assert_array_equal(held.u, before.u)
+        np.testing.assert_array_equal(held.force, before.force)
+    moved = model.press(c + [0.0, 0.0, -1e-9])
+    assert not np.array_equal(moved.u, before.u)
+    model.set_state(saved)  # leave the shared fixture as it was
+
+
 def test_a_restored_state_continues_exactly(pressed):
     """get_state/set_state carry everything the next press depends on (checkpoint/resume)."""
     model, _ = pressed

@@ -57,6 +57,15 @@ FORCE_RTOL = 1e-3
 # 0.15 s at the dataset and paper resolutions, 0.28 and 0.56 s in the run before)
 REGULARISE_MOVE = 0.05
 TOUCH_CLEARANCE = 1e-12  # × target radius: ~1000 ulps of the gap, physically nothing
+# a target move no longer than this × target radius is a hold: the membrane stays bit for bit
+# where it was (no load step). The rig's servo, held still, keeps moving the target by
+# round-off: on an on-axis press its lateral coordinates sit at 0, where a float resolves
+# 1e-20 m, and the loop target → membrane's lateral force (~1e-15 N of round-off) → servo
+# either decays to an exact fixed point or cycles for ever (±8.7e-20 m, every frame, with
+# OpenBLAS's Haswell kernels; 0 on AVX-512), so a hold's membrane depended on the CPU. 1e-12 ×
+# 7.5 mm = 7.5 fm, ~1e-8 of what Newton resolves (FORCE_RTOL × the force over the contact
+# stiffness: ~1 µm for 19 mN at ~20 N/m, a 1 mm press)
+HOLD_MOVE = 1e-12
 
 
 class UnreachablePose(ValueError):
@@ -517,7 +526,8 @@ class MembraneModel:
         """Move the target centre to ``centre`` (3,) m in ``substeps`` straight-line steps (more
         when a step would exceed ``MAX_STEP``) and solve for equilibrium. A step whose Newton
         iteration fails is halved and retried, up to ``MAX_CUTBACKS`` times; then NewtonError
-        (with the step) is raised and the model is left at the last equilibrium reached."""
+        (with the step) is raised and the model is left at the last equilibrium reached. A move
+        of at most ``HOLD_MOVE`` × radius leaves the model as it is (a hold)."""
         centre = np.asarray(centre, float)
         lowest = centre[2] - self.contact.radius
         if lowest < self.thickness:
@@ -527,6 +537,8 @@ class MembraneModel:
                 f"{self.thickness * 1e3:.3g} mm; indentation beyond what the dome can take"
             )
         start = self.contact.centre.copy()
+        if np.linalg.norm(centre - start) <= HOLD_MOVE * self.contact.radius:
+            return self.state()
         if np.linalg.norm(start) > 1e2:  # first call: start from first contact above
             start = np.array([centre[0], centre[1], self.first_contact_height(centre[:2])])
         n = max(int(substeps), int(np.ceil(np.linalg.norm(centre - start) / MAX_STEP)))
