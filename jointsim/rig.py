@@ -50,6 +50,8 @@ import mujoco
 import numpy as np
 from scipy.linalg import expm
 
+from .scene import SCENES_DIR
+
 __all__ = [
     "DEFAULT_RIG",
     "MODES",
@@ -63,7 +65,7 @@ __all__ = [
     "first_contact_height",
 ]
 
-DEFAULT_RIG = Path(__file__).resolve().parents[1] / "scenes" / "bench_rig.xml"
+DEFAULT_RIG = SCENES_DIR / "bench_rig.xml"
 MODES = ("position", "force", "compliant")
 MAX_TARGET_RADIUS = 0.1  # m: the paper's targets are 8–30 mm (radius or diameter); 100 mm is far past any
 

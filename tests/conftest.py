@@ -30,17 +30,9 @@ def check_element_derivatives(kernel, mesh, u: np.ndarray, d: np.ndarray, eps: f
 
 @pytest.fixture(scope="session", autouse=True)
 def _mesh_cache(tmp_path_factory):
-    """Meshes go to a per-run cache so a test never reads a stale mesh from another checkout.
-
-    The cache is seeded with the paper chamber at the 'test' preset from tests/data: fTetWild
-    is not deterministic, and a fresh mesh each run made the morph tests depend on the mesh
-    drawn (one run in a few had a sliver that inverted under a 2 mm press). The seed is found by
-    its content hash, so a change to the chamber, electrodes or mesh spec meshes afresh."""
-    import shutil
-
+    """Meshes go to a per-run cache, empty at the start, so a test never reads a mesh from
+    another checkout or an earlier run (the mesher is deterministic: it would be the same)."""
     cache = tmp_path_factory.mktemp("mesh_cache")
-    for f in (ROOT / "tests" / "data" / "mesh_cache").glob("chamber-*.npz"):
-        shutil.copy(f, cache / f.name)
     mp = pytest.MonkeyPatch()
     mp.setenv("JOINTSIM_CACHE", str(cache))
     yield
@@ -54,7 +46,7 @@ def paper_scene():
 
 @pytest.fixture(scope="session")
 def test_chamber(paper_scene, _mesh_cache):
-    """The paper's chamber at the coarse 'test' resolution (~15 k tets, ~25 s to mesh once)."""
+    """The paper's chamber at the coarse 'test' resolution (~19 k tets, ~1 s to mesh)."""
     from jointsim.mesh.chamber import chamber_mesh
 
     scene = paper_scene.with_mesh_preset("test")

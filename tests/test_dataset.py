@@ -145,8 +145,11 @@ def test_the_image_locates_the_press(reference):
     assert (np.einsum("ij,ij->i", xy, com) > 0).all(), (xy, com)
 
 
-def test_worker_count_does_not_change_the_data(scene, scene_file, reference, tmp_path):
+def test_worker_count_and_an_empty_mesh_cache_do_not_change_the_data(scene, scene_file, reference, tmp_path, monkeypatch):
+    """Two workers, each meshing the chamber anew from an empty cache, store the one-worker data."""
+    monkeypatch.setenv("JOINTSIM_CACHE", str(tmp_path / "empty_cache"))
     run = _generate(scene, scene_file, tmp_path / "two", workers=2)
+    assert list((tmp_path / "empty_cache").glob("chamber-*.npz"))
     assert run.data_sha256 == reference[0].data_sha256
 
 

@@ -172,6 +172,56 @@ def test_chamber_mesh_is_valid_and_electrodes_exact(test_chamber):
         assert e.total_area == pytest.approx(np.pi * r * r, rel=1e-12)
 
 
+# SHA-256 of the paper chamber's test-preset mesh (nodes then tets, as stored): the same on
+# every machine, thread count and run. Computed on the 2-core AMD EPYC (gmsh 4.15.2); a change
+# here means the published meshes, and every number made on them, would change: bump
+# chamber._MESHER_VERSION and say why.
+TEST_MESH_SHA256 = "fa5d8b2993710f43"
+
+
+def _mesh_digest(mesh) -> str:
+    import hashlib
+
+    return hashlib.sha256(mesh.nodes.tobytes() + mesh.tets.tobytes()).hexdigest()[:16]
+
+
+def test_the_chamber_mesh_is_the_same_everywhere(test_chamber, tmp_path):
+    """Meshing the test preset again, in a new process with an empty mesh cache, gives the mesh
+    bit for bit, and it is the one pinned above (so on another machine too)."""
+    import os
+    import subprocess
+    import sys
+
+    scene, ch = test_chamber
+    code = ("import hashlib, sys\n"
+            "from jointsim.scene import load_scene\n"
+            "from jointsim.mesh.chamber import chamber_mesh\n"
+            "m = chamber_mesh(load_scene(sys.argv[1]).with_mesh_preset('test')).mesh\n"
+            "print(hashlib.sha256(m.nodes.tobytes() + m.tets.tobytes()).hexdigest()[:16])")
+    from jointsim.scene import SCENES_DIR
+
+    r = subprocess.run([sys.executable, "-c", code, str(SCENES_DIR / "paper_sensor.toml")], capture_output=True, text=True,
+                       env=dict(os.environ, JOINTSIM_CACHE=str(tmp_path)))
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert list(tmp_path.glob("chamber-*.npz"))  # it meshed (and cached) anew
+    assert r.stdout.strip() == _mesh_digest(ch.mesh) == TEST_MESH_SHA256
+
+
+def test_the_electrode_outlines_are_mesh_edges(test_chamber):
+    """Each electrode's circle is embedded in the base: boundary nodes lie on it all round (at
+    least one every 45 deg), so the clipped electrode integrals see whole triangles."""
+    _, ch = test_chamber
+    m = ch.mesh
+    f = m.boundary_faces
+    base = np.unique(f[np.all(m.nodes[f][..., 2] == 0.0, axis=1)])
+    for c, r in zip(ch.layout.centres, ch.layout.radii):
+        d = m.nodes[base, :2] - c[:2]
+        on = np.abs(np.hypot(*d.T) - r) <= 1e-9 * r
+        angles = np.sort(np.arctan2(d[on, 1], d[on, 0]))
+        gaps = np.diff(np.concatenate([angles, [angles[0] + 2 * np.pi]]))
+        assert on.sum() >= 8 and gaps.max() <= np.pi / 4 + 1e-9
+
+
 def test_chamber_mesh_is_cached(test_chamber):
     from jointsim.mesh.chamber import cache_dir, chamber_mesh
 

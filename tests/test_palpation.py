@@ -383,3 +383,25 @@ def test_palpate_command_writes_and_resumes(tmp_path, test_chamber):
     assert again.returncode == 0 and "is complete" in again.stdout
     other = subprocess.run(base + ["--depth", "1"], capture_output=True, text=True)
     assert other.returncode == 2 and "other settings" in other.stderr
+
+
+def test_a_rerun_from_an_empty_mesh_cache_stores_the_same_arrays(tmp_path, monkeypatch):
+    """`jointsim palpate`, run twice, each time meshing the chamber anew from an empty cache,
+    stores the same arrays bit for bit (only the wall-clock timings may differ)."""
+    from jointsim.cli.main import main
+    from jointsim.scene import SCENES_DIR
+
+    stores = []
+    for k in range(2):
+        monkeypatch.setenv("JOINTSIM_CACHE", str(tmp_path / f"cache{k}"))
+        out = tmp_path / f"run{k}"
+        assert main(["palpate", str(SCENES_DIR / "paper_sensor.toml"), "--mesh", "test", "--targets", "15", "--depth", "1",
+                     "--speed", "50", "--hold", "0", "--membrane-rim", "24", "--membrane-layers", "1", "--vtu-every", "0",
+                     "--no-progress", "--out", str(out)]) == 0
+        assert list((tmp_path / f"cache{k}").glob("chamber-*.npz"))
+        stores.append(open_records(out / "palpation.h5"))
+    a, b = stores
+    assert a.data_sha256 == b.data_sha256
+    for name in a.schema.names:
+        if not a.schema[name].volatile:
+            np.testing.assert_array_equal(a[name], b[name], err_msg=name)

@@ -10,9 +10,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Iterator
 
-from ..scene import MESH_PRESETS, Scene, load_scene
+from ..scene import MESH_PRESETS, SCENES_DIR, Scene, load_scene
 
-DEFAULT_SCENE = Path(__file__).resolve().parents[2] / "scenes" / "paper_sensor.toml"
+DEFAULT_SCENE = SCENES_DIR / "paper_sensor.toml"
 
 
 def add_scene_arguments(p: argparse.ArgumentParser) -> None:

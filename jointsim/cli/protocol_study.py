@@ -1,6 +1,6 @@
 """Reproduce the paper's protocol-optimisation study (Fig. 2 G–H): skip-0…8 with a geometric
 indentation at several contact positions; RMS δV, J_sens, CoM error, Σσ and the images, plus
-the mesh-noise floor of remeshing. Writes PNG, CSV, Markdown, VTU and JSON to --out."""
+the mesh-noise floor of meshing. Writes PNG, CSV, Markdown, VTU and JSON to --out."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--cells", type=int, default=7000, help="reconstruction voxels in the bounding box (default 7000)")
     p.add_argument("--lambda-method", choices=["kfold", "loo", "gcv", "lcurve"], default="kfold")
-    p.add_argument("--no-mesh-floor", action="store_true", help="skip the remeshing noise floor (two extra meshings)")
+    p.add_argument("--no-mesh-floor", action="store_true", help="skip the mesh-noise floor (two extra meshings)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -77,7 +77,7 @@ __all__ = [
 
 STORE_FORMAT = 1
 DEFAULT_PACKAGES = (
-    "jointsim", "numpy", "scipy", "warp-lang", "mujoco", "pytetwild", "pyvista", "trimesh",
+    "jointsim", "numpy", "scipy", "warp-lang", "mujoco", "gmsh", "trimesh",
     "meshio", "h5py", "pypardiso",
 )
 

@@ -1,28 +1,59 @@
-"""The chamber mesh: tetrahedra of the saline volume from its surface (pytetwild / fTetWild),
-graded toward the electrodes by a sizing field, with electrodes tagged exactly and meshes
-cached on disk by content hash so one scene is never meshed twice."""
+"""The chamber mesh: tetrahedra of the saline volume from its surface (gmsh), graded toward the
+electrodes by a sizing field, with the electrode outlines embedded in the base, electrodes
+tagged exactly, and meshes cached on disk by content hash.
+
+The mesher is deterministic: the same surface, layout and mesh spec give the same nodes and
+tetrahedra bit for bit, from an empty cache, on any machine (gmsh runs on one thread, reads no
+configuration file, and takes its sizes from a closed-form field). fTetWild, used before, gave
+a different mesh on every run, even on one thread, so every figure downstream depended on
+which run had meshed first.
+
+Two gmsh passes: the base (the surface's faces on z = 0) is re-meshed as a plane bounded by its
+rim, with each electrode's circle embedded and sizes from the field; then the volume is filled
+inside the given non-base faces (kept as they are: the saline volume is the surface's) and the
+new base, and optimised (gmsh's and Netgen's passes). Sizes follow
+h(x) = min(h_max, h_min + grading · d(x)), d the distance to the nearest electrode's disc
+widened by ``refinement_zone``; h_min = h_max / electrode_refinement."""
 
 from __future__ import annotations
 
 import contextlib
 import hashlib
+import importlib.metadata
 import os
 import tempfile
+import threading
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 import trimesh
-from scipy.spatial import Delaunay
 
-from ..geometry import ElectrodeLayout, chamber_from_scene, electrode_layout
+from ..geometry import DOME_RIM_VERTICES, ElectrodeLayout, chamber_surface, electrode_layout, isotropic_cap
 from ..scene import MeshSpec, Scene
 from .electrodes import ElectrodePatch, disc_patches
 from .tetmesh import MeshQuality, TetMesh, mesh_quality
 
-__all__ = ["ChamberMesh", "mesh_chamber", "chamber_mesh", "sizing_field", "cache_dir"]
+__all__ = ["ChamberMesh", "mesh_chamber", "chamber_mesh", "reference_surface", "target_size", "cache_dir"]
 
-_MESHER_VERSION = "1"  # bump when the meshing recipe changes, so cached meshes are rebuilt
+_MESHER_VERSION = "2-gmsh"  # bump when the meshing recipe changes, so cached meshes are rebuilt
+# gmsh's settings: one thread (the mesh then does not depend on the machine's core count),
+# sizes from the field alone, Frontal-Delaunay 2-D, Delaunay 3-D, then gmsh's and Netgen's
+# optimisers (on the default chamber: smallest dihedral angle 12.9-16.2 deg, largest
+# 143.8-154.9 deg at the three presets; fTetWild's test mesh had 16.6 / 147.7)
+_GMSH_OPTIONS = {
+    "General.Terminal": 0,
+    "General.NumThreads": 1,
+    "Mesh.MeshSizeExtendFromBoundary": 0,
+    "Mesh.MeshSizeFromPoints": 0,
+    "Mesh.MeshSizeFromCurvature": 0,
+    "Mesh.Algorithm": 6,
+    "Mesh.Algorithm3D": 1,
+    "Mesh.Optimize": 1,
+    "Mesh.OptimizeNetgen": 1,
+}
+_GMSH_LOCK = threading.Lock()  # gmsh is one global state per process
 
 
 @dataclass(frozen=True, eq=False)
@@ -49,40 +80,21 @@ def cache_dir() -> Path:
     return Path(root) if root else Path.home() / ".cache" / "jointsim" / "meshes"
 
 
-def sizing_field(layout: ElectrodeLayout, spec: MeshSpec, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Background tetrahedra carrying the target edge length for fTetWild.
-
-    h = h_max / refinement within ``refinement_zone`` of an electrode disc, growing linearly
-    with distance at slope ``grading`` up to h_max. Points are dense only where h varies.
-    Returns (points (n, 3), tets (m, 4), h (n,)).
-    """
-    h_max, h_min = spec.max_edge, spec.max_edge / spec.electrode_refinement
-    lo, hi = bounds[0] - h_max, bounds[1] + h_max
-    coarse = 2.0 * h_max
-    axes = [np.arange(lo[i], hi[i] + coarse, coarse) for i in range(3)]
-    pts = [np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)]
-    # graded rings around each electrode: radial and vertical spacing growing from h_min
-    steps = np.cumsum(h_min * 1.5 ** np.arange(40))
-    steps = steps[steps < (h_max - h_min) / spec.grading + h_max]
-    for c, r in zip(layout.centres, layout.radii):
-        radii = np.concatenate([[0.0], r + spec.refinement_zone * np.linspace(-0.5, 1.0, 4), r + spec.refinement_zone + steps])
-        zs = np.concatenate([[0.0], steps])
-        for rr in radii:
-            n = 1 if rr == 0 else max(6, int(np.ceil(2 * np.pi * rr / max(3 * h_min, 0.2 * rr))))
-            a = 2 * np.pi * np.arange(n) / n
-            ring = np.column_stack([c[0] + rr * np.cos(a), c[1] + rr * np.sin(a)])
-            pts.append(np.column_stack([np.repeat(ring, len(zs), 0), np.tile(zs, len(ring))]))
-    p = np.unique(np.round(np.vstack(pts), 12), axis=0)
-    h = _target_size(p, layout, spec)
-    tets = Delaunay(p).simplices.astype(np.int32)
-    return p, tets, h
-
-
-def _target_size(p: np.ndarray, layout: ElectrodeLayout, spec: MeshSpec) -> np.ndarray:
+def target_size(p: np.ndarray, layout: ElectrodeLayout, spec: MeshSpec) -> np.ndarray:
+    """The mesh size h (m) the field asks for at points ``p`` (n, 3): (n,)."""
     h_max, h_min = spec.max_edge, spec.max_edge / spec.electrode_refinement
     rho = np.hypot(p[:, None, 0] - layout.centres[None, :, 0], p[:, None, 1] - layout.centres[None, :, 1])
     d = np.hypot(np.maximum(rho - layout.radii - spec.refinement_zone, 0.0), p[:, 2:3]).min(axis=1)
     return np.minimum(h_max, h_min + spec.grading * d)
+
+
+def _size_expression(layout: ElectrodeLayout, spec: MeshSpec) -> str:
+    """:func:`target_size` as a gmsh MathEval expression in x, y, z."""
+    d = None
+    for (x0, y0, _), r in zip(layout.centres, layout.radii):
+        term = f"Sqrt(Max(Sqrt((x-({x0:.17g}))^2+(y-({y0:.17g}))^2)-{r + spec.refinement_zone:.17g},0)^2+z^2)"
+        d = term if d is None else f"Min({d},{term})"
+    return f"Min({spec.max_edge:.17g},{spec.max_edge / spec.electrode_refinement:.17g}+{spec.grading:.17g}*{d})"
 
 
 def mesh_chamber(
@@ -91,71 +103,177 @@ def mesh_chamber(
     spec: MeshSpec,
     *,
     use_cache: bool = True,
-    num_threads: int = 0,
 ) -> ChamberMesh:
     """Tetrahedralise a watertight chamber surface (base on z = 0) and tag its electrodes.
 
-    The result is cached under :func:`cache_dir` by a hash of the surface, the electrode layout
-    and the mesh spec; a second call with the same inputs loads it instead of meshing."""
+    The faces on z = 0 (the base) are re-meshed with the electrode outlines embedded; the
+    others are kept as they are. The result is cached under :func:`cache_dir` by a hash
+    of the surface, the electrode layout and the mesh spec; a second call with the same inputs
+    loads it instead of meshing (and meshing again would give the same mesh)."""
     if not surface.is_watertight:
         raise ValueError("surface: the chamber surface must be watertight")
+    if len(surface.faces) == 0 or not np.all(np.isfinite(surface.vertices)):
+        raise ValueError("surface: the chamber surface has no faces or a non-finite vertex")
     key = _hash(surface, layout, spec)
     path = cache_dir() / f"chamber-{key}.npz"
     if use_cache and path.is_file():
         with np.load(path) as d:
             mesh = TetMesh(d["nodes"], d["tets"])
     else:
-        mesh = _tetrahedralise(surface, layout, spec, num_threads)
+        mesh = _tetrahedralise(surface, layout, spec)
         if use_cache:
             _atomic_savez(path, nodes=mesh.nodes, tets=mesh.tets)
     return ChamberMesh(mesh, disc_patches(mesh, layout.centres, layout.radii), layout, key)
 
 
 def chamber_mesh(scene: Scene, **kw) -> ChamberMesh:
-    """The undeformed chamber of ``scene`` at its mesh resolution."""
-    return mesh_chamber(chamber_from_scene(scene), electrode_layout(scene), scene.mesh, **kw)
+    """The undeformed chamber of ``scene`` at its mesh resolution (:func:`reference_surface`)."""
+    return mesh_chamber(reference_surface(scene), electrode_layout(scene), scene.mesh, **kw)
 
 
-def _tetrahedralise(surface: trimesh.Trimesh, layout: ElectrodeLayout, spec: MeshSpec, num_threads: int) -> TetMesh:
-    import pytetwild  # imported here: it pulls in pyvista/vtk, which is slow to load
+def reference_surface(scene: Scene) -> trimesh.Trimesh:
+    """The undeformed chamber surface given to the mesher: the dome as near-equilateral
+    triangles of edge ≤ max_edge, at least ``DOME_RIM_VERTICES`` on the rim (kept by the
+    mesher: they bound the saline volume)."""
+    c = scene.chamber
+    n_rim = 16 * int(np.ceil(2 * np.pi * c.base_radius / scene.mesh.max_edge / 16))
+    return chamber_surface(isotropic_cap(c.base_radius, c.dome_height, max(DOME_RIM_VERTICES, n_rim)))
 
-    bg_p, bg_t, bg_h = sizing_field(layout, spec, surface.bounds)
-    diag = float(np.linalg.norm(np.ptp(surface.vertices, axis=0)))
-    # fTetWild writes a side file (__tracked_surface.stl) into the working directory: keep it
-    # out of the user's folder
-    with tempfile.TemporaryDirectory() as scratch, contextlib.chdir(scratch):
-        v, t = pytetwild.tetrahedralize(
-            np.asarray(surface.vertices, float),
-            np.asarray(surface.faces, np.int32),
-            edge_length_abs=spec.max_edge,
-            epsilon=spec.epsilon_rel,
-            stop_energy=spec.stop_energy,
-            num_opt_iter=spec.max_opt_iter,
-            num_threads=num_threads,
-            bg_vertices=bg_p,
-            bg_tets=bg_t,
-            bg_values=bg_h,
-        )
-    mesh = TetMesh(v, t).oriented()
-    # fTetWild keeps the boundary within an envelope of the input; put the base back on z = 0
-    # exactly so the electrode integrals are taken on the true plane
-    f = mesh.boundary_faces
-    snap_tol = 2 * spec.epsilon_rel * diag
-    near = np.all(np.abs(mesh.nodes[f][..., 2]) <= snap_tol, axis=1)
-    nodes = mesh.nodes.copy()
-    nodes[np.unique(f[near]), 2] = 0.0
-    mesh = TetMesh(nodes, mesh.tets)
+
+def _tetrahedralise(surface: trimesh.Trimesh, layout: ElectrodeLayout, spec: MeshSpec) -> TetMesh:
+    v = np.asarray(surface.vertices, float)
+    f = np.asarray(surface.faces, np.int64)
+    tol = 1e-9 * float(np.ptp(v, axis=0).max())
+    on_base = np.all(np.abs(v[f][..., 2]) <= tol, axis=1)
+    if not on_base.any():
+        raise ValueError("surface: the chamber surface has no base (no faces on z = 0)")
+    rim = _boundary_loop(f[on_base])
+    base_xy, base_tri, rim_nodes = _mesh_base(v[rim, :2], layout, spec)
+    # the base's own nodes after the surface's; its rim nodes are the surface's rim vertices
+    index = np.full(len(base_xy), -1)
+    index[rim_nodes] = rim
+    inner = index < 0
+    index[inner] = len(v) + np.arange(inner.sum())
+    vertices = np.vstack([v, np.column_stack([base_xy[inner], np.zeros(inner.sum())])])
+    faces = np.vstack([f[~on_base], index[base_tri]])
+    mesh = _fill(vertices, faces, layout, spec)
     if (mesh.signed_volumes <= 0).any():
-        raise RuntimeError("chamber mesh has inverted elements after snapping the base plane")
+        raise RuntimeError("chamber mesh: gmsh returned inverted elements")
     return mesh
+
+
+@contextlib.contextmanager
+def _gmsh(layout: ElectrodeLayout, spec: MeshSpec) -> Iterator:
+    """A fresh gmsh model with the settings of this module and the size field; gmsh reads no
+    configuration file and installs no signal handler."""
+    try:
+        import gmsh
+    except OSError as e:  # its wheel links the system's OpenGL and X11 client libraries
+        raise RuntimeError(f"gmsh, the chamber mesher, cannot load ({e}); on Debian or Ubuntu install its system "
+                           "libraries: apt-get install libglu1-mesa libxcursor1 libxft2 libxinerama1") from None
+
+    with _GMSH_LOCK:
+        gmsh.initialize(readConfigFiles=False, interruptible=False)
+        try:
+            for k, value in _GMSH_OPTIONS.items():
+                gmsh.option.setNumber(k, value)
+            gmsh.model.add("chamber")
+            yield gmsh
+        finally:
+            gmsh.finalize()
+
+
+def _size_field(gmsh, layout: ElectrodeLayout, spec: MeshSpec) -> None:
+    field = gmsh.model.mesh.field.add("MathEval")
+    gmsh.model.mesh.field.setString(field, "F", _size_expression(layout, spec))
+    gmsh.model.mesh.field.setAsBackgroundMesh(field)
+
+
+def _boundary_loop(faces: np.ndarray) -> np.ndarray:
+    """The vertices of the boundary of a disc-like triangle set, in order around it: (n,)."""
+    e = faces[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2)
+    key = np.sort(e, axis=1)
+    _, inverse, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    edges = e[count[inverse.ravel()] == 1]  # boundary edges, as oriented in their face
+    nxt = dict(zip(edges[:, 0].tolist(), edges[:, 1].tolist()))
+    if len(nxt) != len(edges):
+        raise ValueError("surface: the base's boundary is not one simple loop")
+    loop = [int(edges[0, 0])]
+    while len(loop) <= len(edges):
+        loop.append(nxt[loop[-1]])
+        if loop[-1] == loop[0]:
+            break
+    if len(loop) != len(edges) + 1:
+        raise ValueError("surface: the base's boundary is not one simple loop")
+    return np.array(loop[:-1])
+
+
+def _mesh_base(rim: np.ndarray, layout: ElectrodeLayout, spec: MeshSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The base as a plane triangulated inside the polygon ``rim`` (n, 2) (its sides not split),
+    with every electrode's circle embedded. Returns nodes (m, 2), triangles (k, 3) facing −z,
+    and the node index of each rim vertex (n,)."""
+    with _gmsh(layout, spec) as gmsh:
+        geo = gmsh.model.geo
+        corners = [geo.addPoint(x, y, 0.0) for x, y in rim]
+        sides = [geo.addLine(corners[i], corners[(i + 1) % len(corners)]) for i in range(len(corners))]
+        plane = geo.addPlaneSurface([geo.addCurveLoop(sides)])
+        arcs = []
+        for (x0, y0, _), r in zip(layout.centres, layout.radii):
+            centre = geo.addPoint(x0, y0, 0.0)
+            q = [geo.addPoint(x0 + r * c, y0 + r * s, 0.0) for c, s in ((1, 0), (0, 1), (-1, 0), (0, -1))]
+            arcs += [geo.addCircleArc(q[i], centre, q[(i + 1) % 4]) for i in range(4)]
+        geo.synchronize()
+        gmsh.model.mesh.embed(1, arcs, 2, plane)
+        for side in sides:
+            gmsh.model.mesh.setTransfiniteCurve(side, 2)  # the rim stays the surface's rim
+        _size_field(gmsh, layout, spec)
+        gmsh.model.mesh.generate(2)
+        tags, xyz, _ = gmsh.model.mesh.getNodes()
+        _, tri = gmsh.model.mesh.getElementsByType(2, plane)
+        rim_tags = [int(gmsh.model.mesh.getNodes(0, c)[0][0]) for c in corners]
+    position = np.zeros(int(tags.max()) + 1, np.int64)
+    position[tags.astype(np.int64)] = np.arange(len(tags))
+    tri = position[tri.astype(np.int64).reshape(-1, 3)]
+    used = np.unique(tri)  # drop the circle centres: geometry only, not on any triangle
+    renumber = np.full(len(tags), -1)
+    renumber[used] = np.arange(len(used))
+    xy = xyz.reshape(-1, 3)[used, :2]
+    tri = renumber[tri]
+    a, b, c = xy[tri[:, 0]], xy[tri[:, 1]], xy[tri[:, 2]]
+    up = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]) > 0
+    tri[up] = tri[up][:, ::-1]  # the base's normal is −z, outward
+    return xy, tri, renumber[position[rim_tags]]
+
+
+def _fill(vertices: np.ndarray, faces: np.ndarray, layout: ElectrodeLayout, spec: MeshSpec) -> TetMesh:
+    """Tetrahedra filling the closed triangle surface (vertices, faces), its faces kept."""
+    with _gmsh(layout, spec) as gmsh:
+        shell = gmsh.model.addDiscreteEntity(2)
+        gmsh.model.mesh.addNodes(2, shell, np.arange(1, len(vertices) + 1), vertices.ravel())
+        gmsh.model.mesh.addElementsByType(shell, 2, [], (faces + 1).ravel())
+        gmsh.model.geo.addVolume([gmsh.model.geo.addSurfaceLoop([shell])])
+        gmsh.model.geo.synchronize()
+        _size_field(gmsh, layout, spec)
+        gmsh.model.mesh.generate(3)
+        tags, xyz, _ = gmsh.model.mesh.getNodes()
+        _, tets = gmsh.model.mesh.getElementsByType(4)
+    if len(tets) == 0:
+        raise ValueError("surface: gmsh could not fill the chamber surface (self-intersecting or not closed?)")
+    position = np.zeros(int(tags.max()) + 1, np.int64)
+    position[tags.astype(np.int64)] = np.arange(len(tags))
+    tets = position[tets.astype(np.int64).reshape(-1, 4)]
+    used = np.unique(tets)
+    renumber = np.full(len(tags), -1)
+    renumber[used] = np.arange(len(used))
+    return TetMesh(xyz.reshape(-1, 3)[used], renumber[tets]).oriented()
 
 
 def _hash(surface: trimesh.Trimesh, layout: ElectrodeLayout, spec: MeshSpec) -> str:
     h = hashlib.sha256()
-    h.update(_MESHER_VERSION.encode())
+    h.update(f"{_MESHER_VERSION} gmsh {importlib.metadata.version('gmsh')}".encode())
     for a in (surface.vertices, surface.faces, layout.centres, layout.radii):
         h.update(np.ascontiguousarray(a, dtype=np.float64).tobytes())
-    h.update(repr((spec.max_edge, spec.electrode_refinement, spec.refinement_zone, spec.grading, spec.epsilon_rel, spec.stop_energy, spec.max_opt_iter)).encode())
+    h.update(repr((spec.max_edge, spec.electrode_refinement, spec.refinement_zone, spec.grading)).encode())
     return h.hexdigest()[:20]
 
 

@@ -353,7 +353,11 @@ def untangle(nodes: np.ndarray, tets: np.ndarray, movable: np.ndarray, floor: fl
             # start from the better of where it is and the centroid of its neighbours (inside
             # the star for any reasonable one, where a node pushed through it is not)
             ring = nodes[local][~at_i]
-            x0 = min((nodes[i].copy(), ring.mean(axis=0)), key=worst)
+            # starts: where it is, the ring's centroid, and the centroid of each face opposite
+            # it (the node's own element then flat, the others as they would be)
+            faces = nodes[local][~at_i].reshape(-1, 3, 3).mean(axis=1)
+            c = ring.mean(axis=0)
+            x0 = min([nodes[i].copy(), c, *(0.5 * (faces + c))], key=worst)
             h = float(np.sqrt(np.mean(np.sum((ring - ring.mean(axis=0)) ** 2, axis=1))))
             best = worst(x0)
             for _ in range(2):  # a restart from where the first search stopped, with a fresh simplex

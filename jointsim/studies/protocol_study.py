@@ -4,8 +4,9 @@ For each skip-N injection protocol (N = 0…8, all 16 electrodes measured agains
 representative indentation at several contact positions: the RMS voltage change δV, the total
 sensitivity J_sens in the chamber, the difference image (zeroth-order Tikhonov, λ by k-fold
 cross-validation), the perturbation's CoM error against the true centre of the displaced
-saline, and its total change Σσ. Beside them: the mesh-noise floor of remeshing the same
-chamber (the voltage change produced by meshing alone) against the instrument noise.
+saline, and its total change Σσ. Beside them: the mesh-noise floor (the voltage change produced
+by meshing alone: the chamber meshed with a sub-µm jitter, or turned by one electrode pitch)
+against the instrument noise.
 
 The indentation is geometric (jointsim.mechanics.geometric) and reaches the EIT through the
 same interface the FEM mechanics will use (a deformed DomeSurface). The deformed chamber is
@@ -17,14 +18,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import trimesh
 
 from ..eit.forward import ForwardModel
 from ..eit.jacobian import jacobian
 from ..eit.noise import noise_std
 from ..eit.protocol import skip_protocol
-from ..geometry import dome_from_scene
+from ..geometry import dome_from_scene, electrode_layout
 from ..mechanics.geometric import indent_dome
-from ..mesh.chamber import ChamberMesh, chamber_mesh
+from ..mesh.chamber import ChamberMesh, chamber_mesh, mesh_chamber, reference_surface
 from ..mesh.morph import ChamberMorpher
 from ..metrics import ImageMetrics, image_metrics, rms, sensitivity_total
 from ..reconstruction.grid import ChamberGrid
@@ -201,23 +203,34 @@ def mirror_pair_differences(v: dict[int, np.ndarray], n_el: int) -> dict[str, fl
     return out
 
 
+def jittered_chamber(scene: Scene, amplitude: float) -> ChamberMesh:
+    """The chamber of ``scene`` meshed with its dome's free vertices moved by up to
+    ``amplitude`` (m) along z, by a fixed low-discrepancy sequence (the same everywhere)."""
+    surface = reference_surface(scene)
+    v = np.array(surface.vertices)
+    free = v[:, 2] > 0
+    v[free, 2] += amplitude * (2 * np.mod(np.arange(free.sum()) * 0.6180339887498949, 1.0) - 1)
+    return mesh_chamber(trimesh.Trimesh(v, surface.faces, process=False), electrode_layout(scene), scene.mesh, use_cache=False)
+
+
 def mesh_noise_floor(scene: Scene, chamber: ChamberMesh, fields, protocols: dict) -> dict[str, dict[int, float]]:
     """Voltage change produced by meshing alone, in dB re the mean standing |V| (the SNR
-    convention), per skip: ``remesh`` meshes the same chamber again (fTetWild is not
-    deterministic, so the mesh differs); ``rotate`` meshes the chamber with the electrode ring
-    rotated by one pitch (360°/n, a symmetry of the dome's triangulation) and permutes the
-    electrodes back. The morphed (fixed-topology) path has no such floor: no deformation gives
-    the reference mesh itself."""
+    convention), per skip: ``jitter`` meshes the chamber with its dome's vertices moved by at
+    most 1 µm (the mesher is deterministic, so meshing the same chamber again gives the same
+    mesh; a jitter far below the physical scale gives another); ``rotate`` meshes the chamber
+    with the electrode ring rotated by one pitch (360°/n, a symmetry of the dome's
+    triangulation) and permutes the electrodes back. The morphed (fixed-topology) path has no
+    such floor: no deformation gives the reference mesh itself."""
     n_el = scene.electrodes.count
-    out: dict[str, dict[int, float]] = {"remesh": {}, "rotate": {}}
-    again = _fields(chamber_mesh(scene, use_cache=False), scene)
+    out: dict[str, dict[int, float]] = {"jitter": {}, "rotate": {}}
+    again = _fields(jittered_chamber(scene, 1e-6), scene)
     pitch = 360.0 / n_el
     rot_scene = replace(scene, electrodes=replace(scene.electrodes, first_angle_deg=scene.electrodes.first_angle_deg + pitch))
     rotated = _fields(chamber_mesh(rot_scene), rot_scene)
     for s, p in protocols.items():
         v = fields.voltages(p)
         ref = np.abs(v).mean()
-        out["remesh"][s] = float(20 * np.log10(ref / rms(again.voltages(p) - v)))
+        out["jitter"][s] = float(20 * np.log10(ref / rms(again.voltages(p) - v)))
         # electrode l of the rotated ring sits where electrode l + 1 was: the same physical
         # frame is injection i, electrode j of the original ↔ injection i − 1, electrode j − 1
         vr = rotated.voltages(p).reshape(n_el, n_el)

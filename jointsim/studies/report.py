@@ -98,7 +98,7 @@ def _markdown(path: Path, result: StudyResult, rows: list[dict], command: str) -
         "",
         "Mesh-noise floor: the RMS voltage change caused by meshing alone, in µV beside RMS δV, and in",
         "dB as 20·log10(mean standing |V| / that RMS), the instrument's SNR convention (74.2 dB);",
-        "`remesh` = the same chamber meshed again (fTetWild is not deterministic), `rotate` = meshed",
+        "`jitter` = the chamber meshed with its dome moved by at most 1 µm, `rotate` = meshed",
         "with the electrode ring rotated by one pitch and permuted back. Where the floor is not far",
         "below δV, remeshing each frame would image the mesher; the study therefore uses the morphed",
         "mesh, whose floor is exactly zero (no deformation reproduces the reference mesh).",
