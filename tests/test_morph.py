@@ -190,6 +190,20 @@ def test_pull_back_undoes_an_affine_squash_exactly(test_chamber, morpher):
     assert pb.reference.electrodes is squashed.electrodes
 
 
+def test_the_remesh_fallback_gives_the_same_mesh_every_time(test_chamber, morpher):
+    """The remesh of a pressed chamber, meshed twice without the cache, is the same bit for bit
+    (the mesher is deterministic), and so is its pull-back onto the reference chamber."""
+    scene, _ = test_chamber
+    deformed = _press(scene, (3e-3, 0.0), 2e-3)
+    a, b = (deform_chamber(morpher, deformed, scene, "remesh", use_cache=False) for _ in range(2))
+    assert a.path == b.path == "remesh" and a.chamber is not b.chamber
+    np.testing.assert_array_equal(a.chamber.mesh.nodes, b.chamber.mesh.nodes)
+    np.testing.assert_array_equal(a.chamber.mesh.tets, b.chamber.mesh.tets)
+    assert (a.pulled_back is None) == (b.pulled_back is None)
+    if a.pulled_back is not None:
+        np.testing.assert_array_equal(a.pulled_back.reference.mesh.nodes, b.pulled_back.reference.mesh.nodes)
+
+
 def test_a_remeshed_press_gives_the_morphs_voltage_change(test_chamber, morpher):
     """The same 2 mm press through both paths. Taken against the reference mesh, the remesh's
     δV carries the remeshing floor (~35 % of this δV at the dataset resolution); taken on the
