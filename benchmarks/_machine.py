@@ -55,7 +55,7 @@ def speed_reference(repeats: int = 3) -> float:
     import numpy as np
     import scipy.sparse as sp
 
-    import jointsim.eit.solver as solver
+    import jointsim.linalg as solver
 
     n = 32
     d1 = sp.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1])

@@ -24,7 +24,6 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-
 from _machine import write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,7 +45,7 @@ def run_size(label: str, pyeit: bool) -> dict:
     from jointsim.eit.forward import ForwardModel
     from jointsim.eit.jacobian import jacobian
     from jointsim.eit.protocol import skip_protocol
-    from jointsim.eit.solver import available_backends, default_backend, factorize
+    from jointsim.linalg import available_backends, default_backend, factorize
     from jointsim.mesh.chamber import chamber_mesh
     from jointsim.mesh.electrodes import disc_patches
     from jointsim.mesh.tetmesh import refine_uniform

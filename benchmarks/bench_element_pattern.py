@@ -29,7 +29,6 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-
 from _machine import machine, speed_reference, write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,8 +44,8 @@ def membrane(n_rim: int):
     membrane on a uniform cap of ``n_rim`` rim vertices; the wedges' first n_linear nodes are
     the P2 mesh's corner nodes, so both share the fixed rim's numbering there."""
     from jointsim.geometry import isotropic_cap
-    from jointsim.mechanics.dome import membrane_mesh, sphere_centre
     from jointsim.mechanics.fem import P2Mesh
+    from jointsim.mechanics.prisms import membrane_mesh, sphere_centre
     from jointsim.scene import load_scene
 
     scene = load_scene(ROOT / "scenes" / "paper_sensor.toml")
@@ -65,7 +64,7 @@ def membrane(n_rim: int):
 def free_upper(cells: np.ndarray, nodes: np.ndarray) -> sp.csr_matrix:
     """An SPD matrix on the free upper triangle of the element pattern of ``cells`` (the nodes on
     the base plane fixed, as the bonded rim)."""
-    from jointsim.eit.solver import csr_pattern
+    from jointsim.linalg import csr_pattern
 
     k = 3 * cells.shape[1]
     dof = (3 * cells[:, :, None] + np.arange(3)).reshape(-1, k)
@@ -85,7 +84,7 @@ def free_upper(cells: np.ndarray, nodes: np.ndarray) -> sp.csr_matrix:
 
 
 def factor_cost(U: sp.csr_matrix) -> dict:
-    from jointsim.eit.solver import PatternSolver
+    from jointsim.linalg import PatternSolver
 
     solver = PatternSolver(U.indptr, U.indices, spd=True, refinement=0, single=True)
     times = []
@@ -108,7 +107,7 @@ def factor_mflop(U: sp.csr_matrix) -> int:
     """PARDISO's count (10⁶ operations) for the Cholesky factorisation of ``U``'s pattern with the
     package's settings: a fresh analysis with the count requested (iparm(19) < 0 on entry), which
     PatternSolver does not ask for since it slows the ordering."""
-    from jointsim.eit.solver import _pardiso_solver, _release_pardiso, _set_iparm
+    from jointsim.linalg import _pardiso_solver, _release_pardiso, _set_iparm
 
     s = _pardiso_solver(2)
     _set_iparm(s, 0, single=True)

@@ -50,8 +50,14 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from _machine import atomic_write, cpu_counters, machine, speed_reference, steal_share, write_pair
+from _machine import (
+    atomic_write,
+    cpu_counters,
+    machine,
+    speed_reference,
+    steal_share,
+    write_pair,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 # (rim vertices, layers through the thickness, apex edge mm or 0 for uniform, volumetric form);
@@ -92,7 +98,7 @@ DEPTHS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 
 def run(n_rim: int, layers: int, apex_mm: float, volumetric: str = "mean_dilatation", linear: str = "default", device: str = "cpu",
         moulding: str = "cap", backend: str = "auto") -> dict:
-    import jointsim.eit.solver as solver
+    import jointsim.linalg as solver
     import jointsim.mechanics.fem as fem
     import jointsim.mechanics.newton as newton
     import jointsim.mechanics.wedge as wedge
@@ -152,7 +158,7 @@ def _membrane(n_rim: int, layers: int, apex_mm: float, volumetric: str, device: 
     from dataclasses import replace
 
     from jointsim.geometry import flat_disc, isotropic_cap
-    from jointsim.mechanics.dome import MembraneModel
+    from jointsim.mechanics.build import membrane_from_scene
     from jointsim.scene import load_scene
 
     scene = load_scene(ROOT / "scenes" / "paper_sensor.toml")
@@ -165,7 +171,7 @@ def _membrane(n_rim: int, layers: int, apex_mm: float, volumetric: str, device: 
     else:
         dome = isotropic_cap(c.base_radius, c.dome_height, n_rim, apex_mm * 1e-3 if apex_mm else None)
     t0 = time.perf_counter()
-    model = MembraneModel.from_scene(scene, radius, dome=dome, device=device)
+    model = membrane_from_scene(scene, radius, dome=dome, device=device)
     return model, time.perf_counter() - t0
 
 
@@ -284,7 +290,7 @@ def cuda(device: str = "cuda:0") -> int:
     """``--cuda``: the press on each of CUDA_MESHES twice, the element kernel on Warp's CPU device
     and on ``device`` (one process each; everything else, the sparse solves included, on the CPU);
     results/mechanics_cuda.{md,json}, rewritten after every run (a run cut short keeps its rows)."""
-    import jointsim.eit.solver as solver
+    import jointsim.linalg as solver
     from jointsim._warp import wp
 
     if not wp.is_cuda_available():
@@ -474,7 +480,7 @@ def write_solvers(runs: list[dict], meta: dict) -> None:
              f"element kernel launched in {meta.get('kernel_threads', '?')} chunks from as many threads; PARDISO's two-level "
              "factorisation. \"LDLᵀ only, one kernel thread\" is the default of results/mechanics_benchmark.md before 2026-11-22 in its "
              "solver settings; the pressure Hessian's assembly (a fixed linear map since 2026-11-22) and the two-level factorisation "
-             "(since 2026-11-22; \"one-level factorisation\" is the classic one, jointsim/eit/solver.py PARDISO_TWO_LEVEL) are the "
+             "(since 2026-11-22; \"one-level factorisation\" is the classic one, jointsim/linalg.py PARDISO_TWO_LEVEL) are the "
              "package's in that row, so it is faster than that default was. \"Hessian gathered from a matrix\": the element kernel assembles the Hessian on the mesh's pattern and the Newton "
              "system gathers its free upper triangle, as before 2026-11-22, instead of adding straight into it.", "",
              "| setting | s / step | ratio | runs' s / step, min–max | factorise+solve s / step | ratio | kernel s / step | ratio | Newton its / step | F 1 / 2 / 3 mm, mN |",
@@ -505,7 +511,7 @@ def first_contact(rounds: int, wedge: bool = False) -> int:
     (the package's) and in one step (dome.FIRST_CONTACT out of reach), the two alternating
     ``rounds`` times on the same models: factorisations, Newton iterations, wall time and the
     force each reaches. results/mechanics_first_contact{,_wedge15}.{md,json}."""
-    import jointsim.eit.solver as solver
+    import jointsim.linalg as solver
     import jointsim.mechanics.dome as dome_mod
 
     factors = [0]

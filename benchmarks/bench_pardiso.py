@@ -9,7 +9,7 @@ systems the package factors most:
   lead-field solves, with a fresh analysis (one forward: ForwardModel) and with the analysis
   reused (the morphed chambers of a palpation: the forward's _SharedSolver).
 
-The package takes the two-level factorisation for both (jointsim.eit.solver.PARDISO_TWO_LEVEL);
+The package takes the two-level factorisation for both (jointsim.linalg.PARDISO_TWO_LEVEL);
 `python benchmarks/bench_mechanics.py --solvers` measures a whole press with either.
 
     python benchmarks/bench_pardiso.py [repeats]     # writes results/pardiso_two_level.{json,md}
@@ -57,7 +57,7 @@ def _pattern_timing(indptr, indices, data: np.ndarray, b: np.ndarray, solves: in
     """(PatternSolver(indptr, indices, **kw) still holding its factor, numerical factorisation s,
     median solve s, solution): the analysis done first and left out, as a model's later
     factorisations reuse it."""
-    from jointsim.eit.solver import PatternSolver
+    from jointsim.linalg import PatternSolver
 
     s = PatternSolver(indptr, indices, **kw)
     s.factor(data)
@@ -108,7 +108,7 @@ def chamber_case() -> tuple:
 
 def time_chamber(A, rhs, two_level: bool) -> dict:
     """One forward's linear algebra: analysis and factorisation, then the 16 solves at once."""
-    import jointsim.eit.solver as solver
+    import jointsim.linalg as solver
 
     package, solver.PARDISO_TWO_LEVEL = solver.PARDISO_TWO_LEVEL, two_level  # what factorize reads
     try:
@@ -130,7 +130,7 @@ def time_chamber_shared(A, rhs, two_level: bool) -> dict:
     factorisation and the 16 solves timed."""
     import scipy.sparse as sp
 
-    from jointsim.eit.solver import SPD_REFINEMENT
+    from jointsim.linalg import SPD_REFINEMENT
 
     U = sp.triu(A, format="csr")
     U.sort_indices()
@@ -141,7 +141,7 @@ def time_chamber_shared(A, rhs, two_level: bool) -> dict:
 
 
 def main(argv: list[str]) -> int:
-    from jointsim.eit.solver import available_backends
+    from jointsim.linalg import available_backends
 
     if argv[:1] == ["--report"]:
         import json
@@ -225,7 +225,7 @@ def markdown(d: dict) -> str:
         f"{ldlt['two-level']} two-level; Cholesky breaks down on it in every repeat: one-level {chol['one-level']}, two-level "
         f"{chol['two-level']}. The chamber's relative residual: at most {res['one-level']:.1e} one-level, {res['two-level']:.1e} two-level.",
         "",
-        "The package takes the two-level factorisation for both (jointsim/eit/solver.py PARDISO_TWO_LEVEL); a whole press with "
+        "The package takes the two-level factorisation for both (jointsim/linalg.py PARDISO_TWO_LEVEL); a whole press with "
         "either: results/mechanics_solvers.md.",
         "",
     ])

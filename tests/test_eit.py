@@ -5,8 +5,8 @@ import os
 import sys
 
 import numpy as np
-import scipy.sparse as sp
 import pytest
+import scipy.sparse as sp
 
 from jointsim.eit.forward import ForwardModel
 from jointsim.eit.jacobian import jacobian
@@ -311,7 +311,7 @@ def test_bad_inputs_raise_clear_errors(box_fields):
 
 
 def test_solver_backends_agree(box_fields):
-    from jointsim.eit.solver import available_backends
+    from jointsim.linalg import available_backends
 
     model, sigma, f = box_fields
     ref = ForwardModel(model.mesh, list(model.assembler.electrodes), 4, model.z, backend="superlu").solve(sigma)
@@ -325,7 +325,7 @@ def test_solver_backends_agree(box_fields):
 def test_cholesky_solves_need_no_iterative_refinement(box_fields):
     """PARDISO's Cholesky solves run without refinement steps (SPD_REFINEMENT): the lead fields
     agree with those of two steps (MKL's default) to 1e-12 of their largest."""
-    from jointsim.eit.solver import SPD_REFINEMENT, PatternSolver, available_backends
+    from jointsim.linalg import SPD_REFINEMENT, PatternSolver, available_backends
 
     if "pardiso" not in available_backends():
         pytest.skip("PARDISO (pypardiso) not installed")
@@ -351,7 +351,7 @@ def test_a_model_on_a_moved_mesh_keeps_the_pattern_and_solves_as_a_fresh_one(box
     electrodes in place): the model ``on`` it keeps the CEM pattern and shares the kept PARDISO
     analysis, and solves as a model built afresh on the moved mesh (to round-off). Freed, the
     solver analyses again. A mesh of other tets gets a pattern of its own and no shared solver."""
-    from jointsim.eit.solver import available_backends
+    from jointsim.linalg import available_backends
     from jointsim.mesh.tetmesh import TetMesh
 
     model, sigma, f = box_fields
@@ -394,7 +394,7 @@ def test_per_carrier_contact_impedance(box_fields):
 
 @pytest.mark.skipif(sys.platform != "linux", reason="reads /proc/self/statm")
 def test_repeated_solves_do_not_leak_the_factor():
-    from jointsim.eit.solver import default_backend
+    from jointsim.linalg import default_backend
 
     # 34³ cells: 42 875 nodes, just past SuperLU's range (SUPERLU_MAX_UNKNOWNS): PARDISO's path
     mesh = box_mesh((1.0, 1.0, 1.0), (34, 34, 34))
@@ -430,7 +430,7 @@ def test_pattern_solver_reports_the_inertia_and_solves_to_its_precision(single, 
     solve is backward stable:
     ‖Ax − b‖ ≤ 100·ε·‖A‖₂·‖x‖ with ε the precision's unit round-off (float32 6e-8, float64
     1.1e-16) and ‖A‖₂ = max |λ − σ| in closed form."""
-    from jointsim.eit.solver import PatternSolver, available_backends
+    from jointsim.linalg import PatternSolver, available_backends
 
     if "pardiso" not in available_backends():
         pytest.skip("needs PARDISO (single precision, inertia)")
@@ -461,7 +461,7 @@ def test_cholesky_fails_exactly_on_a_matrix_that_is_not_positive_definite(single
     leaves one eigenvalue −0.1 λ₁ ≈ −0.01 — far above either precision's round-off of ‖A‖ ≈ 12
     — and is refused, with no stale factor left to solve with; by the one-level or the two-level
     factorisation (the package's: PARDISO_TWO_LEVEL)."""
-    from jointsim.eit.solver import PatternSolver, available_backends
+    from jointsim.linalg import PatternSolver, available_backends
 
     if "pardiso" not in available_backends():
         pytest.skip("needs PARDISO")
@@ -495,7 +495,7 @@ def test_without_pardiso_superlu_reports_the_inertia_and_stands_in_for_cholesky(
     backward stably in double (‖Ax − b‖ ≤ 100·ε·‖A‖₂·‖x‖); as a Cholesky solver it factors
     L − 0.9 λ₁ and refuses L − 1.1 λ₁ (one eigenvalue −0.1 λ₁), leaving no stale factor, and a
     singular matrix (SuperLU's "exactly singular") is refused too, not raised."""
-    from jointsim.eit.solver import PatternSolver
+    from jointsim.linalg import PatternSolver
 
     m = 12
     L, eig = _grid_laplacian(m)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from jointsim.geometry import flat_disc
+from jointsim.mechanics.build import membrane_from_scene
 from jointsim.mechanics.dome import MembraneModel
 from jointsim.mechanics.materials import Material
 from jointsim.scene import SceneError, scene_from_dict
@@ -49,9 +50,9 @@ def flat_and_cap():
     kw = {"membrane": {"rim_vertices": 32, "layers": 1}}
     flat = scene_from_dict({"membrane": {"rim_vertices": 32, "layers": 1, "moulding": "flat"}})
     cap = scene_from_dict(kw)
-    flat_model = MembraneModel.from_scene(flat)
+    flat_model = membrane_from_scene(flat)
     # (flat, cap, scene, the flat model's inflated displacement: the tests press the models)
-    return flat_model, MembraneModel.from_scene(cap), flat, flat_model.u.copy()
+    return flat_model, membrane_from_scene(cap), flat, flat_model.u.copy()
 
 
 def test_a_flat_moulding_is_inflated_to_the_dome_height(flat_and_cap):
@@ -123,13 +124,13 @@ def test_a_membrane_inflated_from_an_earlier_one_needs_no_ramp(flat_and_cap):
     flat, _, scene, inflated = flat_and_cap
     p = flat.pressure.pressure  # the open reservoir holds the inflation's pressure through the presses
     scaled = replace(scene, membrane=scene.membrane.scaled(1.3))
-    again = MembraneModel.from_scene(scaled, target_radius=4e-3, inflate_from=inflated)
+    again = membrane_from_scene(scaled, target_radius=4e-3, inflate_from=inflated)
     assert np.abs(again.u - inflated).max() <= 1e-4 * scene.chamber.dome_height
     assert again.pressure.pressure / p == pytest.approx(1.3, rel=1e-4)
     with pytest.raises(ValueError, match="inflate_from"):
-        MembraneModel.from_scene(scene, inflate_from=inflated[:-1])
+        membrane_from_scene(scene, inflate_from=inflated[:-1])
     with pytest.raises(ValueError, match="inflate_from"):
-        MembraneModel.from_scene(scene_from_dict({}), inflate_from=inflated)
+        membrane_from_scene(scene_from_dict({}), inflate_from=inflated)
 
 
 @pytest.fixture(scope="module")

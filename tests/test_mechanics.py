@@ -6,11 +6,23 @@ import os
 import numpy as np
 import pytest
 import warp as wp
-from conftest import cantilever_tip_ratio, check_element_derivatives, inflate_octant, press_block, uniaxial_nominal_stress, wedge_grid
+from conftest import (
+    cantilever_tip_ratio,
+    check_element_derivatives,
+    inflate_octant,
+    press_block,
+    uniaxial_nominal_stress,
+    wedge_grid,
+)
 
 from jointsim.mechanics.fem import ElasticTerm, ElementKernel, P2Mesh
 from jointsim.mechanics.materials import Material
-from jointsim.mechanics.newton import NewtonError, NewtonSystem, NodalForce, minimize_energy
+from jointsim.mechanics.newton import (
+    NewtonError,
+    NewtonSystem,
+    NodalForce,
+    minimize_energy,
+)
 from jointsim.mechanics.pressure import PressureTerm, linear_subtriangles
 from jointsim.mesh.shapes import box_mesh
 
@@ -118,16 +130,15 @@ def test_the_reported_peak_strain_is_the_largest_principal_green_strain():
     rigid rotation of it the same (Green–Lagrange strain is frame-invariant); undeformed, 0."""
     from scipy.spatial.transform import Rotation
 
-    from jointsim.mechanics.dome import _peak_green_strain
 
     m = P2Mesh.from_linear(box_mesh((2.0, 1.0, 0.5), (3, 2, 2)))
     lam = 1.3
     F = np.diag([lam, lam**-0.5, lam**-0.5])
     u = m.nodes @ F.T - m.nodes
-    assert _peak_green_strain(m, u) == pytest.approx(0.5 * (lam**2 - 1), rel=1e-12)
+    assert m.peak_green_strain(u) == pytest.approx(0.5 * (lam**2 - 1), rel=1e-12)
     R = Rotation.from_rotvec([0.4, -1.1, 0.7]).as_matrix()
-    assert _peak_green_strain(m, m.nodes @ (R @ F).T - m.nodes) == pytest.approx(0.5 * (lam**2 - 1), rel=1e-12)
-    assert abs(_peak_green_strain(m, np.zeros_like(m.nodes))) <= 1e-15
+    assert m.peak_green_strain(m.nodes @ (R @ F).T - m.nodes) == pytest.approx(0.5 * (lam**2 - 1), rel=1e-12)
+    assert abs(m.peak_green_strain(np.zeros_like(m.nodes))) <= 1e-15
 
 
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
@@ -325,7 +336,7 @@ def test_chord_steps_reach_the_same_equilibrium_with_fewer_factorisations(monkey
     equilibria agree to ~1e-10 (measured 9e-12); the chord steps replace factorisations
     (measured 10 against 12). 6 084 free unknowns: PARDISO, whose Cholesky marks a factor
     positive definite (SuperLU, below 5 000, gives Newton no such factor to re-use)."""
-    import jointsim.eit.solver as solver
+    import jointsim.linalg as solver
     import jointsim.mechanics.newton as newton
 
     if "pardiso" not in solver.available_backends():

@@ -5,8 +5,10 @@ import pytest
 
 import jointsim.mechanics.dome as dome_module
 from jointsim.geometry import chamber_surface, isotropic_cap, spherical_cap
-from jointsim.mechanics.dome import MembraneModel, membrane_mesh
+from jointsim.mechanics.build import membrane_from_scene
+from jointsim.mechanics.dome import MembraneModel
 from jointsim.mechanics.newton import minimize_energy
+from jointsim.mechanics.prisms import membrane_mesh
 from jointsim.mesh.tetmesh import mesh_quality
 
 
@@ -106,7 +108,7 @@ def test_an_indentation_into_the_base_is_rejected(pressed):
 
 
 def test_membrane_from_the_paper_scene(paper_scene):
-    model = MembraneModel.from_scene(paper_scene, 7.5e-3, dome=spherical_cap(0.02, 0.01, 32))
+    model = membrane_from_scene(paper_scene, 7.5e-3, dome=spherical_cap(0.02, 0.01, 32))
     assert model.elastic.kernel.mesh is model.mesh
     assert model.contact.radius == 7.5e-3
     assert model.pressure.pressure == pytest.approx(paper_scene.membrane.reservoir_pressure)
@@ -351,7 +353,7 @@ def test_a_small_move_ends_on_the_tangent_so_the_next_frame_needs_no_factorisati
     first step it ended on a shifted factor and the next frame factored the tangent. Both rules
     stop at an out-of-balance force below FORCE_RTOL of the contact force, so their forces agree
     to a few times that."""
-    import jointsim.eit.solver as solver
+    import jointsim.linalg as solver
 
     model, top = _fresh_model()
     for d in (0.5e-3, 1.0e-3):
@@ -414,11 +416,10 @@ def test_regularised_newton_and_tangent_predictor_reach_the_projected_equilibriu
     the tangent predictor change the route, not the answer: the same equilibria as the
     per-element PSD projection from the secant predictor, to the force tolerance; and a model
     restored mid-press continues bit for bit (its tangent factor is rebuilt from the state)."""
-    import jointsim.mechanics.newton as newton
-    from jointsim.eit.solver import available_backends
-    from jointsim.geometry import isotropic_cap
-
     import jointsim.mechanics.dome as dome_mod
+    import jointsim.mechanics.newton as newton
+    from jointsim.geometry import isotropic_cap
+    from jointsim.linalg import available_backends
 
     if "pardiso" not in available_backends():
         pytest.skip("needs PARDISO (the LDLᵀ inertia)")

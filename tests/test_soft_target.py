@@ -6,8 +6,16 @@ import numpy as np
 import pytest
 
 from jointsim.geometry import isotropic_cap
+from jointsim.mechanics.build import membrane_from_scene
 from jointsim.mechanics.dome import MembraneModel
-from jointsim.mechanics.soft_target import CoupledTerms, SoftSphere, SoftTargetModel, hemisphere_mesh, press_on_rigid_flat, soft_material
+from jointsim.mechanics.soft_target import (
+    CoupledTerms,
+    SoftSphere,
+    SoftTargetModel,
+    hemisphere_mesh,
+    press_on_rigid_flat,
+    soft_material,
+)
 from jointsim.mechanics.surface_contact import SurfaceContact, closest_points
 from jointsim.mechanics.wedge import WedgeMesh
 from jointsim.scene import SceneError, scene_from_dict
@@ -315,12 +323,12 @@ def test_from_scene_builds_a_soft_target():
     scene = scene_from_dict({"target": {"kind": "soft", "radius_mm": 5.0, "youngs_modulus_kpa": 100.0},
                              "membrane": {"rim_vertices": 32, "layers": 1}})
     assert scene.target.youngs_modulus == 100e3 and scene.target.poisson_ratio == 0.49
-    m = MembraneModel.from_scene(scene)
+    m = membrane_from_scene(scene)
     assert isinstance(m, SoftTargetModel)
     assert m.target.radius == 5e-3
     assert m.target.material.mu == pytest.approx(100e3 / (2 * 1.49))
     # the dataset generator's override: any target_modulus gives a soft target
     rigid_scene = scene_from_dict({"membrane": {"rim_vertices": 32, "layers": 1}})
-    m2 = MembraneModel.from_scene(rigid_scene, target_radius=4e-3, target_modulus=30e3)
+    m2 = membrane_from_scene(rigid_scene, target_radius=4e-3, target_modulus=30e3)
     assert isinstance(m2, SoftTargetModel) and m2.target.material.mu == pytest.approx(30e3 / 2.98)
-    assert not isinstance(MembraneModel.from_scene(rigid_scene), SoftTargetModel)
+    assert not isinstance(membrane_from_scene(rigid_scene), SoftTargetModel)

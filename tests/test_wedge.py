@@ -4,10 +4,24 @@ and the membrane built of it."""
 
 import numpy as np
 import pytest
-from conftest import cantilever_tip_ratio, check_element_derivatives, inflate_octant, press_block, uniaxial_nominal_stress, wedge_grid
+from conftest import (
+    cantilever_tip_ratio,
+    check_element_derivatives,
+    inflate_octant,
+    press_block,
+    uniaxial_nominal_stress,
+    wedge_grid,
+)
 
 from jointsim.mechanics.materials import Material
-from jointsim.mechanics.wedge import WEDGE_POINTS, WEDGE_WEIGHTS, WedgeElasticTerm, WedgeKernel, WedgeMesh, wedge_shape
+from jointsim.mechanics.wedge import (
+    WEDGE_POINTS,
+    WEDGE_WEIGHTS,
+    WedgeElasticTerm,
+    WedgeKernel,
+    WedgeMesh,
+    wedge_shape,
+)
 
 # the reference prism's nodes in the module's order (ξ, η, ζ)
 _REF = np.array([[0, 0, -1], [1, 0, -1], [0, 1, -1], [0, 0, 1], [1, 0, 1], [0, 1, 1],
@@ -93,13 +107,13 @@ def _paper_membrane(rim: int, layers: int = 1, **membrane):
     from pathlib import Path
 
     from jointsim.geometry import isotropic_cap
-    from jointsim.mechanics.dome import MembraneModel
+    from jointsim.mechanics.build import membrane_from_scene
     from jointsim.scene import load_scene
 
     scene = load_scene(Path(__file__).resolve().parents[1] / "scenes" / "paper_sensor.toml")
     scene = replace(scene, membrane=replace(scene.membrane, layers=layers, element="wedge15", **membrane))
     c = scene.chamber
-    return MembraneModel.from_scene(scene, 7.5e-3, dome=isotropic_cap(c.base_radius, c.dome_height, rim))
+    return membrane_from_scene(scene, 7.5e-3, dome=isotropic_cap(c.base_radius, c.dome_height, rim))
 
 
 def test_the_wedge_membrane_presses_the_paper_dome_and_converges():

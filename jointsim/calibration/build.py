@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 
 from ..eit.protocol import RingSymmetry, ring_symmetries, skip_protocol
-from ..io.store import package_versions
+from ..io.store import package_versions, utc_now
 from .com import fit_com_map
 from .curves import ALONG, LevelCurves, default_levels, fit_level_curves, value_at
 from .data import Samples, split_groups, voltage_features
-from .maps import VERSION_PACKAGES, CalibrationMap, _now
+from .maps import VERSION_PACKAGES, CalibrationMap
 from .regression import KINDS, OUTPUTS, fit_regressor, moved_by_symmetry, noisy_features, regression_targets
 from .stiffness import decades, fit_stiffness, force_sensitivity, group_features
 
@@ -333,6 +333,6 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
         settings={"test_fraction": s.test_fraction, "seed": s.seed, "regressor": s.regressor,
                   "goal_snr_db": s.goal_snr_db, "snr_band_db": s.snr_band_db, "max_com_points": s.max_com_points,
                   "noise_copies": s.noise_copies, "symmetry": s.symmetry},
-        evaluation=ev, versions=package_versions(VERSION_PACKAGES), created=_now(),
+        evaluation=ev, versions=package_versions(VERSION_PACKAGES), created=utc_now("seconds"),
     )
     return Calibration(cmap, ev, tables)

@@ -25,14 +25,13 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
 from ..io.export import atomic_path
-from ..io.store import package_versions
+from ..io.store import package_versions, utc_now
 from ..scene import Scene
 from .com import ComMap
 from .curves import LevelCurves, Monotone
@@ -133,7 +132,7 @@ def save_map(cmap: CalibrationMap, path: str | Path) -> Path:
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as h5:
             h5.attrs.update(
-                format=FORMAT, format_version=FORMAT_VERSION, created=cmap.created or _now(), size_route=cmap.size_route,
+                format=FORMAT, format_version=FORMAT_VERSION, created=cmap.created or utc_now("seconds"), size_route=cmap.size_route,
                 fingerprint=_json(cmap.fingerprint), source=_json(cmap.source), settings=_json(cmap.settings),
                 evaluation=_json(cmap.evaluation), versions=_json(cmap.versions or package_versions(VERSION_PACKAGES)),
             )
@@ -170,10 +169,6 @@ def save_map(cmap: CalibrationMap, path: str | Path) -> Path:
                 t.create_dataset(name, data=getattr(st, name))
             t.attrs.update(estimable=st.estimable, reason=st.reason, intercept=st.intercept)
     return path
-
-
-def _now() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
 # -- reading ----------------------------------------------------------------------------------

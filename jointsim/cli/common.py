@@ -7,7 +7,6 @@ import argparse
 import time
 from contextlib import contextmanager
 from dataclasses import replace
-from pathlib import Path
 from typing import Iterator
 
 from ..scene import MESH_PRESETS, SCENES_DIR, Scene, load_scene

@@ -18,7 +18,12 @@ from tqdm import tqdm
 from .. import __version__
 from ..io.export import atomic_path, write_npz, write_vtu
 from ..scene import membrane_layers, membrane_rim_vertices
-from .common import add_scene_arguments, add_target_size_arguments, scene_from_args, target_radius_mm
+from .common import (
+    add_scene_arguments,
+    add_target_size_arguments,
+    scene_from_args,
+    target_radius_mm,
+)
 
 HELP = "force-indentation sweep of the dome membrane (FEM): CSV, PNG, VTU"
 
@@ -37,7 +42,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..mechanics.dome import MembraneModel
+    from ..mechanics.build import membrane_from_scene
     from ..mechanics.fem import warp_device
     from ..mesh.tetmesh import TetMesh
 
@@ -53,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     if args.layers is not None:
         scene = replace(scene, membrane=replace(scene.membrane, layers=membrane_layers(args.layers, "--layers")))
     c = scene.chamber
-    model = MembraneModel.from_scene(scene, radius * 1e-3, device=device)
+    model = membrane_from_scene(scene, radius * 1e-3, device=device)
     xy = np.array([args.x_mm, args.y_mm]) * 1e-3
     top = model.first_contact_height(xy)
     depths = np.arange(1, int(round(args.depth_mm / args.step_mm)) + 1) * args.step_mm

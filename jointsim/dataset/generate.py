@@ -52,6 +52,7 @@ import numpy as np
 from ..eit.forward import ForwardModel
 from ..eit.noise import noise_std
 from ..io.store import Field, Schema
+from ..mechanics.build import membrane_from_scene
 from ..mechanics.dome import MembraneModel, UnreachablePose
 from ..mechanics.newton import NewtonError
 from ..mesh.chamber import ChamberMesh
@@ -300,7 +301,7 @@ class DatasetSetup:
         scaled = replace(self.scene, membrane=self.scene.membrane.scaled(draw.membrane_scale),
                          target=replace(self.scene.target, kind="rigid"))
         soft = math.isfinite(draw.modulus)
-        return MembraneModel.from_scene(scaled, target_radius=draw.radius, target_modulus=draw.modulus if soft else None,
+        return membrane_from_scene(scaled, target_radius=draw.radius, target_modulus=draw.modulus if soft else None,
                                         inflate_from=self.pal.inflated_u)
 
     def _patches(self, mesh, jitter: np.ndarray) -> list[ElectrodePatch]:

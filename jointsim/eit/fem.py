@@ -28,10 +28,11 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .._warp import on_host, wp
+from .._warp import wp
+from ..linalg import csr_pattern
 from ..mesh.electrodes import FACE_EDGES, ElectrodePatch
+from ..mesh.kernels import p1_stiffness
 from ..mesh.tetmesh import KEAST_POINTS, TET_EDGES, TetMesh, unique_edges
-from .solver import csr_pattern
 
 __all__ = ["CEMAssembler", "ORDERS", "Dofs", "dofs", "element_stiffness", "p2_gradients"]
 
@@ -57,26 +58,12 @@ def p2_gradients(g: np.ndarray, lam: np.ndarray) -> np.ndarray:
 wp.set_module_options({"enable_backward": False})
 
 
-@wp.kernel
-def _p1_stiffness(grad: wp.array2d(dtype=wp.vec3d), volume: wp.array(dtype=wp.float64), K: wp.array3d(dtype=wp.float64)):
-    # ∫_k ∇λ_a·∇λ_b = |V_k| ∇λ_a·∇λ_b: the gradients are constant on the element
-    k = wp.tid()
-    v = wp.abs(volume[k])
-    for a in range(4):
-        for b in range(4):
-            K[k, a, b] = v * wp.dot(grad[k, a], grad[k, b])
-
-
 def element_stiffness(mesh: TetMesh, order: int = 1) -> np.ndarray:
     """Unit-conductivity local stiffness ∫_k ∇φ_a·∇φ_b: (n_tets, 4, 4) for P1 (V_k ∇λ_a·∇λ_b),
     (n_tets, 10, 10) for P2."""
-    g = mesh.gradients
     if _check_order(order) == 1:
-        # a Warp kernel: a morphed frame assembles afresh, and at the paper's 323 k tetrahedra
-        # numpy's batched product was a visible part of the forward stage
-        K = np.empty((mesh.n_tets, 4, 4))
-        wp.launch(_p1_stiffness, mesh.n_tets, inputs=[on_host(g, wp.vec3d), on_host(mesh.signed_volumes), on_host(K)], device="cpu")
-        return K
+        return p1_stiffness(mesh.gradients, mesh.signed_volumes)
+    g = mesh.gradients
     k = sum(np.einsum("kai,kbi->kab", d, d) for d in (p2_gradients(g, lam) for lam in KEAST_POINTS))
     return (mesh.volumes / 4)[:, None, None] * k
 

@@ -16,13 +16,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..linalg import SPD_REFINEMENT, PatternSolver, available_backends, factorize
 from ..mesh.chamber import ChamberMesh
 from ..mesh.electrodes import ElectrodePatch, disc_patches
 from ..mesh.tetmesh import TetMesh
 from ..scene import Scene
 from .fem import CEMAssembler
 from .protocol import Protocol
-from .solver import SPD_REFINEMENT, PatternSolver, available_backends, factorize
 
 __all__ = ["ForwardModel", "LeadFields"]
 
@@ -73,7 +73,7 @@ class ForwardModel:
     electrodes : list of ElectrodePatch, all electrodes including the ground
     ground : index of the reference electrode in ``electrodes``
     contact_impedance : (n_el,) Ω·m², one per electrode (ground included)
-    backend : sparse direct solver, see :func:`jointsim.eit.solver.factorize`
+    backend : sparse direct solver, see :func:`jointsim.linalg.factorize`
     order : element order, 1 (P1) or 2 (P2 on the same tetrahedra; see :mod:`jointsim.eit.fem`)
     """
 

@@ -73,6 +73,7 @@ __all__ = [
     "attach",
     "open_records",
     "package_versions",
+    "utc_now",
 ]
 
 STORE_FORMAT = 1
@@ -256,8 +257,9 @@ def _warn_if_code_changed(partial: Path, commit: str | None) -> None:
         )
 
 
-def _now() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+def utc_now(timespec: str = "milliseconds") -> str:
+    """The current UTC time in ISO 8601 (provenance timestamps)."""
+    return datetime.now(timezone.utc).isoformat(timespec=timespec)
 
 
 def _json_normal(x: Any, what: str) -> Any:
@@ -604,7 +606,7 @@ class RecordStore:
 
         ident = dict(self.identity, n_records=n)
         meta = json.loads((self.partial / "meta.json").read_text())
-        run = {"created": meta["created"], "finalised": _now(), "finalised_on": socket.gethostname(), "sessions": _sessions(self.partial)}
+        run = {"created": meta["created"], "finalised": utc_now(), "finalised_on": socket.gethostname(), "sessions": _sessions(self.partial)}
         text = h5py.string_dtype()
         with atomic_path(self.path) as tmp:
             with h5py.File(tmp, "w", rdcc_nbytes=8 << 20) as h5:
@@ -733,7 +735,7 @@ def open_store(
     ident = _identity(schema, scene_toml, seed, n_records, params, versions)
     partial = _partial_path(final)
     (partial / "sessions").mkdir(parents=True, exist_ok=True)
-    _write_json_once(partial / "meta.json", {"identity": ident, "created": _now()})
+    _write_json_once(partial / "meta.json", {"identity": ident, "created": utc_now()})
     stored = _read_meta(partial)["identity"]
     if diff := _first_difference(_comparable(stored), _comparable(ident)):
         raise ValueError(
@@ -745,7 +747,7 @@ def open_store(
     commit = _git_commit()
     _warn_if_code_changed(partial, commit)
     session = {
-        "started": _now(), "host": socket.gethostname(), "pid": os.getpid(), "platform": platform.platform(),
+        "started": utc_now(), "host": socket.gethostname(), "pid": os.getpid(), "platform": platform.platform(),
         "command": list(sys.argv if command is None else command), "versions": versions, "jointsim_git": commit,
     }
     name = f"{session['started'].replace(':', '')}-{os.getpid()}-{secrets.token_hex(4)}.json"  # sorts by time

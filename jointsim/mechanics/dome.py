@@ -9,22 +9,21 @@ remesh), with the contact force, contact area, displaced saline volume and solve
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..geometry import DomeSurface
-from ..mesh.tetmesh import TetMesh
 from ..scene import MEMBRANE_ELEMENTS, MEMBRANE_LAYERS, membrane_layers
 from .contact import SphereContact, SphereFriction, nodal_areas
 from .fem import ElasticTerm, P2Mesh
 from .materials import Material
 from .newton import NewtonError, NewtonSystem, minimize_energy
 from .pressure import PressureTerm, linear_subtriangles
+from .prisms import is_flat, membrane_mesh, on_rim_circle, on_spheres, sphere_centre
 from .wedge import WedgeElasticTerm, WedgeMesh
 
-__all__ = ["MembraneModel", "MembraneState", "UnreachablePose", "membrane_mesh", "ECOFLEX_00_50"]
+__all__ = ["MembraneModel", "MembraneState", "UnreachablePose", "ECOFLEX_00_50", "membrane_material"]
 
 ECOFLEX_00_50 = Material.neo_hookean(22e3)  # DESIGN.md: μ ≈ 22 kPa, κ = 1000 μ
 # re-lagging passes of the friction's normal forces per load step (tests/test_mechanics.py
@@ -72,128 +71,6 @@ class UnreachablePose(ValueError):
     """The target pose asked for cannot be simulated on this dome: the target misses it, or
     would press it beyond what it can take. A property of the pose, not a fault: a dataset
     redraws such a target, while any other error stops the run."""
-
-
-def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    vn = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(vn, f[:, k], n)
-    return vn / np.linalg.norm(vn, axis=1, keepdims=True)
-
-
-def is_flat(dome: DomeSurface) -> bool:
-    """Whether ``dome`` lies in the base plane: a membrane moulded flat (:func:`~jointsim.geometry.flat_disc`)."""
-    return not np.any(np.asarray(dome.vertices)[:, 2])
-
-
-def sphere_centre(dome: DomeSurface, rtol: float = 1e-6) -> np.ndarray | None:
-    """The centre of the sphere the dome's vertices lie on (to ``rtol`` of its radius), or None
-    when they do not (an inflated or otherwise deformed surface)."""
-    if is_flat(dome):  # a plane: a sphere of infinite radius
-        return None
-    v = np.asarray(dome.vertices, float)
-    # |v|² = 2 c·v + (R² − |c|²): linear in c and the constant
-    A = np.column_stack([2 * v, np.ones(len(v))])
-    sol = np.linalg.lstsq(A, (v**2).sum(axis=1), rcond=None)[0]
-    c = sol[:3]
-    r = np.linalg.norm(v - c, axis=1)
-    return c if np.ptp(r) <= rtol * r.mean() else None
-
-
-def on_spheres(centre: np.ndarray, base_tol: float) -> Callable[[np.ndarray], np.ndarray]:
-    """Midside-node placement for a membrane on a spherical dome (for ``P2Mesh.from_linear``):
-    each edge's node on the sphere about ``centre`` through the mean distance of its ends — the
-    concentric inner, layer and outer surfaces, and straight through the thickness — except edges
-    in the base plane (|z| ≤ ``base_tol``), whose nodes follow the rim's circles in that plane."""
-    c = np.asarray(centre, float)
-
-    def place(ends: np.ndarray) -> np.ndarray:
-        mid = ends.mean(axis=1)
-        d = mid - c
-        r = np.linalg.norm(ends - c, axis=2).mean(axis=1)
-        out = c + r[:, None] * d / np.linalg.norm(d, axis=1, keepdims=True)
-        flat = np.all(np.abs(ends[:, :, 2]) <= base_tol, axis=1)
-        rho = np.linalg.norm(ends[flat, :, :2], axis=2).mean(axis=1)
-        xy = mid[flat, :2]
-        out[flat] = np.column_stack([rho[:, None] * xy / np.linalg.norm(xy, axis=1, keepdims=True), mid[flat, 2]])
-        return out
-
-    return place
-
-
-def on_rim_circle(radius: float) -> Callable[[np.ndarray], np.ndarray]:
-    """Midside-node placement for a membrane moulded flat (for ``P2Mesh.from_linear``): edge
-    midpoints, except on the edge face, where edges between two nodes on the cylinder of
-    ``radius`` get their node on it: the sheet is a true disc, and the whole face is bonded (a
-    node left on a chord inside it would be free and let the clamp rotate: +7-9 % deflection of
-    a clamped plate, converging slowly)."""
-
-    def place(ends: np.ndarray) -> np.ndarray:
-        mid = ends.mean(axis=1)
-        on = np.all(np.hypot(ends[:, :, 0], ends[:, :, 1]) >= radius * (1 - 1e-9), axis=1)
-        mid[on, :2] *= radius / np.hypot(mid[on, 0], mid[on, 1])[:, None]
-        return mid
-
-    return place
-
-
-def membrane_mesh(dome: DomeSurface, thickness: float, layers: int = 2, centre: np.ndarray | None = None) -> tuple[TetMesh, int]:
-    """Tetrahedra of the membrane: ``layers`` prism layers from the inner surface ``dome``
-    outward by ``thickness`` along the vertex normals — radial from ``centre`` when the dome is a
-    sphere about it — kept horizontal at the rim so the bonded edge stays on the base plane (on
-    a sphere, out to where each concentric layer sphere meets that plane).
-    Layer l's copy of dome vertex i is node l·n + i. Returns the mesh and n (the number of dome
-    vertices)."""
-    if thickness <= 0:
-        raise ValueError(f"thickness = {thickness}: must be > 0 m")
-    v, f = np.asarray(dome.vertices, float), np.asarray(dome.faces)
-    n = len(v)
-    normal = _vertex_normals(v, f) if centre is None else (v - centre) / np.linalg.norm(v - centre, axis=1, keepdims=True)
-    if not is_flat(dome):  # a flat sheet's edge stands upright through its thickness
-        normal[dome.rim, 2] = 0.0  # the rim grows outward in the base plane
-        normal[dome.rim] /= np.linalg.norm(normal[dome.rim], axis=1, keepdims=True)
-    offsets = (np.arange(layers + 1) / layers * thickness)[:, None] * np.ones(n)  # (layer, vertex)
-    if centre is not None:
-        # a shell of concentric spheres cut by the base plane: the rim's layer l sits where the
-        # sphere of radius R + s_l meets that plane, so the membrane keeps its full thickness to
-        # the bond (grown by s_l in the plane it would thin to s_l·ρ/R there)
-        rim = v[dome.rim]
-        R = np.linalg.norm(rim - centre, axis=1)
-        rho = np.linalg.norm(rim[:, :2] - centre[:2], axis=1)
-        h2 = R**2 - rho**2  # the centre's squared height off the plane, each rim vertex
-        offsets[:, dome.rim] = np.sqrt((R + offsets[:, dome.rim]) ** 2 - h2) - rho
-    nodes = np.vstack([v + offsets[l, :, None] * normal for l in range(layers + 1)])
-    tets = []
-    for l in range(layers):
-        a, b = l * n + f, (l + 1) * n + f  # bottom and top triangles of each prism
-        # split each prism into 3 tets by the rule "start from the smallest vertex index", which
-        # makes the diagonals on shared quad faces agree between neighbouring prisms
-        tets.append(_split_prisms(a, b))
-    t = np.vstack(tets)
-    return TetMesh(nodes, t).oriented(), n
-
-
-def _split_prisms(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Prisms (a0 a1 a2 / b0 b1 b2), ai below bi and every b index above every a index, into 3
-    tetrahedra each, conforming: each quad side face is cut along the diagonal from its smaller
-    bottom index to the other corner's top copy, a rule that depends on the face alone, so two
-    prisms sharing the face cut it alike (a cut that depended on the prism would leave the two
-    sides' triangles, and their P2 midside nodes, unshared: a mesh cracked along every face)."""
-    # rotate each triangle so its smallest global index comes first
-    r = np.argmin(a, axis=1)
-    idx = (r[:, None] + np.arange(3)) % 3
-    a = np.take_along_axis(a, idx, 1)
-    b = np.take_along_axis(b, idx, 1)
-    a0, a1, a2 = a.T
-    b0, b1, b2 = b.T
-    # a0 is the smallest: the two faces through it are cut a0–b1 and a0–b2, which leaves the
-    # tetrahedron (a0 b0 b1 b2) and the pyramid a0 over the quad (a1 a2 b2 b1), cut by the rule
-    use1 = (a1 < a2)[:, None]  # the quad's cut: a1–b2, else a2–b1
-    t1 = np.column_stack([a0, b0, b1, b2])
-    t2 = np.where(use1, np.column_stack([a0, a1, a2, b2]), np.column_stack([a0, a1, a2, b1]))
-    t3 = np.where(use1, np.column_stack([a0, a1, b2, b1]), np.column_stack([a0, a2, b2, b1]))
-    return np.vstack([t1, t2, t3])
 
 
 @dataclass
@@ -397,71 +274,6 @@ class MembraneModel:
     @property
     def terms(self) -> list:
         return [self.elastic, self.pressure, self.contact] + ([self.friction] if self.friction else [])
-
-    @classmethod
-    def from_scene(
-        cls,
-        scene,
-        target_radius: float | None = None,
-        dome: DomeSurface | None = None,
-        target_modulus: float | None = None,
-        target_poisson: float | None = None,
-        contact_slave: str | None = None,
-        device: str = "cpu",
-        inflate_from: np.ndarray | None = None,
-    ) -> "MembraneModel":
-        """The membrane of ``scene`` (its [membrane] and [target] sections and chamber); the
-        target's radius may be overridden by ``target_radius`` m; ``dome`` defaults to the
-        scene's undeformed dome, meshed isotropically with [membrane] rim_vertices, or with
-        [membrane] moulding = "flat" a flat disc inflated until its apex reaches the dome
-        height (the reservoir then holds the pressure that takes; reservoir_pressure_pa is not
-        used). A soft
-        target ([target] kind = "soft", or any ``target_modulus`` Pa given) gives a
-        :class:`~jointsim.mechanics.soft_target.SoftTargetModel` with that Young's modulus and
-        ``target_poisson`` (default the scene's), and ``contact_slave`` passed on to it (None:
-        its rule, the softer body's nodes). ``device``: the Warp device of the element kernels.
-        ``inflate_from``: for a flat moulding, the membrane's displacement in an earlier model of
-        this scene (or of it with its moduli scaled), which the inflation starts from."""
-        from ..geometry import flat_disc, isotropic_cap
-
-        m = scene.membrane
-        material = membrane_material(m)
-        c = scene.chamber
-        t = scene.target
-        kw = {}
-        if target_modulus is not None or target_poisson is not None or t.kind == "soft":
-            from .soft_target import SoftTargetModel, soft_material
-
-            cls = SoftTargetModel
-            kw["target_material"] = soft_material(
-                t.youngs_modulus if target_modulus is None else target_modulus,
-                t.poisson_ratio if target_poisson is None else target_poisson,
-            )
-            kw["contact_slave"] = contact_slave
-        elif contact_slave is not None:
-            raise ValueError(f"contact_slave = {contact_slave!r}: only for a soft target (give target_modulus)")
-        flat = m.moulding == "flat"
-        if dome is None:
-            dome = flat_disc(c.base_radius, m.rim_vertices) if flat else isotropic_cap(c.base_radius, c.dome_height, m.rim_vertices)
-        if flat:
-            kw["inflate_to"] = c.dome_height
-            kw["inflate_from"] = inflate_from
-        elif inflate_from is not None:
-            raise ValueError("inflate_from: only for a membrane moulded flat ([membrane] moulding = \"flat\")")
-        return cls(
-            dome,
-            c.membrane_thickness,
-            material,
-            m.layers,
-            0.0 if flat else m.reservoir_pressure,
-            t.radius if target_radius is None else target_radius,
-            friction=t.friction,
-            closed=m.chamber == "closed",
-            volumetric=m.volumetric,
-            device=device,
-            element=m.element,
-            **kw,
-        )
 
     def get_state(self) -> dict[str, np.ndarray]:
         """Everything the next :meth:`press` depends on, as plain arrays (for checkpoints):
@@ -749,7 +561,7 @@ class MembraneModel:
             force=self.contact.force(u) + (self.friction.force(u) if self.friction is not None else 0.0),
             contact_area=self.contact.contact_area(u),
             displaced_volume=self.V0 - self.pressure.volume(u),
-            peak_strain=_peak_green_strain(self.mesh, u),
+            peak_strain=self.mesh.peak_green_strain(u),
             iterations=iterations,
             residual=residual,
             penetration=self.contact.penetration(u),
@@ -757,15 +569,3 @@ class MembraneModel:
             min_jacobian=float(s.min_det.min()),
             contact_centre=self.contact.centre_of_pressure(u),
         )
-
-
-def _peak_green_strain(mesh: P2Mesh | WedgeMesh, u: np.ndarray) -> float:
-    """Largest principal Green–Lagrange strain at the element centroids (for P2 tetrahedra, the
-    corner nodes' gradient; for wedges, the full element's at its centroid)."""
-    if isinstance(mesh, WedgeMesh):
-        F = np.eye(3) + np.einsum("mni,mnj->mij", u[mesh.elements], mesh.centroid_gradients)
-    else:
-        x = (mesh.nodes + u)[mesh.tets[:, :4]]
-        F = np.swapaxes(x[:, 1:] - x[:, :1], 1, 2) @ mesh.corner_gradient_map
-    Egl = 0.5 * (np.swapaxes(F, 1, 2) @ F - np.eye(3))
-    return float(np.linalg.eigvalsh(Egl).max())

@@ -44,9 +44,15 @@ from threadpoolctl import threadpool_limits
 
 from .._cores import available_cores
 from .._warp import wp
-from ..eit.solver import csr_pattern
+from ..linalg import csr_pattern
 from ..mesh.tetmesh import KEAST_POINTS, TET_EDGES, TetMesh, unique_edges
-from .materials import Material, first_piola, stiffness_block, strain_energy, tangent_with_pressure
+from .materials import (
+    Material,
+    first_piola,
+    stiffness_block,
+    strain_energy,
+    tangent_with_pressure,
+)
 from .newton import NewtonSystem, SystemValues
 
 __all__ = ["P2Mesh", "ElementState", "HessianTarget", "ElementKernel", "ElasticTerm", "project_psd", "assemble_hessian", "assemble_gradient", "warp_device"]
@@ -94,6 +100,11 @@ QUAD_BARY = KEAST_POINTS
 QUAD_W = np.full(4, 0.25)
 
 
+def peak_green_strain(F: np.ndarray) -> float:
+    """Largest principal Green–Lagrange strain E = (FᵀF − I)/2 over deformation gradients F (m, 3, 3)."""
+    return float(np.linalg.eigvalsh(0.5 * (np.swapaxes(F, 1, 2) @ F - np.eye(3))).max())
+
+
 @dataclass(frozen=True, eq=False)
 class P2Mesh:
     """``nodes`` (n, 3) reference positions in m; ``tets`` (m, 10): corners 0–3 then the midside
@@ -136,6 +147,12 @@ class P2Mesh:
         equilibrium's strain report needs it (its inversion cost a third of that report)."""
         p = self.nodes[self.tets[:, :4]]
         return np.linalg.inv(np.swapaxes(p[:, 1:] - p[:, :1], 1, 2))
+
+    def peak_green_strain(self, u: np.ndarray) -> float:
+        """Largest principal Green–Lagrange strain over the elements at displacement ``u``
+        (n, 3), from each element's straight-sided F (its corner nodes' gradient)."""
+        x = (self.nodes + u)[self.tets[:, :4]]
+        return peak_green_strain(np.swapaxes(x[:, 1:] - x[:, :1], 1, 2) @ self.corner_gradient_map)
 
     @property
     def n_nodes(self) -> int:

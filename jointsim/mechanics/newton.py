@@ -20,7 +20,7 @@ from typing import Protocol
 import numpy as np
 import scipy.sparse as sp
 
-from ..eit.solver import PatternSolver, available_backends, factorize
+from ..linalg import PatternSolver, available_backends, factorize
 
 __all__ = ["EnergyTerm", "SystemValues", "NodalForce", "NewtonResult", "NewtonError", "NewtonSystem", "minimize_energy", "step_to"]
 

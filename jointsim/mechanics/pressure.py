@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..eit.solver import csr_pattern
+from ..linalg import csr_pattern
 
 __all__ = ["PressureTerm", "linear_subtriangles", "enclosed_volume"]
 

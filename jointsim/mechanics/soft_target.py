@@ -23,11 +23,12 @@ import scipy.sparse as sp
 from ..geometry import DomeSurface
 from ..mesh.tetmesh import TetMesh
 from .contact import nodal_areas
-from .dome import ECOFLEX_00_50, MembraneModel, MembraneState, _peak_green_strain
+from .dome import ECOFLEX_00_50, MembraneModel, MembraneState
 from .fem import ElasticTerm, P2Mesh
 from .materials import Material
 from .newton import NewtonError, NewtonSystem, csr_rows, find_keys, minimize_energy
 from .pressure import linear_subtriangles
+from .prisms import split_prisms
 from .surface_contact import SurfaceContact
 
 __all__ = ["soft_material", "hemisphere_mesh", "SoftSphere", "CoupledTerms", "SoftTargetModel", "SYLGARD_184", "press_on_rigid_flat"]
@@ -57,7 +58,6 @@ def hemisphere_mesh(radius: float, mesh_size: float, growth: float = 1.35, core:
     Returns the mesh and n, the vertices per sphere (layer l's copy of vertex i is l·n + i;
     layer 0 is the outer surface)."""
     from ..geometry import isotropic_cap
-    from .dome import _split_prisms
 
     if radius <= 0:
         raise ValueError(f"radius = {radius}: must be > 0 m")
@@ -80,8 +80,8 @@ def hemisphere_mesh(radius: float, mesh_size: float, growth: float = 1.35, core:
     r.append(core * radius)
     n = len(v)
     nodes = np.vstack([v * (rl / radius) for rl in r])
-    # _split_prisms wants the lower-index triangle first: layer l (outer) before l + 1
-    tets = np.vstack([_split_prisms(l * n + f, (l + 1) * n + f) for l in range(len(r) - 1)])
+    # split_prisms wants the lower-index triangle first: layer l (outer) before l + 1
+    tets = np.vstack([split_prisms(l * n + f, (l + 1) * n + f) for l in range(len(r) - 1)])
     return TetMesh(nodes, tets).oriented(), n
 
 
@@ -469,7 +469,7 @@ class SoftTargetModel(MembraneModel):
             force=self.contact.force(u),
             contact_area=self.contact.contact_area(u),
             displaced_volume=self.V0 - self.pressure.volume(u),
-            peak_strain=_peak_green_strain(self.mesh, um),
+            peak_strain=self.mesh.peak_green_strain(um),
             iterations=iterations,
             residual=residual,
             penetration=self.contact.penetration(u),

@@ -33,10 +33,24 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._warp import wp
-from ..eit.solver import csr_pattern
+from ..linalg import csr_pattern
+from ..mesh.tetmesh import TetMesh
 from . import fem
-from .fem import ElasticTerm, ElementState, HessianTarget, warp_device
-from .materials import Material, first_piola, stiffness_block, strain_energy, tangent_with_pressure
+from .fem import (
+    ElasticTerm,
+    ElementState,
+    HessianTarget,
+    peak_green_strain,
+    warp_device,
+)
+from .materials import (
+    Material,
+    first_piola,
+    stiffness_block,
+    strain_energy,
+    tangent_with_pressure,
+)
+from .prisms import membrane_mesh, split_prisms
 
 __all__ = ["WedgeMesh", "WedgeKernel", "WedgeElasticTerm", "wedge_shape", "WEDGE_POINTS", "WEDGE_WEIGHTS"]
 
@@ -115,12 +129,10 @@ class WedgeMesh:
 
     @classmethod
     def on_membrane(cls, dome, thickness: float, layers: int, centre: np.ndarray | None, place) -> "WedgeMesh":
-        """The prism layers of :func:`~jointsim.mechanics.dome.membrane_mesh` (layer l's copy of
+        """The prism layers of :func:`~jointsim.mechanics.prisms.membrane_mesh` (layer l's copy of
         dome vertex i is node l·n + i) as wedges; the midside nodes (in-plane edges of every
         level, then the vertical edges of every layer) placed by ``place`` (edge ends (k, 2, 3)
         → nodes (k, 3); as for ``P2Mesh.from_linear``)."""
-        from .dome import membrane_mesh
-
         lin, n = membrane_mesh(dome, thickness, layers, centre)
         return cls.extrude(lin.nodes, np.asarray(dome.faces), layers, place)
 
@@ -184,14 +196,16 @@ class WedgeMesh:
         """∇_X N (m, 15, 3) at each element's centroid (ξ = η = ⅓, ζ = 0): F there is I + Σ u_a ⊗ ∇N_a."""
         return _reference_geometry(self.nodes, self.elements, _CENTROID)[0][:, 0]
 
+    def peak_green_strain(self, u: np.ndarray) -> float:
+        """Largest principal Green–Lagrange strain over the elements at displacement ``u``
+        (n, 3), each element's F taken at its centroid."""
+        return peak_green_strain(np.eye(3) + np.einsum("mni,mnj->mij", u[self.elements], self.centroid_gradients))
+
     @cached_property
     def corner_tets(self) -> np.ndarray:
         """Each prism's corners split into three tetrahedra (m·3, 4), conforming between
         neighbours, positively oriented: a linear tetrahedral mesh of the membrane for output."""
-        from ..mesh.tetmesh import TetMesh
-        from .dome import _split_prisms
-
-        return TetMesh(self.nodes, _split_prisms(self.elements[:, :3], self.elements[:, 3:6])).oriented().tets
+        return TetMesh(self.nodes, split_prisms(self.elements[:, :3], self.elements[:, 3:6])).oriented().tets
 
     @cached_property
     def sparsity(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -26,12 +26,11 @@ import numpy as np
 import scipy.sparse as sp
 import trimesh
 
-from ..eit.fem import element_stiffness
-from ..eit.solver import factorize
 from ..geometry import DomeSurface, chamber_surface, dome_from_scene, electrode_layout
+from ..linalg import factorize
 from ..scene import Scene
 from .chamber import ChamberMesh, mesh_chamber
-from .kernels import tet_quality
+from .kernels import p1_stiffness, tet_quality
 from .tetmesh import TetMesh
 
 __all__ = [
@@ -157,7 +156,7 @@ class ChamberMorpher:
     min_dihedral_deg : a morphed element with a smaller dihedral angle (or inverted) raises
         :class:`MeshInversionError`; in [0, 70.53)
     backend : sparse direct solver of the interior Laplacian, see
-        :func:`jointsim.eit.solver.factorize`
+        :func:`jointsim.linalg.factorize`
 
     Built once: the dome nodes' closest points on ``dome`` as barycentric weights (n_top, 3)
     on triangles (n_top, 3) (``surface_gap``: their largest distance, m), the interior
@@ -497,7 +496,7 @@ def _digest(a: np.ndarray) -> str:
 
 
 def _stiffness(mesh: TetMesh) -> sp.csr_matrix:
-    k = element_stiffness(mesh)
+    k = p1_stiffness(mesh.gradients, mesh.signed_volumes)
     rows = np.repeat(mesh.tets, 4, axis=1).ravel()
     cols = np.tile(mesh.tets, (1, 4)).ravel()
     return sp.csr_matrix((k.ravel(), (rows, cols)), shape=(mesh.n_nodes, mesh.n_nodes))

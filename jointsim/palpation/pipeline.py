@@ -55,12 +55,19 @@ from ..eit.noise import gain_drift, noise_std
 from ..eit.protocol import Protocol, skip_protocol
 from ..geometry import DomeSurface, chamber_surface, electrode_layout
 from ..io.store import Field, RecordStore, Schema
+from ..mechanics.build import membrane_from_scene
 from ..mechanics.dome import MembraneModel, MembraneState, UnreachablePose
 from ..mechanics.fem import warp_device
 from ..mechanics.geometric import indent_dome
 from ..mesh.chamber import ChamberMesh, chamber_mesh, mesh_chamber
+from ..mesh.morph import (
+    ChamberMorpher,
+    DeformedChamber,
+    MeshInversionError,
+    remeshed,
+    untangled_note,
+)
 from ..mesh.tetmesh import TetMesh
-from ..mesh.morph import ChamberMorpher, DeformedChamber, MeshInversionError, remeshed, untangled_note
 from ..metrics import ImageMetrics, image_metrics, rms
 from ..reconstruction.grid import ChamberGrid
 from ..reconstruction.tikhonov import SVD, Reconstructor, choose_lambda
@@ -250,7 +257,7 @@ def deployed_chamber(scene: Scene, dome: DomeSurface | None = None, **kw) -> Cha
     if scene.membrane.moulding == "cap":
         return chamber_mesh(scene, **kw)
     if dome is None:
-        model = MembraneModel.from_scene(replace(scene, target=replace(scene.target, kind="rigid")))  # the target is not touched
+        model = membrane_from_scene(replace(scene, target=replace(scene.target, kind="rigid")))  # the target is not touched
         dome = _InnerSurface.of(model, scene.chamber.base_radius, inflated=True).dome(None)
     return mesh_chamber(chamber_surface(dome), electrode_layout(scene), scene.mesh, **kw)
 
@@ -361,7 +368,7 @@ class Palpation:
 
     def membrane(self, radius: float) -> MembraneModel:
         """A fresh membrane (inflated by the reservoir, untouched) for a target of ``radius`` m."""
-        return MembraneModel.from_scene(self.scene, target_radius=radius, device=self.device, inflate_from=self.inflated_u)
+        return membrane_from_scene(self.scene, target_radius=radius, device=self.device, inflate_from=self.inflated_u)
 
     def voltages(self, chamber: ChamberMesh) -> np.ndarray:
         """Clean voltages (256,) V of ``chamber`` filled with the scene's saline; with

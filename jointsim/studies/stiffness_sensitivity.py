@@ -69,7 +69,7 @@ def press_curve(scene, radius: float, modulus: float, depths: np.ndarray, membra
     """Press a sphere of ``radius`` m and Young's ``modulus`` Pa (``math.inf``: rigid) on the
     dome's axis to each stage depth of ``depths`` (m, increasing, past first contact);
     ``slave``: the soft contact's slave side (None: the model's rule)."""
-    from ..mechanics.dome import MembraneModel
+    from ..mechanics.build import membrane_from_scene
 
     if not radius > 0:
         raise ValueError(f"radius = {radius}: must be > 0 m")
@@ -82,7 +82,7 @@ def press_curve(scene, radius: float, modulus: float, depths: np.ndarray, membra
         raise ValueError("depths: a non-empty increasing sequence of positive stage depths (m)")
     scaled = replace(scene, membrane=scene.membrane.scaled(membrane_scale), target=replace(scene.target, kind="rigid"))
     soft = not math.isinf(modulus)
-    model = MembraneModel.from_scene(scaled, target_radius=radius, target_modulus=modulus if soft else None,
+    model = membrane_from_scene(scaled, target_radius=radius, target_modulus=modulus if soft else None,
                                      contact_slave=slave if soft else None)
     top = model.first_contact_height((0.0, 0.0))
     states = [model.press(np.array([0.0, 0.0, top - d])) for d in depths]

@@ -1,6 +1,7 @@
-"""Sparse direct factorisation of symmetric systems (the SPD CEM matrix, the symmetric
-indefinite Newton Hessians of the mechanics), factorised once and solved for many right-hand
-sides.
+"""Shared sparse linear algebra, below mechanics, mesh and EIT: direct factorisation of
+symmetric systems (the SPD CEM matrix, the symmetric indefinite Newton Hessians of the
+mechanics, the morph's Laplacian), factorised once and solved for many right-hand sides, and
+the CSR pattern helper their assemblies share.
 
 "auto" picks by size, from results/eit_forward_benchmark.md (2-core machine): scipy's SuperLU
 for systems below 40 k unknowns (0.25 s against PARDISO's 0.48 s at 21 k nodes, where MKL's

@@ -1,0 +1,76 @@
+"""Models from a scene: the membrane as a scene's [membrane], [target] and [chamber] sections
+describe it, pressed by a rigid target (:class:`~jointsim.mechanics.dome.MembraneModel`) or a
+soft one (:class:`~jointsim.mechanics.soft_target.SoftTargetModel`). Above both model
+modules, so neither imports the other's factory."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..geometry import DomeSurface, flat_disc, isotropic_cap
+from ..scene import Scene
+from .dome import MembraneModel, membrane_material
+from .soft_target import SoftTargetModel, soft_material
+
+__all__ = ["membrane_from_scene"]
+
+
+def membrane_from_scene(
+    scene: Scene,
+    target_radius: float | None = None,
+    dome: DomeSurface | None = None,
+    target_modulus: float | None = None,
+    target_poisson: float | None = None,
+    contact_slave: str | None = None,
+    device: str = "cpu",
+    inflate_from: np.ndarray | None = None,
+) -> MembraneModel:
+    """The membrane of ``scene`` (its [membrane] and [target] sections and chamber); the
+    target's radius may be overridden by ``target_radius`` m; ``dome`` defaults to the
+    scene's undeformed dome, meshed isotropically with [membrane] rim_vertices, or with
+    [membrane] moulding = "flat" a flat disc inflated until its apex reaches the dome
+    height (the reservoir then holds the pressure that takes; reservoir_pressure_pa is not
+    used). A soft
+    target ([target] kind = "soft", or any ``target_modulus`` Pa given) gives a
+    :class:`~jointsim.mechanics.soft_target.SoftTargetModel` with that Young's modulus and
+    ``target_poisson`` (default the scene's), and ``contact_slave`` passed on to it (None:
+    its rule, the softer body's nodes). ``device``: the Warp device of the element kernels.
+    ``inflate_from``: for a flat moulding, the membrane's displacement in an earlier model of
+    this scene (or of it with its moduli scaled), which the inflation starts from."""
+    m = scene.membrane
+    material = membrane_material(m)
+    c = scene.chamber
+    t = scene.target
+    kw = {}
+    cls = MembraneModel
+    if target_modulus is not None or target_poisson is not None or t.kind == "soft":
+        cls = SoftTargetModel
+        kw["target_material"] = soft_material(
+            t.youngs_modulus if target_modulus is None else target_modulus,
+            t.poisson_ratio if target_poisson is None else target_poisson,
+        )
+        kw["contact_slave"] = contact_slave
+    elif contact_slave is not None:
+        raise ValueError(f"contact_slave = {contact_slave!r}: only for a soft target (give target_modulus)")
+    flat = m.moulding == "flat"
+    if dome is None:
+        dome = flat_disc(c.base_radius, m.rim_vertices) if flat else isotropic_cap(c.base_radius, c.dome_height, m.rim_vertices)
+    if flat:
+        kw["inflate_to"] = c.dome_height
+        kw["inflate_from"] = inflate_from
+    elif inflate_from is not None:
+        raise ValueError("inflate_from: only for a membrane moulded flat ([membrane] moulding = \"flat\")")
+    return cls(
+        dome,
+        c.membrane_thickness,
+        material,
+        m.layers,
+        0.0 if flat else m.reservoir_pressure,
+        t.radius if target_radius is None else target_radius,
+        friction=t.friction,
+        closed=m.chamber == "closed",
+        volumetric=m.volumetric,
+        device=device,
+        element=m.element,
+        **kw,
+    )
