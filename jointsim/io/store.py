@@ -641,14 +641,16 @@ class RecordStore:
         return self.path
 
     def _check_duplicates(self, files: _Files, idx: np.ndarray, file: np.ndarray, pos: np.ndarray, dups: np.ndarray) -> None:
-        """An index written twice (a retried task) is harmless when both copies agree; the first
-        1000 such indices are compared (each costs two file reads)."""
+        """An index written twice (a retried task, a worker killed after it wrote) is harmless
+        when both copies agree in every field but the volatile ones (wall-clock timings, which
+        two runs of the same work never share); the first copy is kept. The first 1000 such
+        indices are compared (each costs two file reads)."""
         for i in dups[:1000]:
             where = np.flatnonzero(idx == i)
             copies = [(files.paths[file[w]], _load(files.paths[file[w]], ("f/",)), pos[w]) for w in where]
             p0, z0, j0 = copies[0]
             for p, z, j in copies[1:]:
-                for n in self.schema.names:
+                for n in (f.name for f in self.schema.fields if not f.volatile):
                     if not np.array_equal(z0[f"f/{n}"][j0], z[f"f/{n}"][j], equal_nan=z[f"f/{n}"].dtype.kind in "fc"):
                         raise ValueError(
                             f"record {i} was written twice with different data (field {n!r}; files {p0.name}, {p.name}): "

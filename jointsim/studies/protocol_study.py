@@ -203,14 +203,19 @@ def mirror_pair_differences(v: dict[int, np.ndarray], n_el: int) -> dict[str, fl
     return out
 
 
-def jittered_chamber(scene: Scene, amplitude: float) -> ChamberMesh:
-    """The chamber of ``scene`` meshed with its dome's free vertices moved by up to
-    ``amplitude`` (m) along z, by a fixed low-discrepancy sequence (the same everywhere)."""
-    surface = reference_surface(scene)
+def jitter_surface(surface: trimesh.Trimesh, amplitude: float) -> trimesh.Trimesh:
+    """``surface`` with its vertices above the base moved by up to ``amplitude`` (m) along z,
+    by a fixed low-discrepancy sequence (the same everywhere): the same chamber, another mesh."""
     v = np.array(surface.vertices)
     free = v[:, 2] > 0
     v[free, 2] += amplitude * (2 * np.mod(np.arange(free.sum()) * 0.6180339887498949, 1.0) - 1)
-    return mesh_chamber(trimesh.Trimesh(v, surface.faces, process=False), electrode_layout(scene), scene.mesh, use_cache=False)
+    return trimesh.Trimesh(v, surface.faces, process=False)
+
+
+def jittered_chamber(scene: Scene, amplitude: float) -> ChamberMesh:
+    """The chamber of ``scene`` meshed with its dome's vertices jittered (:func:`jitter_surface`)."""
+    surface = jitter_surface(reference_surface(scene), amplitude)
+    return mesh_chamber(surface, electrode_layout(scene), scene.mesh, use_cache=False)
 
 
 def mesh_noise_floor(scene: Scene, chamber: ChamberMesh, fields, protocols: dict) -> dict[str, dict[int, float]]:
