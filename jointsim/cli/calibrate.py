@@ -12,6 +12,7 @@ import argparse
 import shlex
 from pathlib import Path
 
+OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "build calibration maps (size, CoM, direct regression, stiffness) from a dataset, evaluated on held-out presses"
 
 

@@ -4,9 +4,12 @@ stage timing."""
 from __future__ import annotations
 
 import argparse
+import shutil
+import tempfile
 import time
 from contextlib import contextmanager
 from dataclasses import replace
+from pathlib import Path
 from typing import Iterator
 
 from ..scene import MESH_PRESETS, SCENES_DIR, Scene, load_scene
@@ -60,3 +63,27 @@ def stage(name: str, timings: dict[str, float], quiet: bool = False) -> Iterator
     timings[name] = time.perf_counter() - t0
     if not quiet:
         print(f" {timings[name]:.2f} s", flush=True)
+
+
+def check_output(path: Path, kind: str, flag: str = "--out") -> None:
+    """Refuse, before any work, an output that cannot be written: ``kind`` "folder" (written
+    into) or "file" (an .h5 store, resumed when it exists). Raises ValueError naming ``flag``,
+    the path and why. Probes by making and removing a folder in the nearest existing ancestor,
+    so nothing is left behind and a read-only or virtual file system (/proc) is found out."""
+    path = Path(path)
+    if kind == "file":
+        if path.is_dir():
+            raise ValueError(f"{flag} {path}: is a folder; give the store's file name (e.g. {path / 'dataset.h5'})")
+        if path.exists() and not path.is_file():
+            raise ValueError(f"{flag} {path}: exists and is not a regular file")
+    elif path.exists() and not path.is_dir():
+        raise ValueError(f"{flag} {path}: exists and is not a folder")
+    ancestor = (path.parent if kind == "file" else path).absolute()
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise ValueError(f"{flag} {path}: {ancestor} is a file, not a folder")
+    try:
+        shutil.rmtree(tempfile.mkdtemp(prefix=".jointsim-probe-", dir=ancestor))
+    except OSError as e:
+        raise ValueError(f"{flag} {path}: cannot write in {ancestor} ({e.strerror or e})") from None

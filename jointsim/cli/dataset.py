@@ -21,6 +21,7 @@ from .._cores import available_cores
 from ..scene import scene_toml
 from .common import add_scene_arguments, scene_from_args
 
+OUTPUT = "file"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "synthetic labelled dataset (voltages, labels, force, image metrics) in one resumable HDF5 file"
 
 

@@ -13,6 +13,7 @@ import numpy as np
 from .. import __version__
 from .common import add_scene_arguments, scene_from_args, stage
 
+OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "EIT forward solve of a scene's chamber: voltages, Jacobian, VTU and .mat"
 
 

@@ -25,6 +25,7 @@ from .common import (
     target_radius_mm,
 )
 
+OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "force-indentation sweep of the dome membrane (FEM): CSV, PNG, VTU"
 
 

@@ -10,6 +10,7 @@ import warnings
 
 from ..scene import SceneError
 from . import calibrate, dataset, forward, indent, mesh, palpate, protocol_study, stiffness_study
+from .common import check_output
 
 SUBCOMMANDS = {"forward": forward, "mesh": mesh, "protocol-study": protocol_study, "indent": indent, "palpate": palpate,
                "dataset": dataset, "calibrate": calibrate, "stiffness-study": stiffness_study}
@@ -27,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name, mod in SUBCOMMANDS.items():
         sp = sub.add_parser(name, help=mod.HELP, description=mod.__doc__)
         mod.add_arguments(sp)
-        sp.set_defaults(handler=mod.run)
+        sp.set_defaults(handler=mod.run, output=getattr(mod, "OUTPUT", None))
     return p
 
 
@@ -38,9 +39,10 @@ SOLVER_ERRORS = (("jointsim.mechanics.newton", "NewtonError"), ("jointsim.mesh.m
 
 
 def _reported(e: Exception) -> bool:
-    """Whether ``e`` is reported in one line (bad input or a solver failure), not a traceback."""
+    """Whether ``e`` is reported in one line (bad input, a solver failure, or the system refusing
+    a read or write: a full disk, a permission, with its path), not a traceback."""
     loaded = tuple(getattr(sys.modules[m], name) for m, name in SOLVER_ERRORS if m in sys.modules)
-    return isinstance(e, (SceneError, ValueError) + loaded)
+    return isinstance(e, (SceneError, ValueError, OSError) + loaded)
 
 
 def _warning_line(command: str):
@@ -57,6 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _warning_line(args.command)
+            if args.output is not None:
+                check_output(args.out, args.output)
             return int(args.handler(args) or 0)
     except Exception as e:
         if not _reported(e):

@@ -20,6 +20,7 @@ from tqdm import tqdm
 from ..scene import PALPATION_MODES, membrane_layers, membrane_rim_vertices, scene_toml
 from .common import add_scene_arguments, scene_from_args
 
+OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "virtual palpation with the MuJoCo rig (paper Fig. 4): HDF5 frames, VTU series, PNG, summary"
 
 

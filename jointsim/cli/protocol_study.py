@@ -13,6 +13,7 @@ from tqdm import tqdm
 
 from .common import add_scene_arguments, add_target_size_arguments, scene_from_args, target_radius_mm
 
+OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "the paper's protocol study (Fig. 2 G-H): skip-0..8 metrics and images"
 
 

@@ -15,6 +15,7 @@ from tqdm import tqdm
 from ..studies.stiffness_sensitivity import DEFAULT_DEPTHS_MM, DEFAULT_MODULI_KPA, run_study, write_report
 from .common import add_scene_arguments, add_target_size_arguments, scene_from_args, target_radius_mm
 
+OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "stiffness identifiability: force sensitivity to target and membrane moduli"
 
 
