@@ -163,6 +163,7 @@ MESH_PRESETS: dict[str, dict[str, float]] = {
     # convergence checks only (~1 M tets; minutes per mesh and per solve on 2 cores)
     "fine": {"max_edge_mm": 0.66, "electrode_refinement": 10.0},
 }
+SNR_RANGE_DB = (0.0, 200.0)  # [noise] snr_db, [dataset] snr_db and the --snr-db flags: dB re the mean standing |V|
 # [mesh] keys of the fTetWild mesher used until 2026-11-27: still read (scenes and stored
 # provenance carry them), warned about and ignored
 RETIRED_MESH_KEYS = ("epsilon_rel", "stop_energy", "max_opt_iter")
@@ -419,7 +420,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         )
 
     t = _Table(data.get("noise", {}), "noise")
-    snr = t.number("snr_db", 74.2, 0.0, 200.0)
+    snr = t.number("snr_db", 74.2, *SNR_RANGE_DB)
     seed = t.integer("seed", 0, 0, 2**63 - 1)
     drift = t.number("drift_per_s", 0.0, 0.0, 1.0)
     rate = t.number("frame_rate_hz", 50.0, 0.0, 1e5, lo_open=True)
@@ -733,7 +734,7 @@ def _dataset(data: dict[str, Any], base_r: float, height: float, ring: float, di
     gap = 2 * ring * math.sin(math.pi / count) - diam
     jit_hi = min(zone, gap / 2, base_r - ring - diam / 2)
     jitter = t.number("electrode_jitter_mm", min(0.1, jit_hi), 0.0, jit_hi)
-    snr = _range(t, "snr_db", d.snr_db, 0.0, 200.0)
+    snr = _range(t, "snr_db", d.snr_db, *SNR_RANGE_DB)
     rigid = t.number("rigid_fraction", 1.0, 0.0, 1.0)
     modulus = _range(t, "target_modulus_kpa", (10.0, 3000.0), 0.0, 1e8, lo_open=True)
     n_ref = t.integer("reference_frames", 50, 1, 100_000)

@@ -91,3 +91,7 @@ def test_protocol_study_command(test_chamber, tmp_path):
     bad = subprocess.run([sys.executable, "-m", "jointsim", "protocol-study", "--depth-mm", "-1", "--out", str(out)],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "--depth-mm" in bad.stderr
+    from jointsim.cli.main import main
+
+    assert main(["protocol-study", "--snr-db", "-10", "--out", str(out / "snr")]) == 2  # as [noise] snr_db: >= 0
+    assert not (out / "snr").exists()

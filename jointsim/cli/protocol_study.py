@@ -11,6 +11,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from ..scene import SNR_RANGE_DB
 from .common import add_scene_arguments, add_target_size_arguments, scene_from_args, target_radius_mm
 
 OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
@@ -39,6 +40,9 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--depth-mm = {args.depth_mm}: must be in (0, {scene.chamber.dome_height * 1e3:g}) (the dome height)")
     if args.cells < 100:
         raise ValueError(f"--cells = {args.cells}: must be >= 100")
+    lo, hi = SNR_RANGE_DB
+    if args.snr_db is not None and not lo <= args.snr_db <= hi:
+        raise ValueError(f"--snr-db = {args.snr_db:g}: must be in [{lo:g}, {hi:g}] dB (as [noise] snr_db)")
     cfg = StudyConfig(
         target_radius=radius * 1e-3,
         depth=args.depth_mm * 1e-3,
