@@ -163,9 +163,22 @@ def test_dask_cluster_writes_the_same_data(scene, scene_file, reference, tmp_pat
     assert run.data_sha256 == reference[0].data_sha256
 
 
+def _group_alive(pgid: int) -> bool:
+    """Whether a live (not zombie) process of process group ``pgid`` remains, read from /proc."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            return True
+    return False
+
+
 def test_resume_after_kill_gives_the_uninterrupted_data(scene, scene_file, reference, tmp_path):
-    """`jointsim dataset` killed with SIGKILL (its workers too) once its first press is stored,
-    then run again: no sample lost or corrupt, the data of the uninterrupted run."""
+    """`jointsim dataset`'s driver killed with SIGKILL once its first press is stored: its worker
+    and the resource tracker die with it (no orphan writes on); run again, no sample is lost or
+    corrupt, and the data are the uninterrupted run's."""
     out = tmp_path / "killed"
     cmd = [sys.executable, "-m", "jointsim", "dataset", str(scene_file), "--n", str(N), "--seed", str(SEED),
            "--out", str(out), "--workers", "1", "--no-progress"]
@@ -177,8 +190,15 @@ def test_resume_after_kill_gives_the_uninterrupted_data(scene, scene_file, refer
             assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
             assert time.monotonic() - t0 < 120, "no record stored within 2 min"
             time.sleep(0.02)
+        os.kill(proc.pid, signal.SIGKILL)  # the driver alone: its worker must die with it (no orphan writing on)
+        proc.wait()
+        t1 = time.monotonic()
+        while _group_alive(proc.pid):
+            assert time.monotonic() - t1 < 10, "a worker outlived its killed driver by 10 s"
+            time.sleep(0.05)
     finally:
-        os.killpg(proc.pid, signal.SIGKILL)  # the process group this test started: the driver and its worker
+        if _group_alive(proc.pid):
+            os.killpg(proc.pid, signal.SIGKILL)  # the process group this test started
         proc.wait()
     assert not out.with_suffix(".h5").exists()
     stored = len(list(records.rglob("r*.npz")))

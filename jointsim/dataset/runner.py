@@ -35,10 +35,14 @@ Workers
 from __future__ import annotations
 
 import concurrent.futures as cf
+import concurrent.futures.process
+import ctypes
 import hashlib
 import json
 import multiprocessing
 import os
+import signal
+import sys
 import tempfile
 import threading
 import time
@@ -180,15 +184,34 @@ def _single_threaded_children() -> Iterator[None]:
                 os.environ[k] = v
 
 
+def _die_with(parent: int) -> None:
+    """A local worker's initializer: the kernel kills this process when its parent dies (Linux's
+    PR_SET_PDEATHSIG), so a driver killed with SIGKILL leaves no worker writing on; where that
+    is not available, a worker outlives a killed driver by the group it is computing at most
+    (the pool's own management then ends it)."""
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1: PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            pass
+    if os.getppid() != parent:  # the parent died before the line above ran
+        os._exit(1)
+
+
 def _run_local(tasks: Sequence[tuple], workers: int, tick: Callable[[tuple], None]) -> None:
     ctx = multiprocessing.get_context("spawn")
     with _single_threaded_children():
-        pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
+        pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_die_with, initargs=(os.getpid(),))
         futures: list[cf.Future] = []
         try:
             futures = [pool.submit(_run_group, *t) for t in tasks]
             for f in cf.as_completed(futures):
                 tick(f.result())
+        except cf.process.BrokenProcessPool:
+            for f in futures:
+                f.cancel()
+            raise ChildProcessError("a worker process died (killed, or out of memory) while computing a press; nothing "
+                                    "stored is lost: run the same command again to resume") from None
         except BaseException:
             for f in futures:
                 f.cancel()
