@@ -503,23 +503,34 @@ def _target(data: dict[str, Any], base_r: float) -> Target:
     return Target(radius * MM, kind, friction, modulus * 1e3, poisson)
 
 
+def shipped_scenes() -> list[str]:
+    """The names of the scenes shipped with jointsim (``extends = "paper_sensor"`` takes one)."""
+    return sorted(p.stem for p in SCENES_DIR.glob("*.toml"))
+
+
 def scene_data(path: str | Path, _chain: tuple[Path, ...] = ()) -> dict[str, Any]:
     """The parsed TOML mapping of a scene file, with ``extends = "other.toml"`` (a path
-    relative to the file) resolved: the other scene's mapping, each of this file's sections
-    updated key by key over it (so a study scene states only what it changes)."""
+    relative to the file, or a shipped scene's name: :func:`shipped_scenes`) resolved: the
+    other scene's mapping, each of this file's sections updated key by key over it (so a study
+    scene states only what it changes)."""
     path = Path(path)
     if not path.is_file():
         raise SceneError(f"scene file not found: {path}")
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise SceneError(f"{path}: not a UTF-8 text file (a scene is TOML text)") from None
     except tomllib.TOMLDecodeError as e:
         raise SceneError(f"{path}: not valid TOML: {e}") from None
     base = data.pop("extends", None)
     if base is None:
         return data
     if not isinstance(base, str):
-        raise SceneError(f"{path}: extends = {base!r}: must be the path of another scene file")
-    base_path = (path.parent / base).resolve()
+        raise SceneError(f"{path}: extends = {base!r}: must be the path of another scene file or a shipped scene's name")
+    if base in shipped_scenes():
+        base_path = SCENES_DIR / f"{base}.toml"
+    else:
+        base_path = (path.parent / base).resolve()
     if base_path in _chain or base_path == path.resolve():
         raise SceneError(f"{path}: extends = {base!r}: scenes extend each other in a cycle")
     merged = scene_data(base_path, _chain + (path.resolve(),))
@@ -563,10 +574,22 @@ def _toml(data: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+# the sections a scene file must describe, itself or through what it extends: the sensor
+SENSOR_SECTIONS = ("chamber", "electrodes")
+
+
 def load_scene(path: str | Path) -> Scene:
-    """Read and validate a TOML scene file (``extends`` resolved: :func:`scene_data`)."""
+    """Read and validate a TOML scene file (``extends`` resolved: :func:`scene_data`). It must
+    describe the sensor (``SENSOR_SECTIONS``), itself or through a scene it extends; the other
+    sections default to the paper's values (see ``scenes/paper_sensor.toml``)."""
     path = Path(path)
-    return scene_from_dict(scene_data(path), name=path.stem)
+    data = scene_data(path)
+    scene = scene_from_dict(data, name=path.stem)
+    missing = [f"[{k}]" for k in SENSOR_SECTIONS if k not in data]
+    if missing:
+        raise SceneError(f"{path}: no {' or '.join(missing)} section: the file does not describe a sensor; give "
+                         f"{' and '.join(missing)}, or start it with extends = \"paper_sensor\" (shipped: {', '.join(shipped_scenes())})")
+    return scene
 
 
 # --------------------------------------------------------------------------------------------

@@ -21,6 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 N, K, SEED = 7, 3, 3
 
 SCENE = """
+extends = "paper_sensor"
 name = "dataset_test"
 [mesh]
 preset = "test"

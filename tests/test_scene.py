@@ -5,7 +5,7 @@ import pytest
 
 from conftest import PAPER_SCENE, ROOT
 
-from jointsim.scene import MEMBRANE_RIM_VERTICES, SceneError, load_scene, scene_from_dict
+from jointsim.scene import MEMBRANE_RIM_VERTICES, SCENES_DIR, SceneError, load_scene, scene_from_dict
 
 
 def test_paper_scene_holds_the_papers_values(paper_scene):
@@ -148,3 +148,25 @@ def test_a_wedge_membrane_too_coarse_for_its_force_is_warned_of():
         warnings.simplefilter("error")
         scene_from_dict({"membrane": {"rim_vertices": 48}})
         scene_from_dict({"membrane": {"rim_vertices": 32, "element": "p2_tet"}})
+
+
+def test_a_scene_file_must_describe_the_sensor_or_extend_one(tmp_path):
+    """An empty file, or one without [electrodes], is refused naming what is missing and how to
+    take the paper's sensor; ``extends`` takes a shipped scene by name from any folder."""
+    empty, partial, named = tmp_path / "empty.toml", tmp_path / "partial.toml", tmp_path / "named.toml"
+    empty.write_text("")
+    partial.write_text("[chamber]\nbase_radius_mm = 20.0\n")
+    named.write_text('extends = "paper_sensor"\n[noise]\nsnr_db = 60.0\n')
+    with pytest.raises(SceneError, match=r"empty\.toml: no \[chamber\] or \[electrodes\] section.*extends = \"paper_sensor\""):
+        load_scene(empty)
+    with pytest.raises(SceneError, match=r"partial\.toml: no \[electrodes\] section"):
+        load_scene(partial)
+    scene = load_scene(named)
+    assert scene.noise.snr_db == 60.0 and scene.electrodes == load_scene(SCENES_DIR / "paper_sensor.toml").electrodes
+
+
+def test_a_scene_file_that_is_not_utf8_text_is_refused_naming_it(tmp_path):
+    f = tmp_path / "utf16.toml"
+    f.write_text('extends = "paper_sensor"\n', encoding="utf-16")
+    with pytest.raises(SceneError, match=r"utf16\.toml: not a UTF-8 text file"):
+        load_scene(f)

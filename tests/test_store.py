@@ -377,3 +377,26 @@ def test_two_concurrent_writers_lose_nothing(tmp_path):
     assert got.data_sha256 == expected.data_sha256
     np.testing.assert_array_equal(got["image"], expected["image"])
     assert len(got.run["sessions"]) == 2
+
+
+def test_a_second_driver_on_one_output_is_refused_at_its_start(tmp_path):
+    """exclusive(): while one run holds an output, another is refused at once, naming the path and
+    the holder; the lock goes with the holder (here its block; a killed process's goes with it)."""
+    from jointsim.io.store import exclusive
+
+    with exclusive(tmp_path / "run"):
+        with pytest.raises(ValueError, match=r"run\.h5: another jointsim run is writing it \(pid \d+ on "):
+            with exclusive(tmp_path / "run.h5"):
+                pass
+    with exclusive(tmp_path / "run"):  # released
+        pass
+
+
+def test_a_second_dataset_on_one_output_is_refused_before_any_work(tmp_path):
+    from jointsim.dataset import generate_dataset
+    from jointsim.io.store import exclusive
+    from jointsim.scene import scene_from_dict
+
+    with exclusive(tmp_path / "ds.h5"), pytest.raises(ValueError, match="another jointsim run is writing it"):
+        generate_dataset(scene_from_dict({"mesh": {"preset": "test"}}), 3, tmp_path / "ds.h5", seed=0, workers=1)
+    assert not (tmp_path / "ds.partial").exists()

@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     # to run unless its conditional numerical reproducibility is on; a resumed run must give the
     # frames an uninterrupted one gives. Read by MKL when it first runs, i.e. after this line.
     os.environ.setdefault("MKL_CBWR", "AUTO")
-    from ..io.store import open_records, open_store
+    from ..io.store import exclusive, open_records, open_store
     from ..mechanics.fem import warp_device
     from ..palpation import Palpation, program_params, run_palpation
     from ..palpation.report import VtuSeries, summarise, write_pvd, write_report, write_setup
@@ -128,30 +128,31 @@ def run(args: argparse.Namespace) -> int:
     diam = ", ".join(f"{2e3 * r:g}" for r in spec.target_radii)
     print(f"jointsim palpate: scene {scene.name}, mesh {scene.mesh.preset} P{scene.mesh.element_order}, {spec.mode} mode, targets {diam} mm, "
           f"{params['n_records']} frames at {scene.noise.frame_rate_hz:g} Hz -> {out}")
-    if h5.exists():
-        rec = open_records(h5)
-        if rec.provenance["params"] != json.loads(json.dumps(params)):
-            raise ValueError(f"{h5} holds a finished run with other settings; remove it or use another --out")
-        print(f"  {h5} is complete ({len(rec)} frames): reports rewritten from it")
-    else:
-        pal = Palpation(scene, spec, device=device)
-        print("  set-up: " + ", ".join(f"{k} {v:.1f} s" for k, v in pal.setup_timings.items())
-              + f"; chamber {pal.reference.mesh.n_tets:,} tets, membrane {pal.membrane_nodes:,} nodes ({scene.membrane.element}), "
-              f"{pal.grid.n_cells:,} voxels, lambda {pal.reconstructor.lam:.3g}")
-        store = open_store(h5, pal.schema(), scene_toml=scene_toml(args.scene), seed=scene.noise.seed,
-                           n_records=pal.n_records, params=params, command=shlex.split(command))
-        done = len(store.done())
-        if done:
-            print(f"  resuming: {done} of {pal.n_records} frames already stored")
-        write_setup(out, pal)
-        export = VtuSeries(out, pal, args.vtu_every) if args.vtu_every else None
-        with tqdm(total=pal.n_records, unit="frame", disable=None if args.progress is None else not args.progress) as bar:
-            for f in run_palpation(pal, store, export=export, progress=bar.update):
-                bar.set_postfix_str(f"target {2e3 * f.segment.radius:g} mm, depth {f.record['depth'] * 1e3:.2f} mm, "
-                                    f"F {f.state.force[2] * 1e3:.1f} mN", refresh=False)
-        store.finalize(compression="gzip")
-        pal.free()
-        rec = open_records(h5)
+    with exclusive(h5):  # a second palpate on this --out is refused now, not at finalize
+        if h5.exists():
+            rec = open_records(h5)
+            if rec.provenance["params"] != json.loads(json.dumps(params)):
+                raise ValueError(f"{h5} holds a finished run with other settings; remove it or use another --out")
+            print(f"  {h5} is complete ({len(rec)} frames): reports rewritten from it")
+        else:
+            pal = Palpation(scene, spec, device=device)
+            print("  set-up: " + ", ".join(f"{k} {v:.1f} s" for k, v in pal.setup_timings.items())
+                  + f"; chamber {pal.reference.mesh.n_tets:,} tets, membrane {pal.membrane_nodes:,} nodes ({scene.membrane.element}), "
+                  f"{pal.grid.n_cells:,} voxels, lambda {pal.reconstructor.lam:.3g}")
+            store = open_store(h5, pal.schema(), scene_toml=scene_toml(args.scene), seed=scene.noise.seed,
+                               n_records=pal.n_records, params=params, command=shlex.split(command))
+            done = len(store.done())
+            if done:
+                print(f"  resuming: {done} of {pal.n_records} frames already stored")
+            write_setup(out, pal)
+            export = VtuSeries(out, pal, args.vtu_every) if args.vtu_every else None
+            with tqdm(total=pal.n_records, unit="frame", disable=None if args.progress is None else not args.progress) as bar:
+                for f in run_palpation(pal, store, export=export, progress=bar.update):
+                    bar.set_postfix_str(f"target {2e3 * f.segment.radius:g} mm, depth {f.record['depth'] * 1e3:.2f} mm, "
+                                        f"F {f.state.force[2] * 1e3:.1f} mN", refresh=False)
+            store.finalize(compression="gzip")
+            pal.free()
+            rec = open_records(h5)
     written = write_pvd(out, scene.noise.frame_rate_hz) + write_report(out, rec, command)
     for r in summarise(rec):
         print(f"  {r['diameter_mm']:g} mm: depth {r['max_depth_mm']:.2f} mm, F {r['max_force_mN']:.1f} mN, "

@@ -55,7 +55,7 @@ import numpy as np
 
 from .._cores import available_cores
 from ..geometry import electrode_layout
-from ..io.store import RecordStore, attach, open_records, open_store
+from ..io.store import RecordStore, attach, exclusive, open_records, open_store
 from ..mesh.chamber import ChamberMesh
 from ..mesh.electrodes import disc_patches
 from ..mesh.tetmesh import TetMesh
@@ -281,52 +281,53 @@ def generate_dataset(
     if not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ValueError(f"workers = {workers!r}: must be an integer >= 1")
     final, partial = _paths(out)
-    if final.exists():
+    with exclusive(final):  # a second driver on this output is refused now, not at finalize
+        if final.exists():
+            rec = open_records(final, fields=["group"], verify=False)
+            prov = rec.provenance
+            same = prov["schema"]["name"] == "dataset" and prov["n_records"] == n_samples and prov["seed"] == seed
+            if same:
+                want = dataset_params(scene, n_samples, prov["params"].get("chamber_sha256", ""))
+                same = json.loads(json.dumps(want)) == prov["params"]
+            if not same:
+                raise ValueError(f"{final} holds a finished run with other settings; remove it or write to another path")
+            return DatasetRun(final, n_samples, rec.data_sha256, 0, n_samples, 0, time.perf_counter() - t0)
+
+        k = scene.dataset.samples_per_press
+        if not (partial / CHAMBER_FILE).exists():
+            _save_chamber_once(partial, deployed_chamber(scene))
+        chamber, sha = _load_chamber(partial, scene)
+        n_cells = None
+        if scene.dataset.images:  # the image's length is the nominal voxel grid's
+            setup = DatasetSetup(scene, chamber, seed)
+            n_cells = setup.pal.grid.n_cells
+            setup.free()
+        from ..eit.protocol import skip_protocol
+
+        n_meas = skip_protocol(scene.electrodes.count, scene.drive.skip, scene.drive.current).n_meas
+        schema = dataset_schema(scene.electrodes.count, n_meas, n_cells)
+        store = open_store(final, schema, scene_toml=scene_toml if scene_toml is not None else f'name = "{scene.name}"\n',
+                           seed=int(seed), n_records=int(n_samples), params=dataset_params(scene, n_samples, sha),
+                           command=command)
+        missing = store.missing()
+        todo = np.unique(missing // k)
+        if on_start is not None:
+            on_start(n_samples - len(missing), len(missing))
+        rejected: list[str] = []
+
+        def tick(result: tuple[int, int, list[str], float]) -> None:
+            rejected.extend(result[2])
+            if progress is not None:
+                progress(result[1])
+
+        tasks = [(str(final), scene, int(seed), int(g), int(n_samples)) for g in todo]
+        if tasks:
+            if scheduler is not None:
+                _run_dask(tasks, scheduler, tick)
+            else:
+                _run_local(tasks, min(workers, len(tasks)), tick)
+        store.finalize(compression="gzip")
         rec = open_records(final, fields=["group"], verify=False)
-        prov = rec.provenance
-        same = prov["schema"]["name"] == "dataset" and prov["n_records"] == n_samples and prov["seed"] == seed
-        if same:
-            want = dataset_params(scene, n_samples, prov["params"].get("chamber_sha256", ""))
-            same = json.loads(json.dumps(want)) == prov["params"]
-        if not same:
-            raise ValueError(f"{final} holds a finished run with other settings; remove it or write to another path")
-        return DatasetRun(final, n_samples, rec.data_sha256, 0, n_samples, 0, time.perf_counter() - t0)
-
-    k = scene.dataset.samples_per_press
-    if not (partial / CHAMBER_FILE).exists():
-        _save_chamber_once(partial, deployed_chamber(scene))
-    chamber, sha = _load_chamber(partial, scene)
-    n_cells = None
-    if scene.dataset.images:  # the image's length is the nominal voxel grid's
-        setup = DatasetSetup(scene, chamber, seed)
-        n_cells = setup.pal.grid.n_cells
-        setup.free()
-    from ..eit.protocol import skip_protocol
-
-    n_meas = skip_protocol(scene.electrodes.count, scene.drive.skip, scene.drive.current).n_meas
-    schema = dataset_schema(scene.electrodes.count, n_meas, n_cells)
-    store = open_store(final, schema, scene_toml=scene_toml if scene_toml is not None else f'name = "{scene.name}"\n',
-                       seed=int(seed), n_records=int(n_samples), params=dataset_params(scene, n_samples, sha),
-                       command=command)
-    missing = store.missing()
-    todo = np.unique(missing // k)
-    if on_start is not None:
-        on_start(n_samples - len(missing), len(missing))
-    rejected: list[str] = []
-
-    def tick(result: tuple[int, int, list[str], float]) -> None:
-        rejected.extend(result[2])
-        if progress is not None:
-            progress(result[1])
-
-    tasks = [(str(final), scene, int(seed), int(g), int(n_samples)) for g in todo]
-    if tasks:
-        if scheduler is not None:
-            _run_dask(tasks, scheduler, tick)
-        else:
-            _run_local(tasks, min(workers, len(tasks)), tick)
-    store.finalize(compression="gzip")
-    rec = open_records(final, fields=["group"], verify=False)
-    return DatasetRun(final, n_samples, rec.data_sha256, len(tasks), n_samples - len(missing), len(rejected),
-                      time.perf_counter() - t0, tuple(rejected))
+        return DatasetRun(final, n_samples, rec.data_sha256, len(tasks), n_samples - len(missing), len(rejected),
+                          time.perf_counter() - t0, tuple(rejected))
 

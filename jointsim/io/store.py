@@ -38,6 +38,7 @@ timings) are stored but left out of that digest.
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
@@ -51,11 +52,12 @@ import sys
 import tempfile
 import tomllib
 import zipfile
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from importlib import metadata
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -74,6 +76,7 @@ __all__ = [
     "open_records",
     "package_versions",
     "utc_now",
+    "exclusive",
 ]
 
 STORE_FORMAT = 1
@@ -340,6 +343,33 @@ def _final_path(path: str | Path) -> Path:
 
 def _partial_path(final: Path) -> Path:
     return final.with_suffix(".partial")
+
+
+@contextmanager
+def exclusive(path: str | Path) -> Iterator[None]:
+    """Hold the run at ``path`` for this process while the block runs: a second driver on the
+    same output (another ``jointsim`` process, or a second run in this one) is refused at its
+    start with a ValueError naming the path and the holder, instead of found out at finalize.
+    The lock is ``flock`` on a file beside the store (``.NAME.lock``), which the system releases
+    however the holder ends, so a run killed with SIGKILL can be resumed at once. Workers of the
+    run (:func:`attach`) take no lock."""
+    final = _final_path(path)
+    lock = final.with_name(f".{final.name}.lock")
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
+        os.close(fd)
+        raise ValueError(f"{final}: another jointsim run is writing it ({holder}); wait for it to end, "
+                         "or give another output") from None
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()}".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # closing the descriptor releases the lock
 
 
 def _fsync_dir(d: Path) -> None:
