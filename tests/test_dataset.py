@@ -315,3 +315,13 @@ def test_the_command_line_rejects_bad_input_with_exit_2(tmp_path, capsys):
     assert main(["dataset", str(bad), "--n", "3", "--out", str(tmp_path / "x")]) == 2
     assert "dataset.radius_mm" in capsys.readouterr().err
     assert main(["dataset", str(bad.with_name("none.toml")), "--n", "0"]) == 2
+
+
+def test_a_worker_that_dies_ends_the_run_with_one_clear_error():
+    """A local worker killed mid-task (here it exits at once) ends the run with a
+    ChildProcessError that says nothing stored is lost and to rerun, not a BrokenProcessPool
+    traceback; the command line reports an OSError in one line."""
+    from jointsim.dataset.runner import _run_local
+
+    with pytest.raises(ChildProcessError, match="a worker process died.*run the same command again to resume"):
+        _run_local([(3,)], 1, lambda result: None, task=os._exit)

@@ -16,6 +16,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ..io.export import atomic_path
+from ..io.figures import pyplot
 from .build import SENSING_RADIUS, Calibration
 from .regression import OUTPUTS
 
@@ -104,10 +105,7 @@ def _save(fig, path: Path) -> Path:
 
 
 def _size_figure(out: Path, cal: Calibration, along: str) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     curves = {k: lc for k, lc in cal.map.size.items() if lc.along == along}
     t = cal.tables["size_at_levels"]
@@ -133,10 +131,7 @@ def _size_figure(out: Path, cal: Calibration, along: str) -> Path:
 
 
 def _com_figure(out: Path, grids: dict[str, dict[str, np.ndarray]]) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 4))
     for ax, (name, g) in zip(axes, grids.items()):
@@ -156,10 +151,7 @@ def _com_figure(out: Path, grids: dict[str, dict[str, np.ndarray]]) -> Path:
 
 
 def _stiffness_figure(out: Path, t: Mapping[str, np.ndarray]) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(4, 4))
     ax.loglog(t["true_modulus"] / 1e3, t["predicted_modulus"] / 1e3, "o", mfc="none")

@@ -17,6 +17,7 @@ from tqdm import tqdm
 
 from .. import __version__
 from ..io.export import atomic_path, write_npz, write_vtu
+from ..io.figures import pyplot
 from ..scene import membrane_layers, membrane_rim_vertices
 from .common import (
     add_scene_arguments,
@@ -112,10 +113,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _plot(path: Path, rows: list[dict], radius: float, target) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     d = [r["depth_mm"] for r in rows]
     fig, ax = plt.subplots(figsize=(5, 3.5))

@@ -35,7 +35,6 @@ Workers
 from __future__ import annotations
 
 import concurrent.futures as cf
-import concurrent.futures.process
 import ctypes
 import hashlib
 import json
@@ -198,16 +197,16 @@ def _die_with(parent: int) -> None:
         os._exit(1)
 
 
-def _run_local(tasks: Sequence[tuple], workers: int, tick: Callable[[tuple], None]) -> None:
+def _run_local(tasks: Sequence[tuple], workers: int, tick: Callable[[tuple], None], task: Callable = _run_group) -> None:
     ctx = multiprocessing.get_context("spawn")
     with _single_threaded_children():
         pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_die_with, initargs=(os.getpid(),))
         futures: list[cf.Future] = []
         try:
-            futures = [pool.submit(_run_group, *t) for t in tasks]
+            futures = [pool.submit(task, *t) for t in tasks]
             for f in cf.as_completed(futures):
                 tick(f.result())
-        except cf.process.BrokenProcessPool:
+        except cf.BrokenExecutor:  # a worker process died (BrokenProcessPool)
             for f in futures:
                 f.cancel()
             raise ChildProcessError("a worker process died (killed, or out of memory) while computing a press; nothing "

@@ -19,11 +19,12 @@ import numpy as np
 
 from .. import __version__
 from ..io.export import atomic_path, write_npz, write_voxels_vtu, write_vtu
-from ..scene import UNRECORDED_ELEMENT
+from ..io.figures import pyplot
 from ..io.store import Records
 from ..mesh.tetmesh import TetMesh
 from ..metrics import largest_cluster
 from ..reconstruction.grid import ChamberGrid, VoxelGrid
+from ..scene import UNRECORDED_ELEMENT
 from .pipeline import MESH_PATHS, STAGES, Frame, Palpation
 
 __all__ = ["VtuSeries", "write_pvd", "write_setup", "load_grid", "summarise", "write_report"]
@@ -309,10 +310,7 @@ def _markdown(path: Path, meta: dict[str, Any]) -> Path:
 
 
 def _figures(out: Path, rec: Records, grid: ChamberGrid, rows: list[dict]) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     targets = [r["target"] for r in rows]
     n = len(targets)

@@ -14,6 +14,7 @@ import numpy as np
 
 from .. import __version__
 from ..io.export import atomic_path, write_voxels_vtu
+from ..io.figures import pyplot
 from .protocol_study import StudyResult
 
 __all__ = ["write_study"]
@@ -123,10 +124,7 @@ def _markdown(path: Path, result: StudyResult, rows: list[dict], command: str) -
 
 
 def _figures(out: Path, result: StudyResult, rows: list[dict]) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     skips = [r["skip"] for r in rows]
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8))

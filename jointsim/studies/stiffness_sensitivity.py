@@ -37,6 +37,7 @@ from typing import Callable
 import numpy as np
 
 from ..io.export import atomic_path
+from ..io.figures import pyplot
 
 __all__ = ["PressCurve", "StudyResult", "press_curve", "run_study", "modulus_error", "joint_modulus_error", "write_report", "MEMBRANE_STEP"]
 
@@ -201,10 +202,7 @@ def _label(e: float) -> str:
 def write_report(result: StudyResult, out: Path, command: str) -> list[Path]:
     """``stiffness_sensitivity.{csv,json,md,png}`` in ``out``, each written to a temporary name
     and renamed (:func:`~jointsim.io.export.atomic_path`)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out.mkdir(parents=True, exist_ok=True)
     d_mm = result.depths * 1e3
