@@ -20,7 +20,6 @@ LAYERS: list[set[str]] = [
     {"mesh"},  # tetrahedral meshes of the chamber
     {"eit", "mechanics", "reconstruction"},  # the physics and the inverse
     {"metrics", "io"},
-    {"rig"},
     {"palpation", "studies"},
     {"dataset"},
     {"calibration"},

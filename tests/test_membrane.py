@@ -250,7 +250,7 @@ def test_a_palpation_hold_with_friction_is_steady():
     move below the slip ε left the membrane in place, answering with the penalty's stiffness):
     the tangent now carries a move below ε with the stuck nodes. 1e-6 over the last 6 frames is
     a hundredth of one frame's old drift."""
-    from jointsim.rig import Controller, load_rig, press_hold_retract
+    from jointsim.palpation.rig import Controller, load_rig, press_hold_retract
 
     xy = (4e-3, 0.0)
     model, _ = _fresh_model(friction=0.3)

@@ -1,4 +1,4 @@
-"""The MuJoCo bench rig (jointsim.rig): model, trajectories, the three controllers, the force
+"""The MuJoCo bench rig (jointsim.palpation.rig): model, trajectories, the three controllers, the force
 read-back, the coupling loop's stability, and input validation. Each test runs in well under a
 second: the rig is a 4-dof model and the contact is the analytic Hertz surrogate."""
 
@@ -8,7 +8,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from jointsim.rig import (
+from jointsim.palpation.rig import (
     DEFAULT_RIG,
     Controller,
     Trajectory,

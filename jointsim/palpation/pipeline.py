@@ -71,7 +71,7 @@ from ..mesh.tetmesh import TetMesh
 from ..metrics import ImageMetrics, image_metrics, rms
 from ..reconstruction.grid import ChamberGrid
 from ..reconstruction.tikhonov import SVD, Reconstructor, choose_lambda
-from ..rig import Controller, Rig, RigFrame, load_rig, press_hold_retract
+from .rig import Controller, Rig, RigFrame, load_rig, press_hold_retract
 from ..scene import UNRECORDED_ELEMENT, PalpationSpec, Scene
 
 __all__ = [

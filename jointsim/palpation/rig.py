@@ -50,7 +50,7 @@ import mujoco
 import numpy as np
 from scipy.linalg import expm
 
-from .scene import SCENES_DIR
+from ..scene import SCENES_DIR
 
 __all__ = [
     "DEFAULT_RIG",
