@@ -15,7 +15,7 @@ import pytest
 
 from jointsim.dataset import dataset_schema, draw_group, generate_dataset
 from jointsim.io.store import open_records
-from jointsim.scene import SceneError, load_scene, scene_from_dict
+from jointsim.scene import SceneError, load_scene, scene_from_dict, scene_toml
 
 ROOT = Path(__file__).resolve().parents[1]
 N, K, SEED = 7, 3, 3
@@ -57,7 +57,9 @@ def scene(scene_file):
 
 
 def _generate(scene, scene_file, out, **kw):
-    return generate_dataset(scene, N, out, seed=SEED, scene_toml=scene_file.read_text(), **kw)
+    # the scene's text as `jointsim dataset` records it (extends resolved), so the command line's
+    # runs and these resume each other
+    return generate_dataset(scene, N, out, seed=SEED, scene_toml=scene_toml(scene_file), **kw)
 
 
 @pytest.fixture(scope="module")
@@ -224,7 +226,7 @@ def test_force_control_samples_at_the_drawn_forces(scene, scene_file, tmp_path):
 
     lo, hi = 0.004, 0.02
     fscene = replace(scene, dataset=replace(scene.dataset, control="force", force=(lo, hi)))
-    run = generate_dataset(fscene, K, tmp_path / "force", seed=SEED, scene_toml=scene_file.read_text(), workers=1)
+    run = generate_dataset(fscene, K, tmp_path / "force", seed=SEED, scene_toml=scene_toml(scene_file), workers=1)
     rec = open_records(run.path)
     fz = rec["force"][:, 2]
     np.testing.assert_array_equal(np.floor((fz - lo) / (hi - lo) * K), np.arange(K))
@@ -320,8 +322,9 @@ def test_the_command_line_rejects_bad_input_with_exit_2(tmp_path, capsys):
 def test_a_worker_that_dies_ends_the_run_with_one_clear_error():
     """A local worker killed mid-task (here it exits at once) ends the run with a
     ChildProcessError that says nothing stored is lost and to rerun, not a BrokenProcessPool
-    traceback; the command line reports an OSError in one line."""
-    from jointsim.dataset.runner import _run_local
-
-    with pytest.raises(ChildProcessError, match="a worker process died.*run the same command again to resume"):
-        _run_local([(3,)], 1, lambda result: None, task=os._exit)
+    traceback (the command line reports an OSError in one line). Run in its own interpreter, so
+    that the pool's dying worker cannot touch the test process."""
+    code = "import os\nfrom jointsim.dataset.runner import _run_local\n_run_local([(3,)], 1, lambda r: None, task=os._exit)\n"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1, r.stderr[-2000:]
+    assert "ChildProcessError: a worker process died" in r.stderr and "run the same command again to resume" in r.stderr
