@@ -40,8 +40,8 @@ __all__ = ["ChamberMesh", "mesh_chamber", "chamber_mesh", "reference_surface", "
 _MESHER_VERSION = "2-gmsh"  # bump when the meshing recipe changes, so cached meshes are rebuilt
 # gmsh's settings: one thread (the mesh then does not depend on the machine's core count),
 # sizes from the field alone, Frontal-Delaunay 2-D, Delaunay 3-D, then gmsh's and Netgen's
-# optimisers (on the default chamber: smallest dihedral angle 12.9-16.2 deg, largest
-# 143.8-154.9 deg at the three presets; fTetWild's test mesh had 16.6 / 147.7)
+# optimisers (on the default chamber at the three presets: smallest dihedral angle 12.6-14.8
+# deg, largest 149.1-149.2 deg; fTetWild's 14.7-17.2 / 142.0-151.5: results/mesher.md)
 _GMSH_OPTIONS = {
     "General.Terminal": 0,
     "General.NumThreads": 1,
