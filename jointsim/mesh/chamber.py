@@ -35,7 +35,7 @@ from ..scene import MeshSpec, Scene
 from .electrodes import ElectrodePatch, disc_patches
 from .tetmesh import MeshQuality, TetMesh, mesh_quality
 
-__all__ = ["ChamberMesh", "mesh_chamber", "chamber_mesh", "reference_surface", "target_size", "cache_dir"]
+__all__ = ["ChamberMesh", "mesh_chamber", "chamber_mesh", "reference_surface", "cache_dir"]
 
 _MESHER_VERSION = "2-gmsh"  # bump when the meshing recipe changes, so cached meshes are rebuilt
 # gmsh's settings: one thread (the mesh then does not depend on the machine's core count),
@@ -80,16 +80,9 @@ def cache_dir() -> Path:
     return Path(root) if root else Path.home() / ".cache" / "jointsim" / "meshes"
 
 
-def target_size(p: np.ndarray, layout: ElectrodeLayout, spec: MeshSpec) -> np.ndarray:
-    """The mesh size h (m) the field asks for at points ``p`` (n, 3): (n,)."""
-    h_max, h_min = spec.max_edge, spec.max_edge / spec.electrode_refinement
-    rho = np.hypot(p[:, None, 0] - layout.centres[None, :, 0], p[:, None, 1] - layout.centres[None, :, 1])
-    d = np.hypot(np.maximum(rho - layout.radii - spec.refinement_zone, 0.0), p[:, 2:3]).min(axis=1)
-    return np.minimum(h_max, h_min + spec.grading * d)
-
-
 def _size_expression(layout: ElectrodeLayout, spec: MeshSpec) -> str:
-    """:func:`target_size` as a gmsh MathEval expression in x, y, z."""
+    """The size field h(x) = min(h_max, h_min + grading · d(x)) (module docstring) as a gmsh
+    MathEval expression in x, y, z."""
     d = None
     for (x0, y0, _), r in zip(layout.centres, layout.radii):
         term = f"Sqrt(Max(Sqrt((x-({x0:.17g}))^2+(y-({y0:.17g}))^2)-{r + spec.refinement_zone:.17g},0)^2+z^2)"
@@ -231,18 +224,13 @@ def _mesh_base(rim: np.ndarray, layout: ElectrodeLayout, spec: MeshSpec) -> tupl
         tags, xyz, _ = gmsh.model.mesh.getNodes()
         _, tri = gmsh.model.mesh.getElementsByType(2, plane)
         rim_tags = [int(gmsh.model.mesh.getNodes(0, c)[0][0]) for c in corners]
-    position = np.zeros(int(tags.max()) + 1, np.int64)
-    position[tags.astype(np.int64)] = np.arange(len(tags))
-    tri = position[tri.astype(np.int64).reshape(-1, 3)]
-    used = np.unique(tri)  # drop the circle centres: geometry only, not on any triangle
-    renumber = np.full(len(tags), -1)
-    renumber[used] = np.arange(len(used))
-    xy = xyz.reshape(-1, 3)[used, :2]
-    tri = renumber[tri]
+    # the circle centres are geometry only, on no triangle: dropped
+    nodes, tri, index_of_tag = _compact(tags, xyz, tri, 3)
+    xy = nodes[:, :2]
     a, b, c = xy[tri[:, 0]], xy[tri[:, 1]], xy[tri[:, 2]]
     up = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]) > 0
     tri[up] = tri[up][:, ::-1]  # the base's normal is −z, outward
-    return xy, tri, renumber[position[rim_tags]]
+    return xy, tri, index_of_tag[rim_tags]
 
 
 def _fill(vertices: np.ndarray, faces: np.ndarray, layout: ElectrodeLayout, spec: MeshSpec) -> TetMesh:
@@ -259,13 +247,22 @@ def _fill(vertices: np.ndarray, faces: np.ndarray, layout: ElectrodeLayout, spec
         _, tets = gmsh.model.mesh.getElementsByType(4)
     if len(tets) == 0:
         raise ValueError("surface: gmsh could not fill the chamber surface (self-intersecting or not closed?)")
+    nodes, tets, _ = _compact(tags, xyz, tets, 4)
+    return TetMesh(nodes, tets).oriented()
+
+
+def _compact(tags: np.ndarray, xyz: np.ndarray, elements: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """gmsh's nodes (tags (n,), coordinates flat (3n,)) and elements (flat node tags, ``width``
+    per element) as arrays numbered from 0 over the nodes the elements use, in gmsh's node
+    order: (nodes (k, 3), elements (m, width), and, indexed by a node tag, its new index (−1 for
+    a node no element uses; only meaningful for tags gmsh returned))."""
     position = np.zeros(int(tags.max()) + 1, np.int64)
     position[tags.astype(np.int64)] = np.arange(len(tags))
-    tets = position[tets.astype(np.int64).reshape(-1, 4)]
-    used = np.unique(tets)
+    elements = position[elements.astype(np.int64).reshape(-1, width)]
+    used = np.unique(elements)
     renumber = np.full(len(tags), -1)
     renumber[used] = np.arange(len(used))
-    return TetMesh(xyz.reshape(-1, 3)[used], renumber[tets]).oriented()
+    return xyz.reshape(-1, 3)[used], renumber[elements], renumber[position]
 
 
 def _hash(surface: trimesh.Trimesh, layout: ElectrodeLayout, spec: MeshSpec) -> str:
