@@ -31,13 +31,14 @@ GREIT (Adler et al. 2009) figures of merit, in 3-D:
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
 
 from .reconstruction.grid import ChamberGrid
 
-__all__ = ["ImageMetrics", "largest_cluster", "image_metrics", "rms", "sensitivity_total"]
+__all__ = ["ImageMetrics", "largest_cluster", "image_metrics", "metric_fields", "rms", "sensitivity_total"]
 
 
 def largest_cluster(grid: ChamberGrid, x: np.ndarray, threshold: float = 0.75) -> np.ndarray:
@@ -142,3 +143,12 @@ def rms(dv: np.ndarray) -> float:
 def sensitivity_total(J_cells: np.ndarray, grid: ChamberGrid) -> float:
     """J_sens = Σ_i ‖J[:, i]‖₂ / V_chamber for the Jacobian on the grid's cells."""
     return float(np.linalg.norm(J_cells, axis=0).sum() / grid.volume.sum())
+
+
+def metric_fields(metrics: ImageMetrics | None) -> dict[str, Any]:
+    """The image metrics a record stores: ``com`` (3,) m, ``sum_sigma``, ``diameter`` m,
+    ``extent_xy`` m, ``cluster_cells`` (NaN and 0 for an all-zero image)."""
+    if metrics is None:
+        return {"com": np.full(3, np.nan), "sum_sigma": np.nan, "diameter": np.nan, "extent_xy": np.nan, "cluster_cells": 0}
+    return {"com": metrics.com, "sum_sigma": metrics.sum_sigma, "diameter": metrics.diameter_equivalent,
+            "extent_xy": metrics.extent_xy, "cluster_cells": metrics.n_cells}

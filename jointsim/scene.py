@@ -27,6 +27,7 @@ __all__ = [
     "MeshSpec",
     "Membrane",
     "Target",
+    "ReconstructionSpec",
     "PalpationSpec",
     "DatasetSpec",
     "Scene",
@@ -222,7 +223,9 @@ def warn_coarse_membrane(n: int, element: str, name: str = "membrane.rim_vertice
 @dataclass(frozen=True)
 class MeshSpec:
     """Chamber mesh resolution: bulk edge length, refinement factor and zone around electrodes,
-    and the order of the EIT forward model's elements on it (1: P1; 2: P2, same tetrahedra)."""
+    the order of the EIT forward model's elements on it (1: P1; 2: P2, same tetrahedra), and how
+    the mesh follows the membrane (``update``: "morph" the reference mesh, "remesh" every
+    deformed chamber, or "auto": morph, remesh when the morph inverts or degrades)."""
 
     preset: str = "dataset"
     max_edge: float = 1.9 * MM
@@ -230,6 +233,7 @@ class MeshSpec:
     refinement_zone: float = 0.8 * MM
     grading: float = 0.35
     element_order: int = 1
+    update: str = "auto"
 
 
 @dataclass(frozen=True)
@@ -243,6 +247,7 @@ class Scene:
     mesh: MeshSpec = field(default_factory=MeshSpec)
     membrane: Membrane = field(default_factory=Membrane)
     target: Target = field(default_factory=Target)
+    reconstruction: "ReconstructionSpec" = field(default_factory=lambda: ReconstructionSpec())
     palpation: "PalpationSpec" = field(default_factory=lambda: PalpationSpec())
     dataset: "DatasetSpec" = field(default_factory=lambda: DatasetSpec())
 
@@ -360,10 +365,11 @@ def _number_list(key: str, v: Any, n: int | None, lo: float, hi: float, lo_open:
 
 def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     """Build and validate a :class:`Scene` from a parsed TOML mapping (keys with units)."""
-    data = dict(data)
+    data = _moved_keys(dict(data))
     name = str(data.pop("name", name))
     data.pop("description", None)
-    known = {"chamber", "electrodes", "saline", "drive", "noise", "mesh", "membrane", "target", "palpation", "dataset"}
+    known = {"chamber", "electrodes", "saline", "drive", "noise", "mesh", "membrane", "target", "reconstruction", "palpation",
+             "dataset"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise SceneError(f"unknown section(s): {', '.join(unknown)}; known are {', '.join(sorted(known))}")
@@ -440,8 +446,9 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         t.raw(k, None)
     if retired:
         warnings.warn(f"mesh.{', mesh.'.join(retired)}: settings of the fTetWild mesher, which jointsim no longer uses "
-                      "(the chamber is meshed by TetGen): ignored; remove them from the scene", UserWarning, stacklevel=2)
+                      "(the chamber is meshed by gmsh): ignored; remove them from the scene", UserWarning, stacklevel=2)
     element_order = t.integer("element_order", 1, 1, 2)
+    update = t.choice("update", "auto", MESH_UPDATES)
     t.finish()
     if preset != "custom" and ("max_edge_mm" in data.get("mesh", {}) or "electrode_refinement" in data.get("mesh", {})):
         preset = "custom"
@@ -475,9 +482,10 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         saline=Saline(sigma),
         drive=Drive(current * 1e-6, freqs, skip),
         noise=Noise(snr, seed, drift, rate),
-        mesh=MeshSpec(preset, max_edge * MM, refine, zone * MM, grading, element_order),
+        mesh=MeshSpec(preset, max_edge * MM, refine, zone * MM, grading, element_order, update),
         membrane=Membrane(law, mu * 1e3, tuple(c * 1e3 for c in yc), bulk_ratio, layers, p_res, closed, rim_vertices, volumetric, moulding, element),
         target=target,
+        reconstruction=_reconstruction(data.get("reconstruction", {}), base_r, height, thick),
         palpation=_palpation(data.get("palpation", {}), base_r, height, thick, zf is not None),
         dataset=_dataset(data.get("dataset", {}), base_r, height, ring, diam, count, zone),
     )
@@ -523,6 +531,7 @@ def scene_data(path: str | Path, _chain: tuple[Path, ...] = ()) -> dict[str, Any
     except tomllib.TOMLDecodeError as e:
         raise SceneError(f"{path}: not valid TOML: {e}") from None
     base = data.pop("extends", None)
+    data = _moved_keys(data)
     if base is None:
         return data
     if not isinstance(base, str):
@@ -537,7 +546,9 @@ def scene_data(path: str | Path, _chain: tuple[Path, ...] = ()) -> dict[str, Any
     merged.pop("description", None)
     for key, value in data.items():
         if isinstance(value, dict) and isinstance(merged.get(key), dict):
-            merged[key] = {**merged[key], **value}
+            # a size given by radius here replaces the base's by diameter, and the other way round
+            drop = {b for pair in SIZE_ALIASES for a, b in (pair, pair[::-1]) if a in value}
+            merged[key] = {**{k: v for k, v in merged[key].items() if k not in drop}, **value}
         else:
             merged[key] = value
     return merged
@@ -600,6 +611,80 @@ MESH_UPDATES = ("auto", "morph", "remesh")
 LAMBDA_METHODS = ("kfold", "loo", "gcv", "lcurve")
 
 
+# --------------------------------------------------------------------------------------------
+# [reconstruction]: the instrument's image (jointsim.instrument)
+
+
+@dataclass(frozen=True)
+class ReconstructionSpec:
+    """The instrument's reconstruction (SI): zeroth-order Tikhonov images on ``cells`` voxels
+    of the reference chamber, λ chosen once by ``lambda_method`` cross-validation on the noisy
+    δV of a representative press: a geometric indentation of the untouched sensor by a sphere
+    of ``lambda_radius`` m, ``lambda_depth`` m past first contact, at ``lambda_xy`` (m). Every
+    job on the sensor (palpation, datasets, ``forward``) images with it, as a real instrument
+    calibrated once would."""
+
+    cells: int = 7000
+    lambda_method: str = "kfold"
+    lambda_radius: float = 7.5 * MM
+    lambda_depth: float = 3 * MM
+    lambda_xy: tuple[float, float] = (0.0, 0.0)
+
+
+def _reconstruction(data: dict[str, Any], base_r: float, height: float, thick: float) -> ReconstructionSpec:
+    """Parse [reconstruction] (units in the key names); the sensor's lengths in mm."""
+    t = _Table(data, "reconstruction")
+    cells = t.integer("cells", 7000, 100, 200_000)
+    lam = t.choice("lambda_method", "kfold", LAMBDA_METHODS)
+    has_r, has_d = "lambda_target_radius_mm" in data, "lambda_target_diameter_mm" in data
+    if has_r and has_d:
+        raise SceneError("[reconstruction]: give lambda_target_radius_mm or lambda_target_diameter_mm, not both")
+    if has_d:
+        radius = t.number("lambda_target_diameter_mm", 15.0, 0.0, 10 * base_r, lo_open=True) / 2
+    else:
+        radius = t.number("lambda_target_radius_mm", 7.5, 0.0, 5 * base_r, lo_open=True)
+    depth = t.number("lambda_depth_mm", min(3.0, height / 2), 0.0, height + thick, lo_open=True)
+    xy = _number_list("reconstruction.lambda_xy_mm", t.raw("lambda_xy_mm", [0.0, 0.0]), 2, -base_r, base_r, True)
+    if math.hypot(*xy) >= base_r:
+        raise SceneError(f"reconstruction.lambda_xy_mm = {list(xy)}: must lie within the base radius {base_r:g} mm of the axis")
+    t.finish()
+    return ReconstructionSpec(cells, lam, radius * MM, depth * MM, (xy[0] * MM, xy[1] * MM))
+
+
+# keys that moved to another section: (old section, key) -> (new section, key). Scenes written
+# before still load (with a warning); given in both places they must agree
+MOVED_KEYS: dict[tuple[str, str], tuple[str, str]] = {
+    ("palpation", "cells"): ("reconstruction", "cells"),
+    ("palpation", "lambda_method"): ("reconstruction", "lambda_method"),
+    ("palpation", "mesh_update"): ("mesh", "update"),
+}
+
+
+# keys that give one size two ways (a section takes one of each pair)
+SIZE_ALIASES = (("radius_mm", "diameter_mm"), ("target_radii_mm", "target_diameters_mm"),
+                ("lambda_target_radius_mm", "lambda_target_diameter_mm"))
+
+
+def _moved_keys(data: dict[str, Any]) -> dict[str, Any]:
+    """``data`` with the keys of :data:`MOVED_KEYS` at their new place (a warning names them)."""
+    moved = []
+    for (s0, k0), (s1, k1) in MOVED_KEYS.items():
+        old = data.get(s0)
+        if not isinstance(old, dict) or k0 not in old:
+            continue
+        new = data.get(s1, {})
+        if not isinstance(new, dict):
+            continue  # the new section's parser names the error
+        if k1 in new and new[k1] != old[k0]:
+            raise SceneError(f"{s0}.{k0} = {old[k0]!r} and {s1}.{k1} = {new[k1]!r}: the key moved to {s1}.{k1}; give it there only")
+        data[s0] = {k: v for k, v in old.items() if k != k0}
+        data[s1] = {**new, k1: old[k0]}
+        moved.append(f"{s0}.{k0} -> {s1}.{k1}")
+    if moved:
+        warnings.warn(f"scene keys moved: {', '.join(moved)} (read from the old place; write them at the new)", UserWarning, stacklevel=3)
+    return data
+
+
 @dataclass(frozen=True)
 class PalpationSpec:
     """The palpation program (SI): targets of ``target_radii`` (m) pressed one after the other
@@ -608,10 +693,10 @@ class PalpationSpec:
     (the press force ramps to ``force`` N in ``force_ramp`` s, holds ``hold`` s, ramps back)
     or "compliant" (the position program through the probe spring ``probe_stiffness`` N/m,
     ``probe_damping`` N s/m; None keeps the rig's). The reference ("steady state") is the mean
-    of ``reference_frames`` noisy frames of the untouched sensor; images on ``cells`` voxels,
-    λ by ``lambda_method``; the chamber mesh follows the membrane by ``mesh_update`` ("auto":
-    morph, remesh when the morph inverts or degrades); ``fdm_contact_impedance`` runs each
-    injection at its own FDM carrier with that carrier's contact impedances."""
+    of ``reference_frames`` noisy frames of the untouched sensor; ``fdm_contact_impedance``
+    runs each injection at its own FDM carrier with that carrier's contact impedances. The image
+    is the instrument's ([reconstruction]); the chamber mesh follows the membrane by
+    ``[mesh] update``."""
 
     mode: str = "position"
     target_radii: tuple[float, ...] = (4 * MM, 7.5 * MM, 15 * MM)
@@ -625,9 +710,6 @@ class PalpationSpec:
     probe_stiffness: float | None = None
     probe_damping: float | None = None
     reference_frames: int = 50
-    cells: int = 7000
-    lambda_method: str = "kfold"
-    mesh_update: str = "auto"
     fdm_contact_impedance: bool = False
 
 
@@ -662,9 +744,6 @@ def _palpation(data: dict[str, Any], base_r: float, height: float, thick: float,
     k = None if k is None else _check_number("palpation.probe_stiffness_n_per_m", k, 0.0, 1e6, True, False)
     c = None if c is None else _check_number("palpation.probe_damping_ns_per_m", c, 0.0, 1e4, True, False)
     n_ref = t.integer("reference_frames", 50, 1, 100_000)
-    cells = t.integer("cells", 7000, 100, 200_000)
-    lam = t.choice("lambda_method", "kfold", LAMBDA_METHODS)
-    upd = t.choice("mesh_update", "auto", MESH_UPDATES)
     fdm = t.raw("fdm_contact_impedance", False)
     if not isinstance(fdm, bool):
         raise SceneError(f"palpation.fdm_contact_impedance = {fdm!r}: must be true or false")
@@ -673,7 +752,7 @@ def _palpation(data: dict[str, Any], base_r: float, height: float, thick: float,
     t.finish()
     return PalpationSpec(
         mode, tuple(r * MM for r in radii), depth * MM, speed * MM, hold, gap * MM, (xy[0] * MM, xy[1] * MM),
-        force, ramp, k, c, n_ref, cells, lam, upd, fdm,
+        force, ramp, k, c, n_ref, fdm,
     )
 
 

@@ -1,7 +1,7 @@
 """The sensor a calibration map was built for, as a fingerprint of named scene values.
 
 Owns which scene values define the sensor for calibration (chamber, electrode geometry, drive
-and protocol, chamber-mesh resolution, reconstruction grid and λ method, the membrane's nominal
+and protocol, chamber-mesh resolution, reconstruction grid, λ method and λ's press, the membrane's nominal
 material and reservoir), reading them from a scene or from a record store's provenance, and
 comparing two fingerprints with a message that names every value that differs. Values a
 dataset randomises around the scene (saline conductivity, contact impedance, noise level) and
@@ -17,7 +17,7 @@ import tomllib
 from dataclasses import fields, replace
 from typing import Any, Mapping
 
-from ..scene import MeshSpec, Scene, scene_from_dict
+from ..scene import MeshSpec, ReconstructionSpec, Scene, scene_from_dict
 
 __all__ = [
     "SENSOR_KEYS",
@@ -37,11 +37,18 @@ SENSOR_KEYS: dict[str, tuple[str, ...]] = {
     "drive": ("current", "skip"),
     "mesh": ("preset", "max_edge", "electrode_refinement", "refinement_zone"),
     "membrane": ("law", "shear_modulus", "yeoh_c", "reservoir_pressure", "chamber"),
-    "palpation": ("cells", "lambda_method"),
+    "reconstruction": ("cells", "lambda_method"),
 }
 # values that define the sensor only where they differ from the default they had before they
 # existed, so maps and datasets recorded without them still match the scenes they were built for
-OPTIONAL_KEYS: dict[str, Any] = {"mesh.element_order": 1, "membrane.moulding": "cap"}
+# (the representative press λ is chosen on: before [reconstruction], a paper-scene palpation's)
+OPTIONAL_KEYS: dict[str, Any] = {
+    "mesh.element_order": 1, "membrane.moulding": "cap", "reconstruction.lambda_radius": 7.5e-3,
+    "reconstruction.lambda_depth": 3e-3, "reconstruction.lambda_xy": [0.0, 0.0],
+}
+# sections values were recorded in before they moved (scene.MOVED_KEYS): read there when a
+# record has no section of their own
+LEGACY_SECTIONS: dict[str, str] = {"reconstruction": "palpation"}
 _REL_TOL = 1e-9  # mm → m conversions of the same text agree far better than this
 
 
@@ -56,16 +63,31 @@ def _plain(v: Any) -> Any:
 def sensor_fingerprint(scene: Scene | Mapping[str, Any]) -> dict[str, Any]:
     """``{"section.key": value}`` of the sensor-defining scene values (SI units), JSON-ready,
     of a :class:`Scene` or of its ``to_dict()`` form (as a dataset's provenance holds it)."""
-    d = scene.to_dict() if isinstance(scene, Scene) else scene
+    d = scene.to_dict() if isinstance(scene, Scene) else dict(scene)
+    for new, old in LEGACY_SECTIONS.items():
+        if new not in d and old in d:
+            d[new] = d[old]
     try:
         fp = {f"{s}.{k}": _plain(d[s][k]) for s, keys in SENSOR_KEYS.items() for k in keys}
     except (KeyError, TypeError) as e:
         raise ValueError(f"the scene record lacks the sensor value {e}: cannot tell which sensor it describes") from None
     for key, default in OPTIONAL_KEYS.items():
         s, k = key.split(".")
-        if (v := _plain(d[s].get(k, default))) != default:
+        if not _same(v := _plain(d[s].get(k, default)), default):
             fp[key] = v
     return fp
+
+
+def _legacy(fp: Mapping[str, Any]) -> dict[str, Any]:
+    """A stored fingerprint with the keys of moved sections under their new names."""
+    out = {}
+    for k, v in fp.items():
+        s, _, key = k.partition(".")
+        for new, old in LEGACY_SECTIONS.items():
+            if s == old and key in SENSOR_KEYS[new]:
+                k = f"{new}.{key}"
+        out[k] = v
+    return out
 
 
 def provenance_fingerprint(provenance: Mapping[str, Any]) -> dict[str, Any]:
@@ -94,6 +116,7 @@ def _same(a: Any, b: Any) -> bool:
 def fingerprint_differences(built: Mapping[str, Any], given: Mapping[str, Any]) -> list[str]:
     """One line per key whose value differs (or is absent on one side), sorted by key."""
     out = []
+    built, given = _legacy(built), _legacy(given)
     for k in sorted(set(built) | set(given)):
         a, b = built.get(k, "absent"), given.get(k, "absent")
         if not _same(a, b):
@@ -114,8 +137,8 @@ def check_fingerprint(built: Mapping[str, Any], given: Mapping[str, Any], what: 
 def scene_from_provenance(provenance: Mapping[str, Any]) -> Scene:
     """The scene a record store was computed for: its scene TOML with the run's recorded
     overrides applied (``params["mesh"]``: the chamber mesh spec, or ``params["mesh_preset"]``;
-    ``params["palpation"]["cells"]`` / ``["lambda_method"]``, as palpation and dataset runs
-    record them)."""
+    ``params["reconstruction"]``, or before it ``params["palpation"]["cells"]`` /
+    ``["lambda_method"]``, as palpation and dataset runs record them)."""
     text = provenance.get("scene_toml")
     if not isinstance(text, str) or not text.strip():
         raise ValueError("the store's provenance has no scene TOML: cannot tell which sensor its data is for")
@@ -127,8 +150,12 @@ def scene_from_provenance(provenance: Mapping[str, Any]) -> Scene:
         scene = replace(scene, mesh=replace(scene.mesh, **{k: v for k, v in mesh.items() if k in known}))
     elif isinstance(params.get("mesh_preset"), str):
         scene = scene.with_mesh_preset(params["mesh_preset"])
-    pal = params.get("palpation")
-    if isinstance(pal, Mapping):
+    rec = params.get("reconstruction")
+    if isinstance(rec, Mapping):
+        known = {f.name for f in fields(ReconstructionSpec)}
+        over = {k: (tuple(v) if isinstance(v, list) else v) for k, v in rec.items() if k in known}
+        scene = replace(scene, reconstruction=replace(scene.reconstruction, **over))
+    elif isinstance(pal := params.get("palpation"), Mapping):
         over = {k: pal[k] for k in ("cells", "lambda_method") if k in pal}
-        scene = replace(scene, palpation=replace(scene.palpation, **over))
+        scene = replace(scene, reconstruction=replace(scene.reconstruction, **over))
     return scene

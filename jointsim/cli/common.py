@@ -6,13 +6,13 @@ from __future__ import annotations
 import argparse
 import shutil
 import tempfile
-import time
 from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 from typing import Iterator
 
 from ..scene import MESH_PRESETS, SCENES_DIR, Scene, load_scene
+from ..timing import timed
 
 DEFAULT_SCENE = SCENES_DIR / "paper_sensor.toml"
 
@@ -56,11 +56,11 @@ def scene_from_args(args: argparse.Namespace) -> Scene:
 
 @contextmanager
 def stage(name: str, timings: dict[str, float], quiet: bool = False) -> Iterator[None]:
+    """:func:`~jointsim.timing.timed`, announced on stdout ("  name ... 1.23 s")."""
     if not quiet:
         print(f"  {name} ...", end="", flush=True)
-    t0 = time.perf_counter()
-    yield
-    timings[name] = time.perf_counter() - t0
+    with timed(timings, name):
+        yield
     if not quiet:
         print(f" {timings[name]:.2f} s", flush=True)
 

@@ -17,7 +17,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..mesh.chamber import cache_dir
-    from ..palpation.pipeline import deployed_chamber
+    from ..instrument import deployed_chamber
 
     scene = scene_from_args(args)
     t: dict[str, float] = {}

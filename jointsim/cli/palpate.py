@@ -137,8 +137,8 @@ def run(args: argparse.Namespace) -> int:
         else:
             pal = Palpation(scene, spec, device=device)
             print("  set-up: " + ", ".join(f"{k} {v:.1f} s" for k, v in pal.setup_timings.items())
-                  + f"; chamber {pal.reference.mesh.n_tets:,} tets, membrane {pal.membrane_nodes:,} nodes ({scene.membrane.element}), "
-                  f"{pal.grid.n_cells:,} voxels, lambda {pal.reconstructor.lam:.3g}")
+                  + f"; chamber {pal.instrument.reference.mesh.n_tets:,} tets, membrane {pal.membrane_nodes:,} nodes ({scene.membrane.element}), "
+                  f"{pal.instrument.grid.n_cells:,} voxels, lambda {pal.instrument.imager.reconstructor.lam:.3g}")
             store = open_store(h5, pal.schema(), scene_toml=scene_toml(args.scene), seed=scene.noise.seed,
                                n_records=pal.n_records, params=params, command=shlex.split(command))
             done = len(store.done())

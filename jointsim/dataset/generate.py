@@ -13,10 +13,12 @@ steps on its depth until each force is reached (a few mechanics steps per sample
 depth reached is the label.
 
 The instrument
-    Voltages come from the randomised sensor, images from the **nominal** one: δV is imaged
-    with the reconstruction matrix built on the nominal scene (Jacobian of the nominal inflated
-    chamber, λ by cross-validation, :class:`~jointsim.palpation.Palpation`), as a real
-    instrument calibrated once would do, not with one rebuilt for each draw.
+    Each sample is the instrument's frame step (:meth:`~jointsim.instrument.Instrument.measure`).
+    Voltages come from the randomised sensor (a :class:`~jointsim.instrument.Readout` of the
+    group's electrodes, saline, contact impedance and SNR), images from the **nominal** one: δV
+    is imaged with the reconstruction built on the nominal scene (Jacobian of the nominal
+    inflated chamber, λ by cross-validation as its [reconstruction] says), as a real instrument
+    calibrated once would do, not with one rebuilt for each draw.
 
 Electrode jitter: the electrodes are re-clipped, not the mesh moved
     Electrode patches are exact clippings of the base triangles against the electrode discs
@@ -49,17 +51,16 @@ from typing import Any
 
 import numpy as np
 
-from ..eit.forward import ForwardModel
-from ..eit.noise import noise_std
+from ..instrument import Instrument, Readout
 from ..io.store import Field, Schema
 from ..mechanics.build import membrane_from_scene
 from ..mechanics.dome import MembraneModel, UnreachablePose
 from ..mechanics.newton import NewtonError
 from ..mesh.chamber import ChamberMesh
-from ..mesh.electrodes import ElectrodePatch, disc_patches
 from ..mesh.morph import MeshInversionError
-from ..palpation.pipeline import Palpation, metric_fields, timed
+from ..metrics import metric_fields
 from ..scene import UNRECORDED_ELEMENT, DatasetSpec, Scene
+from ..timing import timed
 
 __all__ = ["SCHEMA_NAME", "SCHEMA_VERSION", "STAGES", "GroupDraw", "DatasetSetup", "draw_group", "dataset_schema",
            "dataset_params", "group_indices", "n_groups"]
@@ -176,16 +177,19 @@ def dataset_schema(n_electrodes: int, n_meas: int, n_cells: int | None) -> Schem
 
 # scene values added after stores were first written, with the behaviour before they existed:
 # recorded only where they differ from it, so a store written before still resumes
-LATER_KEYS: dict[tuple[str, str], object] = {("membrane", "moulding"): "cap", ("membrane", "element"): UNRECORDED_ELEMENT}
+LATER_KEYS: dict[tuple[str, str], object] = {("membrane", "moulding"): "cap", ("membrane", "element"): UNRECORDED_ELEMENT,
+                                             ("mesh", "update"): "auto"}
 
 
 def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str) -> dict[str, Any]:
     """What shapes the data beyond the scene file's text: the effective scene (after
-    command-line overrides: sampling spec, mesh, membrane, noise, reconstruction settings),
-    N, and the chamber mesh used (fTetWild is not deterministic: a resumed run must continue
-    on the same mesh). JSON-ready; the store's identity."""
+    command-line overrides: sampling spec, mesh, membrane, noise, reconstruction settings; not
+    the palpation program, which a dataset does not use), N, and the chamber mesh used (a
+    resumed run continues on the mesh it started with, whatever mesher version the machine
+    has). JSON-ready; the store's identity."""
     d = scene.to_dict()
     d.pop("name", None)
+    d.pop("palpation", None)
     for (section, key), before in LATER_KEYS.items():
         if d[section].get(key) == before:
             del d[section][key]
@@ -193,20 +197,21 @@ def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str) -> dict[st
 
 
 class DatasetSetup:
-    """What every group shares, built once per worker: the nominal instrument
-    (:class:`~jointsim.palpation.Palpation` of ``scene`` on ``chamber``: morpher, protocol,
+    """What every group shares, built once per worker: the nominal
+    :class:`~jointsim.instrument.Instrument` of ``scene`` on ``chamber`` (morpher, protocol,
     voxel grid, reconstruction matrix) and the record schema."""
 
     def __init__(self, scene: Scene, chamber: ChamberMesh, seed: int):
         self.scene = scene
         self.spec = scene.dataset
         self.seed = int(seed)
-        self.pal = Palpation(scene, chamber=chamber)
+        self.instrument = Instrument.build(scene, chamber=chamber, reference_frames=self.spec.reference_frames)
         self.n_electrodes = scene.electrodes.count
-        self.schema = dataset_schema(self.n_electrodes, self.pal.n_meas, self.pal.grid.n_cells if self.spec.images else None)
+        inst = self.instrument
+        self.schema = dataset_schema(self.n_electrodes, inst.readout.n_meas, inst.grid.n_cells if self.spec.images else None)
 
     def free(self) -> None:
-        self.pal.free()
+        self.instrument.free()
 
     # -- one group -----------------------------------------------------------------------
 
@@ -229,21 +234,18 @@ class DatasetSetup:
 
     def press(self, draw: GroupDraw, n_samples: int) -> list[dict[str, Any]]:
         """Press ``draw``'s target through its first ``n_samples`` depths; one record each."""
-        pal = self.pal
+        inst = self.instrument
         t: dict[str, float] = {}
         with timed(t, "group_setup"):
             model = self._membrane(draw)
-            ref_dome = pal.inner_surface(model.state())
-            ref_chamber = pal.deform(ref_dome).chamber
-            patches = self._patches(ref_chamber.mesh, draw.jitter)
-            z = np.full(len(patches), draw.contact_impedance)
-            # the group's morphed chambers share its pattern and PARDISO analysis
-            forward = self._forward(ref_chamber, patches, z).shared()
-            v_ref = forward.solve(draw.conductivity).voltages(pal.protocol)
-            std = noise_std(v_ref, draw.snr_db)
+            ref_dome = inst.dome(model.state().u)
+            ref_chamber = inst.deform(ref_dome).chamber
             rng = _rng(self.seed, draw.group, draw.attempt, 1)
-            n_ref = self.spec.reference_frames
-            v_ref_measured = v_ref + rng.normal(0.0, std / math.sqrt(n_ref), v_ref.shape)
+            # the group's sensor: its electrodes, saline, contact impedance and noise; its
+            # morphed chambers share the reference's pattern and PARDISO analysis
+            readout = Readout.on(ref_chamber, self.scene, inst.protocol, rng=rng, reference_frames=self.spec.reference_frames,
+                                 conductivity=draw.conductivity, contact_impedance=draw.contact_impedance,
+                                 offsets=draw.jitter, snr_db=draw.snr_db)
             contact_z = model.first_contact_height(draw.xy)
         share = t["group_setup"] / n_samples
         records, depth_done = [], 0.0
@@ -262,36 +264,21 @@ class DatasetSetup:
                         dz = depth_done + (d - depth_done) * s / n_steps
                         st = model.press(np.array([draw.xy[0], draw.xy[1], contact_z - dz]))
                 depth_done = d
-            with timed(t, "mesh"):
-                dc = pal.deform(pal.inner_surface(st), ref_dome)
-            with timed(t, "forward"):
-                def volts(c: ChamberMesh) -> np.ndarray:
-                    # a remesh (or its pull-back pair, renumbered where slivers were dropped)
-                    # gets the patches of the mesh solved
-                    if dc.path == "morph":
-                        model = forward.on(c.mesh, patches)
-                    else:
-                        model = self._forward(c, self._patches(c.mesh, draw.jitter), z)
-                    return model.solve(draw.conductivity).voltages(pal.protocol)
-
-                clean = dc.change(volts, v_ref)
-                v = clean + rng.normal(0.0, std, clean.shape)
-            dv = v - v_ref_measured
-            with timed(t, "reconstruction"):
-                image, _, metrics = pal.image(dv)
+            r = inst.measure(inst.dome(st.u), rng, readout=readout, reference=ref_dome)
+            t.update(r.timings)
             rec = {
                 "group": draw.group, "radius": draw.radius, "xy": draw.xy, "depth": d, "target_modulus": draw.modulus,
                 "force": st.force, "contact_centre": st.contact_centre, "contact_area": st.contact_area, "displaced_volume": st.displaced_volume,
                 "peak_strain": st.peak_strain, "membrane_scale": draw.membrane_scale, "conductivity": draw.conductivity,
                 "contact_impedance": draw.contact_impedance, "electrode_jitter": draw.jitter, "snr_db": draw.snr_db,
-                "voltages_clean": clean, "reference_clean": v_ref, "voltages": v, "dv": dv, "dv_clean": clean - v_ref,
-                **metric_fields(metrics),
+                "voltages_clean": r.voltages_clean, "reference_clean": readout.v_ref, "voltages": r.voltages, "dv": r.dv,
+                "dv_clean": r.dv_clean, **metric_fields(r.metrics),
             }
             if self.spec.images:
-                rec["image"] = image.astype(np.float32)
+                rec["image"] = r.image.astype(np.float32)
             rec["timings"] = np.array([t[s] for s in STAGES])
             records.append(rec)
-        forward.free()
+        readout.free()
         return records
 
     def _membrane(self, draw: GroupDraw) -> MembraneModel:
@@ -302,14 +289,4 @@ class DatasetSetup:
                          target=replace(self.scene.target, kind="rigid"))
         soft = math.isfinite(draw.modulus)
         return membrane_from_scene(scaled, target_radius=draw.radius, target_modulus=draw.modulus if soft else None,
-                                        inflate_from=self.pal.inflated_u)
-
-    def _patches(self, mesh, jitter: np.ndarray) -> list[ElectrodePatch]:
-        """Electrode patches of ``mesh`` with the ring electrodes moved by ``jitter`` (n_el, 2)."""
-        layout = self.pal.chamber.layout
-        centres = layout.centres.copy()
-        centres[: len(jitter), :2] += jitter
-        return disc_patches(mesh, centres, layout.radii, quadratic=self.scene.mesh.element_order == 2)
-
-    def _forward(self, chamber: ChamberMesh, patches: list[ElectrodePatch], z: np.ndarray) -> ForwardModel:
-        return ForwardModel(chamber.mesh, patches, chamber.ground, z, order=self.scene.mesh.element_order)
+                                   inflate_from=self.instrument.inflated_u)

@@ -5,8 +5,9 @@ Layout and crash safety
     The run writes to ``OUT.partial/`` (see :mod:`jointsim.io.store`) and finalises to
     ``OUT.h5``. Before anything else the chamber mesh is written there once
     (``OUT.partial/chamber.npz``, first writer wins) and every worker, this run's or a resumed
-    one's, on this machine or another, uses that file: fTetWild is not deterministic, so a
-    mesh made afresh would give other data. Its SHA-256 is part of the store's identity.
+    one's, on this machine or another, uses that file: the mesher is deterministic, but another
+    gmsh version may mesh otherwise, and a mesh made afresh would then give other data. Its
+    SHA-256 is part of the store's identity.
 
     A group's K records are stored together, as one file, when the group is done: a record
     file exists complete or not at all, so a kill at any moment loses at most the groups in
@@ -58,7 +59,7 @@ from ..io.store import RecordStore, attach, exclusive, open_records, open_store
 from ..mesh.chamber import ChamberMesh
 from ..mesh.electrodes import disc_patches
 from ..mesh.tetmesh import TetMesh
-from ..palpation.pipeline import deployed_chamber
+from ..instrument import deployed_chamber
 from ..scene import Scene
 from .generate import DatasetSetup, dataset_params, dataset_schema, group_indices
 
@@ -299,7 +300,7 @@ def generate_dataset(
         n_cells = None
         if scene.dataset.images:  # the image's length is the nominal voxel grid's
             setup = DatasetSetup(scene, chamber, seed)
-            n_cells = setup.pal.grid.n_cells
+            n_cells = setup.instrument.grid.n_cells
             setup.free()
         from ..eit.protocol import skip_protocol
 

@@ -11,9 +11,10 @@ reference nodes bit for bit.
 
 For a sequence of frames, :class:`ChamberMorpher` does the closest-point map and the
 factorisation once, so a frame costs an interpolation, one solve with three right-hand sides
-and a vectorised quality check (:func:`element_quality`). :func:`deform_chamber` morphs and,
-when the morph inverts elements or degrades them past a threshold, remeshes the deformed
-chamber instead and says which path it took and why.
+and a vectorised quality check (:func:`element_quality`). :func:`deform_chamber` is the one
+policy by which a chamber follows the membrane: it morphs and, when the morph inverts elements
+or degrades them past a threshold, remeshes the deformed chamber instead and says which path it
+took and why.
 """
 
 from __future__ import annotations
@@ -26,15 +27,16 @@ import numpy as np
 import scipy.sparse as sp
 import trimesh
 
-from ..geometry import DomeSurface, chamber_surface, dome_from_scene, electrode_layout
+from ..geometry import DomeSurface
 from ..linalg import factorize
-from ..scene import Scene
+from ..scene import MeshSpec
 from .chamber import ChamberMesh, mesh_chamber
 from .kernels import p1_stiffness, tet_quality
 from .tetmesh import TetMesh
 
 __all__ = [
     "MeshInversionError",
+    "ChamberCollapse",
     "ElementQuality",
     "element_quality",
     "shape_measure",
@@ -50,9 +52,15 @@ __all__ = [
     "untangle",
     "untangled_note",
     "MODES",
+    "MIN_QUALITY_RATIO",
+    "MIN_CHAMBER_GAP",
 ]
 
 MODES = ("auto", "morph", "remesh")
+# a morph whose smallest shape measure falls below this × the reference mesh's is remeshed in
+# "auto" (results/mesh_step_benchmark.md)
+MIN_QUALITY_RATIO = 0.05
+MIN_CHAMBER_GAP = 0.2e-3  # m: inner surface to base; closer, the chamber cannot be meshed over the electrodes
 REGULAR_DIHEDRAL_DEG = float(np.degrees(np.arccos(1 / 3)))  # 70.53°, the largest possible minimum
 UNTANGLE_RATIO = 0.05  # untangling aims at least this × the reference's smallest shape measure
 UNTANGLED_KEY = "-untangled"  # the end of a morphed chamber's key when its interior nodes were untangled
@@ -66,6 +74,11 @@ def untangled_note(chamber: ChamberMesh) -> str:
 
 class MeshInversionError(RuntimeError):
     """The morphed mesh has inverted or degenerate elements: remesh instead."""
+
+
+class ChamberCollapse(MeshInversionError):
+    """The deformed dome comes so close to the base that no chamber can be meshed over the
+    electrodes: the press is too deep (a property of the pose; a dataset draws again)."""
 
 
 def dome_nodes(mesh: TetMesh, tol: float = 1e-9) -> np.ndarray:
@@ -410,65 +423,67 @@ class DeformedChamber:
 
 
 def deform_chamber(
-    source: ChamberMorpher | ChamberMesh,
+    morpher: ChamberMorpher,
     deformed: DomeSurface,
-    scene: Scene,
+    mesh: MeshSpec,
     mode: str = "auto",
     *,
-    min_quality_ratio: float = 0.05,
-    dome: DomeSurface | None = None,
+    reference: DomeSurface | None = None,
+    min_quality_ratio: float = MIN_QUALITY_RATIO,
     use_cache: bool = True,
 ) -> DeformedChamber:
-    """The chamber whose dome is ``deformed``, by morphing the reference mesh or remeshing.
+    """The chamber whose dome is ``deformed``: the one policy by which a chamber mesh follows
+    the membrane (palpation, datasets, studies, benchmarks).
 
     Parameters
     ----------
-    source : a prepared :class:`ChamberMorpher` (for many frames), or the reference
-        ChamberMesh (prepared here, for one frame)
-    deformed : the deformed dome, same vertices and faces as the reference dome
-    scene : gives the electrode layout and mesh spec of a remesh
-    mode : "auto" morphs and remeshes when the morph raises :class:`MeshInversionError` or its
+    morpher : the prepared reference chamber (:class:`ChamberMorpher`)
+    deformed : the deformed dome, same vertices and faces as ``morpher.dome``
+    mesh : the mesh spec of a remesh (:class:`~jointsim.scene.MeshSpec`)
+    mode : "auto" morphs, and remeshes when the morph raises :class:`MeshInversionError` or its
         smallest shape measure η falls below ``min_quality_ratio`` × the reference mesh's;
-        "morph" only morphs (and raises); "remesh" always remeshes (``mesh_chamber`` on the
-        deformed chamber surface, electrodes clipped exactly on the base)
-    min_quality_ratio : in [0, 1]; 0 falls back on inversion only. The default 0.05 keeps the
-        morph down to the worst quality checked against a remesh in
-        results/mesh_step_benchmark.md (a 15 mm target 3 mm deep over the electrode ring: η at
-        0.057 of the reference; its voltages agree with the remesh to within the remesh floor)
-    dome : the reference dome when ``source`` is a ChamberMesh (default: the scene's)
+        "morph" only morphs (and raises); "remesh" always remeshes
+    reference : the dome a remesh is pulled back onto (:func:`pull_back`; default
+        ``morpher.dome``): the untouched sensor's, so that the frame's change is taken on one
+        mesh without the remeshing floor (:meth:`DeformedChamber.change`)
+    min_quality_ratio : in [0, 1]; 0 falls back on inversion only. The default keeps the morph
+        down to the worst quality checked against a remesh in results/mesh_step_benchmark.md (a
+        15 mm target 3 mm deep over the electrode ring: η at 0.057 of the reference; its
+        voltages agree with the remesh to within the remesh floor)
     use_cache : passed to :func:`~jointsim.mesh.chamber.mesh_chamber` for a remesh
+
+    A remesh tetrahedralises the morphed chamber's boundary (the same surface, base and
+    electrode outlines included; new tetrahedra; deterministic and cached by its hash).
+    Raises :class:`ChamberCollapse` when the dome comes within ``MIN_CHAMBER_GAP`` of the base.
     """
     if mode not in MODES:
         raise ValueError(f"mode = {mode!r}: allowed values are {list(MODES)}")
     if not 0.0 <= min_quality_ratio <= 1.0:
         raise ValueError(f"min_quality_ratio = {min_quality_ratio}: must be in [0, 1]")
-    reference = source.dome if isinstance(source, ChamberMorpher) else (dome_from_scene(scene) if dome is None else dome)
-    if mode == "remesh":
-        return _remeshed(deformed, reference, scene, use_cache, "mode = 'remesh'")
-    if isinstance(source, ChamberMorpher):
-        morpher, own = source, False
-    else:
-        morpher, own = ChamberMorpher(source, reference), True
-    try:
-        ref = morpher.reference_quality
+    free = np.ones(len(deformed.vertices), bool)
+    free[deformed.rim] = False
+    gap = float(deformed.vertices[free, 2].min()) if free.any() else np.inf
+    if gap < MIN_CHAMBER_GAP:
+        raise ChamberCollapse(
+            f"the membrane's inner surface is {gap * 1e3:.2f} mm above the base at its lowest (the chamber collapses onto "
+            f"the electrodes; at least {MIN_CHAMBER_GAP * 1e3:g} mm is needed): the press is too deep for this target"
+        )
+    reference = morpher.dome if reference is None else reference
+    why = "mode = 'remesh'"
+    if mode != "remesh":
         try:
             chamber, q = morpher.morph(deformed, min_quality_ratio if mode == "auto" else 0.0)
-        except MeshInversionError as err:
+            ref = morpher.reference_quality
+            summary = (f"min shape {q.min_shape:.3g} (reference {ref.min_shape:.3g}), min dihedral {q.min_dihedral_deg:.1f} deg"
+                       + untangled_note(chamber))
+            if mode == "morph" or q.min_shape >= min_quality_ratio * ref.min_shape:
+                return DeformedChamber(chamber, "morph", f"morphed: {summary}", q)
+            why = f"morph quality too low: {summary}, below min_quality_ratio = {min_quality_ratio} x reference"
+        except MeshInversionError as e:
             if mode == "morph":
                 raise
-            return _remeshed(deformed, reference, scene, use_cache, f"morph failed: {err}")
-        limit = min_quality_ratio * ref.min_shape
-        summary = (f"min shape {q.min_shape:.3g} (reference {ref.min_shape:.3g}), min dihedral {q.min_dihedral_deg:.1f} deg"
-                   + untangled_note(chamber))
-        if mode == "auto" and q.min_shape < limit:
-            return _remeshed(
-                deformed, reference, scene, use_cache,
-                f"morph quality too low: {summary}, below min_quality_ratio = {min_quality_ratio} x reference",
-            )
-        return DeformedChamber(chamber, "morph", f"morphed: {summary}", q)
-    finally:
-        if own:
-            morpher.free()
+            why = f"morph failed: {e}"
+    return remeshed(_remesh(morpher, deformed, mesh, use_cache), deformed, reference, why)
 
 
 def remeshed(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurface, why: str) -> DeformedChamber:
@@ -483,12 +498,12 @@ def remeshed(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurface
     return DeformedChamber(chamber, "remesh", f"remeshed ({why}){note}", element_quality(m.nodes, m.tets), pb)
 
 
-def _remeshed(deformed: DomeSurface, reference: DomeSurface, scene: Scene, use_cache: bool, why: str) -> DeformedChamber:
-    return remeshed(_remesh(deformed, scene, use_cache), deformed, reference, why)
-
-
-def _remesh(deformed: DomeSurface, scene: Scene, use_cache: bool) -> ChamberMesh:
-    return mesh_chamber(chamber_surface(deformed), electrode_layout(scene), scene.mesh, use_cache=use_cache)
+def _remesh(morpher: ChamberMorpher, deformed: DomeSurface, spec: MeshSpec, use_cache: bool) -> ChamberMesh:
+    """A new mesh of the reference chamber's boundary moved onto ``deformed``."""
+    mesh = morpher.chamber.mesh
+    surface = trimesh.Trimesh(mesh.nodes + morpher.displacement(deformed), mesh.boundary_faces, process=True, validate=False)
+    surface.fix_normals()
+    return mesh_chamber(surface, morpher.chamber.layout, spec, use_cache=use_cache)
 
 
 def _digest(a: np.ndarray) -> str:

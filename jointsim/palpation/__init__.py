@@ -5,6 +5,6 @@ forward model and the difference image, frame by frame (paper III.C, Fig. 4).
 them resumably; :mod:`jointsim.palpation.report` writes the VTU series, the Fig. 4 plots and the
 summary. See :mod:`jointsim.palpation.pipeline` for the frame's stages."""
 
-from .pipeline import MESH_PATHS, STAGES, Frame, Palpation, Segment, deployed_chamber, force_profile, program_params, run_palpation
+from .pipeline import MESH_PATHS, STAGES, Frame, Palpation, Segment, force_profile, program_params, run_palpation
 
-__all__ = ["Palpation", "run_palpation", "deployed_chamber", "Frame", "Segment", "STAGES", "MESH_PATHS", "force_profile", "program_params"]
+__all__ = ["Palpation", "run_palpation", "Frame", "Segment", "STAGES", "MESH_PATHS", "force_profile", "program_params"]

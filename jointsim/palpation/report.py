@@ -61,19 +61,20 @@ class VtuSeries:
         if not self.wants(frame):
             return
         pal, i = self.pal, frame.index
+        inst = pal.instrument
         m = pal.membrane_mesh
         u = frame.state.u[: m.n_nodes]
         write_vtu(self.dir / f"membrane_{i:05d}.vtu", TetMesh(m.nodes + u, m.tets), point_data={"displacement": u})
         ch = frame.chamber.chamber.mesh
         cell, point = {}, {}
         if frame.chamber.path == "morph":
-            cell["dsigma"] = pal.grid.C @ frame.image
-            point["displacement"] = ch.nodes - pal.reference.mesh.nodes
+            cell["dsigma"] = inst.grid.C @ frame.image
+            point["displacement"] = ch.nodes - inst.reference.mesh.nodes
         write_vtu(self.dir / f"chamber_{i:05d}.vtu", ch, cell_data=cell, point_data=point)
         data = {"dsigma": frame.image, "dsigma_normalised": frame.image_normalised}
-        data["cluster"] = (largest_cluster(pal.grid, frame.image_normalised).astype(float)
-                           if np.any(frame.image) else np.zeros(pal.grid.n_cells))
-        write_voxels_vtu(self.dir / f"image_{i:05d}.vtu", pal.grid, data)
+        data["cluster"] = (largest_cluster(inst.grid, frame.image_normalised).astype(float)
+                           if np.any(frame.image) else np.zeros(inst.grid.n_cells))
+        write_voxels_vtu(self.dir / f"image_{i:05d}.vtu", inst.grid, data)
 
 
 def write_pvd(out: str | Path, frame_rate: float) -> list[Path]:
@@ -108,25 +109,26 @@ def write_setup(out: str | Path, pal: Palpation) -> list[Path]:
     """``out/setup.json`` (λ, noise, mesh sizes, set-up timings, the representative press)
     and ``out/grid.npz`` (the voxel grid, the reference voltages, the image noise per cell)."""
     out = Path(out)
-    g = pal.grid
+    inst = pal.instrument
+    g, ro, rec = inst.grid, inst.readout, inst.imager.reconstructor
     grid = write_npz(
         out / "grid.npz", origin=g.grid.origin, spacing=g.grid.spacing, shape=np.array(g.grid.shape),
-        active=g.active, volume=g.volume, centroid=g.centroid, v_ref=pal.v_ref, v_ref_measured=pal.v_ref_measured,
-        cell_noise=pal.cell_noise, lambda_grid=pal.reconstructor.choice.grid, lambda_score=pal.reconstructor.choice.score,
+        active=g.active, volume=g.volume, centroid=g.centroid, v_ref=ro.v_ref, v_ref_measured=ro.v_ref_measured,
+        cell_noise=inst.imager.cell_noise, lambda_grid=rec.choice.grid, lambda_score=rec.choice.score,
     )
     info = {
-        "lambda": pal.reconstructor.lam,
-        "lambda_method": pal.reconstructor.choice.method,
-        "lambda_press": pal.lambda_press,
-        "noise_std_V": pal.noise_std,
-        "dv_noise_std_V": pal.dv_noise_std,
-        "mean_standing_V": float(np.abs(pal.v_ref).mean()),
-        "chamber_tets": int(pal.reference.mesh.n_tets),
-        "chamber_nodes": int(pal.reference.mesh.n_nodes),
+        "lambda": rec.lam,
+        "lambda_method": rec.choice.method,
+        "lambda_press": inst.lambda_press,
+        "noise_std_V": ro.noise_std,
+        "dv_noise_std_V": ro.dv_noise_std,
+        "mean_standing_V": float(np.abs(ro.v_ref).mean()),
+        "chamber_tets": int(inst.reference.mesh.n_tets),
+        "chamber_nodes": int(inst.reference.mesh.n_nodes),
         "membrane_p2_nodes": int(pal.membrane_nodes),
         "grid_cells": int(g.n_cells),
         "voxel_mm": float(g.grid.spacing[0] * 1e3),
-        "reference_min_shape": float(pal.morpher.reference_quality.min_shape),
+        "reference_min_shape": float(inst.morpher.reference_quality.min_shape),
         "setup_timings_s": pal.setup_timings,
         "segments": [{"target": s.target, "radius_m": s.radius, "start": s.start, "n_frames": s.n_frames} for s in pal.segments],
         "frame_rate_hz": pal.frame_rate,

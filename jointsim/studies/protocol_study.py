@@ -9,8 +9,12 @@ by meshing alone: the chamber meshed with a sub-µm jitter, or turned by one ele
 against the instrument noise.
 
 The indentation is geometric (jointsim.mechanics.geometric) and reaches the EIT through the
-same interface the FEM mechanics will use (a deformed DomeSurface). The deformed chamber is
-the reference mesh morphed to the deformed dome, so δV contains no remeshing noise.
+same interface the FEM mechanics use (a deformed DomeSurface): an
+:class:`~jointsim.instrument.Instrument` built on the moulded cap deforms the chamber by its one
+policy (the reference mesh morphed, so δV contains no remeshing noise) and one
+:class:`~jointsim.instrument.Readout` per skip reads it (one solve per position serves all
+skips). The images are the study's own: λ per skip, chosen on every position's noisy δV
+together, since the study compares the protocols at their best.
 """
 
 from __future__ import annotations
@@ -22,12 +26,11 @@ import trimesh
 
 from ..eit.forward import ForwardModel
 from ..eit.jacobian import jacobian
-from ..eit.noise import noise_std
 from ..eit.protocol import skip_protocol
 from ..geometry import dome_from_scene, electrode_layout
+from ..instrument import Instrument
 from ..mechanics.geometric import indent_dome
 from ..mesh.chamber import ChamberMesh, chamber_mesh, mesh_chamber, reference_surface
-from ..mesh.morph import ChamberMorpher
 from ..metrics import ImageMetrics, image_metrics, rms, sensitivity_total
 from ..reconstruction.grid import ChamberGrid
 from ..reconstruction.tikhonov import SVD, LambdaChoice, choose_lambda
@@ -127,35 +130,36 @@ def run_protocol_study(scene: Scene, config: StudyConfig = StudyConfig(), progre
         raise ValueError(f"membrane.moulding = {scene.membrane.moulding!r}: the protocol study takes the moulded cap only (\"cap\")")
     tick = progress or (lambda n=1: None)
     n_el = scene.electrodes.count
-    ch = chamber_mesh(scene)
     dome = dome_from_scene(scene)
-    # the indented chambers are morphs of ch: their models keep its pattern and PARDISO analysis
-    base = ForwardModel.from_chamber(ch, scene).shared()
-    f0 = base.solve(scene.saline.conductivity)
+    scene = replace(scene, noise=replace(scene.noise, snr_db=config.snr_db))
+    inst = Instrument.build(scene, dome=dome, chamber=chamber_mesh(scene), imaging=False)
+    ch = inst.chamber
     tick()
     grid = ChamberGrid.over(ch.mesh, config.n_cells)
-    protocols = {s: skip_protocol(n_el, s, scene.drive.current) for s in config.skips}
-    v_ref = {s: f0.voltages(p) for s, p in protocols.items()}
+    # one readout per skip; they share their solves (the reference's, then each position's)
+    readouts = {s: inst.readout.with_protocol(skip_protocol(n_el, s, scene.drive.current)) for s in config.skips}
+    protocols = {s: r.protocol for s, r in readouts.items()}
+    v_ref = {s: r.v_ref for s, r in readouts.items()}
+    f0 = inst.readout.fields(inst.reference, True)
     J = {s: jacobian(f0, p, coarse=grid.C) for s, p in protocols.items()}
     tick()
 
     P = len(config.positions)
     v_def = {s: np.empty((P, n_el * n_el)) for s in config.skips}
     centres, volumes = np.empty((P, 3)), np.empty(P)
-    with ChamberMorpher(ch, dome) as morpher:  # one preparation for every position's morph
-        for i, xy in enumerate(config.positions):
-            ind = indent_dome(dome, xy, config.depth, config.target_radius, scene.chamber.membrane_thickness)
-            fi = _fields(morpher(ind.dome), scene, like=base)
-            for s, p in protocols.items():
-                v_def[s][i] = fi.voltages(p)
-            centres[i], volumes[i] = ind.centroid, ind.volume
-            tick()
-    base.free()
+    for i, xy in enumerate(config.positions):
+        ind = indent_dome(dome, xy, config.depth, config.target_radius, scene.chamber.membrane_thickness)
+        dc = inst.deform(ind.dome)
+        for s, r in readouts.items():
+            v_def[s][i] = r.change(dc)
+        centres[i], volumes[i] = ind.centroid, ind.volume
+        tick()
+    inst.free()
 
     rng = np.random.default_rng(config.seed)
     dv, dv_clean, lambdas, images, metrics, metrics_raw, j_sens, std = {}, {}, {}, {}, {}, {}, {}, {}
     for s in config.skips:
-        std[s] = noise_std(v_ref[s], config.snr_db)
+        std[s] = readouts[s].noise_std
         dv_clean[s] = v_def[s] - v_ref[s]
         # the paper subtracts a steady-state reference averaged over many frames: only the
         # deformed frame carries noise. Several noisy repeats per position steady the choice
@@ -183,7 +187,7 @@ def run_protocol_study(scene: Scene, config: StudyConfig = StudyConfig(), progre
     )
     result.mirror_pairs = mirror_pair_differences(v_def, n_el)
     if config.mesh_floor:
-        result.floor = mesh_noise_floor(scene, ch, f0, protocols)
+        result.floor = mesh_noise_floor(scene, f0, protocols)
         tick()
     return result
 
@@ -218,7 +222,7 @@ def jittered_chamber(scene: Scene, amplitude: float) -> ChamberMesh:
     return mesh_chamber(surface, electrode_layout(scene), scene.mesh, use_cache=False)
 
 
-def mesh_noise_floor(scene: Scene, chamber: ChamberMesh, fields, protocols: dict) -> dict[str, dict[int, float]]:
+def mesh_noise_floor(scene: Scene, fields, protocols: dict) -> dict[str, dict[int, float]]:
     """Voltage change produced by meshing alone, in dB re the mean standing |V| (the SNR
     convention), per skip: ``jitter`` meshes the chamber with its dome's vertices moved by at
     most 1 µm (the mesher is deterministic, so meshing the same chamber again gives the same

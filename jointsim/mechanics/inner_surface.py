@@ -1,0 +1,59 @@
+"""The membrane's inner (chamber) surface at the resolution of its P2 nodes: where the
+mechanics hands a frame to the EIT side. The chamber mesh follows this surface, so the
+chamber's volume change matches the FEM's displaced volume (the vertex-only
+``MembraneState.dome`` drops the midside nodes)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry import DomeSurface
+from .dome import MembraneModel
+
+__all__ = ["InnerSurface"]
+
+
+@dataclass(frozen=True)
+class InnerSurface:
+    """The membrane's inner surface as the linear sub-triangles of its 6-node faces (the
+    surface the FEM's saline volume is integrated over): P2 node indices ``nodes`` (n,),
+    ``faces`` (m, 3) into them (normals out of the chamber), ``rim`` (k,) anticlockwise, and the
+    reference positions ``X`` (n, 3) with the rim's edge midpoints moved onto the base circle
+    (they never move).
+
+    The reference is the moulded surface (the moulded cap; the morph then takes the chamber to
+    the reservoir's inflation), or, for a membrane moulded flat, the inflated one: ``u0`` (n, 3)
+    is the membrane's displacement included in ``X`` (zero for the cap)."""
+
+    nodes: np.ndarray
+    faces: np.ndarray
+    rim: np.ndarray
+    X: np.ndarray
+    u0: np.ndarray
+
+    @classmethod
+    def of(cls, model: MembraneModel, base_radius: float, inflated: bool = False) -> "InnerSurface":
+        """The inner surface of ``model``; ``inflated``: its reference is the model's current
+        (inflated, untouched) state instead of the moulded one."""
+        # the model's inner sub-triangles (the pressure term's surface)
+        tris = np.asarray(model.inner_tris)
+        nodes, local = np.unique(tris, return_inverse=True)
+        faces = local.reshape(-1, 3)[:, ::-1]  # the FEM's point into the chamber; a DomeSurface's out
+        u0 = model.u[nodes] if inflated else np.zeros((len(nodes), 3))
+        X = model.mesh.nodes[nodes] + u0
+        # the rim: the surface's nodes the model bonds (by the base plane for a cap, by the rim
+        # circle for a flat sheet, whose whole inner surface lies in the base plane)
+        rim = np.flatnonzero(model.fixed[nodes, 0])
+        rim = rim[np.argsort(np.arctan2(X[rim, 1], X[rim, 0]))]
+        X[rim, :2] *= base_radius / np.hypot(X[rim, 0], X[rim, 1])[:, None]
+        X[rim, 2] = 0.0
+        return cls(nodes, np.ascontiguousarray(faces), rim, X, u0)
+
+    def dome(self, u: np.ndarray | None) -> DomeSurface:
+        """The surface displaced by the membrane's ``u`` (n_P2, 3) (None: the reference)."""
+        v = self.X.copy() if u is None else self.X + (u[self.nodes] - self.u0)
+        if u is not None:
+            v[self.rim] = self.X[self.rim]  # bonded: zero displacement, kept bit-exact
+        return DomeSurface(v, self.faces, self.rim)
