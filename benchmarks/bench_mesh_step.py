@@ -89,7 +89,7 @@ def run(preset: str | None = None) -> dict:
     ref_q = morpher.reference_quality
     per_frame, split, quality = [], [], []
     for d, f in zip(DEPTHS_MM, frames):
-        r, t = _timed(deform_chamber, morpher, f, scene)
+        r, t = _timed(deform_chamber, morpher, f, scene.mesh)
         u, t_disp = _timed(morpher.displacement, f)
         _, t_q = _timed(element_quality, ch.mesh.nodes + u, ch.mesh.tets)
         per_frame.append(t)
@@ -129,17 +129,17 @@ def run(preset: str | None = None) -> dict:
     floor_morph = rms(volts(zero) - v_ref)
 
     remesh_s = []
-    again, t = _timed(deform_chamber, morpher, dome, scene, "remesh")
+    again, t = _timed(deform_chamber, morpher, dome, scene.mesh, "remesh")
     remesh_s.append(t)
     floor_remesh = rms(volts(again.chamber) - v_ref)
     press = indent_dome(dome, (0.0, 0.0), 2e-3, TARGET_RADIUS, thick).dome
-    r2, t = _timed(deform_chamber, morpher, press, scene, "remesh")
+    r2, t = _timed(deform_chamber, morpher, press, scene.mesh, "remesh")
     remesh_s.append(t)
     dv_morph = volts(morpher(press)) - v_ref
     dv_remesh = volts(r2.chamber) - v_ref
     worst = indent_dome(dome, WORST_XY, 3e-3, TARGET_RADIUS, thick).dome
-    w_morph = deform_chamber(morpher, worst, scene, "morph")
-    w_remesh, t = _timed(deform_chamber, morpher, worst, scene, "remesh")
+    w_morph = deform_chamber(morpher, worst, scene.mesh, "morph")
+    w_remesh, t = _timed(deform_chamber, morpher, worst, scene.mesh, "remesh")
     remesh_s.append(t)
     dv_w_morph = volts(w_morph.chamber) - v_ref
     dv_w_remesh = volts(w_remesh.chamber) - v_ref
@@ -187,14 +187,14 @@ def _markdown(meta: dict, r: dict) -> str:
     med = lambda k: float(np.median(r[k]))  # noqa: E731
     prep, one, remesh = med("morph_frame_s"), med("one_off_frame_s"), float(np.median(r["remesh_s"]))
     rows = [
-        ("prepared morph, `deform_chamber(morpher, dome, scene)` (auto)", r["morph_frame_s"]),
+        ("prepared morph, `deform_chamber(morpher, dome, scene.mesh)` (auto)", r["morph_frame_s"]),
         ("  of which interpolation + solve (`displacement`)", r["morph_interpolate_solve_s"]),
         ("  of which quality check (`element_quality`)", r["morph_quality_check_s"]),
         ("one-off `morph_chamber` (now a wrapper of the prepared morpher)", r["one_off_frame_s"]),
     ]
     if "pre_change_frame_s" in r:
         rows.append((f"one-off `morph_chamber` before this change (git {PRE_CHANGE[:7]})", r["pre_change_frame_s"]))
-    rows.append(("full remesh, `deform_chamber(..., mode=\"remesh\")` (fTetWild + electrode clipping)", r["remesh_s"]))
+    rows.append(("full remesh, `deform_chamber(..., mode=\"remesh\")` (gmsh + electrode clipping)", r["remesh_s"]))
     lines = [
         "# Mesh step benchmark",
         "",

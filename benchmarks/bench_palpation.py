@@ -59,7 +59,7 @@ def bench(preset: str, n_frames: int) -> dict:
         rows.append({
             "frame": f.frame, "depth_mm": 1e3 * r["depth"], "force_mN": 1e3 * r["force"][2],
             "newton_iterations": int(r["newton_iterations"]), "mesh_path": f.chamber.path,
-            "mesh_min_shape_ratio": f.chamber.quality.min_shape / pal.morpher.reference_quality.min_shape,
+            "mesh_min_shape_ratio": f.chamber.quality.min_shape / pal.instrument.morpher.reference_quality.min_shape,
             **{s: f.timings[s] for s in STAGES}, "total": sum(f.timings.values()),
         })
         print(f"  {preset} frame {f.frame}: depth {rows[-1]['depth_mm']:.2f} mm, "
@@ -68,11 +68,11 @@ def bench(preset: str, n_frames: int) -> dict:
             break
     out = {
         "preset": preset,
-        "chamber_tets": int(pal.reference.mesh.n_tets),
-        "chamber_nodes": int(pal.reference.mesh.n_nodes),
+        "chamber_tets": int(pal.instrument.reference.mesh.n_tets),
+        "chamber_nodes": int(pal.instrument.reference.mesh.n_nodes),
         "membrane_p2_nodes": int(pal.membrane_nodes),
         "membrane": {"rim_vertices": scene.membrane.rim_vertices, "layers": scene.membrane.layers, "element": scene.membrane.element},
-        "grid_cells": int(pal.grid.n_cells),
+        "grid_cells": int(pal.instrument.grid.n_cells),
         "setup_s": setup,
         "setup_stages_s": pal.setup_timings,
         "frames": rows,

@@ -75,9 +75,9 @@ def run(preset: str, order: int = 1) -> dict:
     with ChamberMorpher(ch, dome) as morpher:
         for x, y, depth in PRESSES:
             pressed = indent_dome(dome, (x * 1e-3, y * 1e-3), depth * 1e-3, TARGET_RADIUS, scene.chamber.membrane_thickness).dome
-            m = deform_chamber(morpher, pressed, scene, "morph")
+            m = deform_chamber(morpher, pressed, scene.mesh, "morph")
             t = time.perf_counter()
-            r = deform_chamber(morpher, pressed, scene, "remesh")
+            r = deform_chamber(morpher, pressed, scene.mesh, "remesh")
             t_remesh = time.perf_counter() - t
             dv_m = volts(m.chamber) - v_ref
             dv_r = r.change(volts, v_ref) - v_ref

@@ -15,13 +15,13 @@ PACKAGE = Path(__file__).resolve().parents[1] / "jointsim"
 # Top-level parts of the package, bottom to top. A part may import parts of lower rank only;
 # parts of equal rank are siblings that do not import each other.
 LAYERS: list[set[str]] = [
-    {"_cores", "_warp", "scene", "linalg"},  # settings and shared numerics
+    {"_cores", "_warp", "scene", "linalg", "timing"},  # settings, shared numerics, the stage timer
     {"geometry"},  # the sensor's shapes and electrode layout
     {"mesh"},  # tetrahedral meshes of the chamber
     {"eit", "mechanics", "reconstruction"},  # the physics and the inverse
     {"metrics", "io"},
-    {"palpation", "studies"},
-    {"dataset"},
+    {"instrument"},  # the sensor's measurement chain and the one frame step
+    {"palpation", "studies", "dataset"},  # the jobs: each measures through the instrument, none through another
     {"calibration"},
     {"cli"},
     {"__main__"},

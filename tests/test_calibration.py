@@ -299,13 +299,28 @@ def test_map_refuses_another_sensor_and_accepts_its_own(built):
 def test_fingerprint_from_a_datasets_recorded_scene_matches_the_scene():
     scene = load_scene(SCENE)
     d = json.loads(json.dumps(scene.to_dict()))  # as a store's JSON provenance holds it
-    from jointsim.calibration.fingerprint import provenance_fingerprint
+    from jointsim.calibration.fingerprint import check_fingerprint, provenance_fingerprint
 
     assert provenance_fingerprint({"params": {"scene": d}, "scene_toml": ""}) == sensor_fingerprint(scene)
     del d["mesh"]["element_order"]  # recorded before the element order existed: P1
     assert provenance_fingerprint({"params": {"scene": d}, "scene_toml": ""}) == sensor_fingerprint(scene)
     prov = {"scene_toml": SCENE.read_text(), "params": {"mesh_preset": "test"}}
     assert scene_from_provenance(prov).mesh.preset == "test"
+    # recorded before [reconstruction]: the image settings sat in [palpation], and maps built
+    # then hold them under that name; both still match the scene
+    legacy = json.loads(json.dumps(scene.to_dict()))
+    legacy["palpation"].update(legacy.pop("reconstruction"))
+    assert provenance_fingerprint({"params": {"scene": legacy}, "scene_toml": ""}) == sensor_fingerprint(scene)
+    stored = {k.replace("reconstruction.", "palpation."): v for k, v in sensor_fingerprint(scene).items()}
+    assert "palpation.cells" in stored
+    check_fingerprint(stored, sensor_fingerprint(scene))
+    other = replace(scene, reconstruction=replace(scene.reconstruction, cells=3000))
+    with pytest.raises(SceneMismatchError, match=r"reconstruction\.cells: 7000 in the map, 3000 in the scene"):
+        check_fingerprint(stored, sensor_fingerprint(other))
+    # λ's press defines the sensor only where it is not the default it had before it existed
+    assert "reconstruction.lambda_depth" not in sensor_fingerprint(scene)
+    deeper = replace(scene, reconstruction=replace(scene.reconstruction, lambda_depth=2e-3))
+    assert sensor_fingerprint(deeper)["reconstruction.lambda_depth"] == 2e-3
 
 
 def test_load_map_refuses_other_files(tmp_path, stores):

@@ -29,10 +29,10 @@ preset = "test"
 reservoir_pressure_pa = 50.0
 rim_vertices = 24
 layers = 1
-[palpation]
+[reconstruction]
 cells = 1000
-target_diameters_mm = [10.0]
-depth_mm = 1.0
+lambda_target_diameter_mm = 10.0
+lambda_depth_mm = 1.0
 [dataset]
 radius_mm = [4.0, 10.0]
 r_max_mm = 10.0

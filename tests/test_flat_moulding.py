@@ -141,15 +141,16 @@ def flat_pal(paper_scene):
 
     scene = paper_scene.with_mesh_preset("test")
     scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=32, layers=1, moulding="flat"))
-    spec = replace(scene.palpation, target_radii=(7.5e-3,), depth=2e-3, speed=50e-3, hold=0.0, cells=1000)
+    scene = replace(scene, reconstruction=replace(scene.reconstruction, cells=1000))
+    spec = replace(scene.palpation, target_radii=(7.5e-3,), depth=2e-3, speed=50e-3, hold=0.0)
     pal = Palpation(scene, spec)
     yield pal
     pal.free()
 
 
 def test_a_flat_moulded_sensor_is_palpated_on_the_chamber_of_its_inflated_membrane(flat_pal, tmp_path):
-    """The chamber is meshed on the inflated membrane's inner surface (its dome within
-    fTetWild's envelope of it: measured 5 µm) and holds the FEM's saline; a frame at zero
+    """The chamber is meshed on the inflated membrane's inner surface (its dome on that
+    surface: the gap is asserted below 1 % of the membrane thickness) and holds the FEM's saline; a frame at zero
     indentation gives δV = 0 exactly; a pressed chamber loses the saline the FEM displaces
     (measured within 0.15 %: the chamber is meshed on the triangles the FEM's volume is
     integrated over, so only the envelope differs; 1 % allowed, as the cap's 3 % allows its
@@ -158,10 +159,11 @@ def test_a_flat_moulded_sensor_is_palpated_on_the_chamber_of_its_inflated_membra
     from jointsim.palpation import run_palpation
 
     pal = flat_pal
-    assert pal.inflated_u is not None
-    assert pal.morpher.surface_gap < 0.01 * pal.scene.chamber.membrane_thickness
+    inst = pal.instrument
+    assert inst.inflated_u is not None
+    assert inst.morpher.surface_gap < 0.01 * pal.scene.chamber.membrane_thickness
     model = pal.membrane(7.5e-3)
-    assert pal.reference_volume == pytest.approx(model.V0, rel=0.01)
+    assert inst.reference_volume == pytest.approx(model.V0, rel=0.01)
     path = tmp_path / "flat.h5"
     store = open_store(path, pal.schema(), scene_toml="", seed=pal.seed, n_records=pal.n_records, params=pal.params())
     frames = list(run_palpation(pal, store))
@@ -181,7 +183,7 @@ def test_a_dataset_of_a_flat_moulded_sensor(flat_pal):
     from the set-up's, and its samples press deeper with the saline displaced growing."""
     from jointsim.dataset.generate import DatasetSetup
 
-    setup = DatasetSetup(flat_pal.scene, flat_pal.chamber, seed=3)
+    setup = DatasetSetup(flat_pal.scene, flat_pal.instrument.chamber, seed=3)
     try:
         records, _ = setup.group(0, 2)
     finally:

@@ -57,10 +57,12 @@ def _press(scene, xy, depth):
 
 
 def _fold(dome):
-    """A huge non-physical deformation: the dome mirrored through the base at half height.
-    The harmonic extension of this linear map is the map itself, so every element inverts."""
+    """A huge non-physical deformation that stays above the base: the dome turned upside down
+    into a bowl (z -> c - z/2, its lowest point 0.5 mm over the base, the rim left in place).
+    The dome's elements are mirrored, so the morph inverts them."""
     v = dome.vertices.copy()
-    v[:, 2] *= -0.5
+    c = 0.5 * v[:, 2].max() + 0.5e-3
+    v[:, 2] = c - 0.5 * v[:, 2]
     v[dome.rim, 2] = 0.0
     return DomeSurface(v, dome.faces, dome.rim)
 
@@ -95,8 +97,8 @@ def test_prepared_morpher_matches_the_one_off_morph(test_chamber, morpher, xy, d
     np.testing.assert_allclose(m.mesh.nodes, _reference_morph(ch, morpher.dome, deformed), rtol=0, atol=1e-12)
     # the one-off wrapper is the same computation
     np.testing.assert_array_equal(morph_chamber(ch, morpher.dome, deformed).mesh.nodes, m.mesh.nodes)
-    # a ChamberMesh source is prepared on the spot and gives the same morph
-    r = deform_chamber(ch, deformed, scene)
+    # the policy, when the morph passes, is the morph
+    r = deform_chamber(morpher, deformed, scene.mesh)
     assert r.path == "morph" and r.reason.startswith("morphed")
     np.testing.assert_array_equal(r.chamber.mesh.nodes, m.mesh.nodes)
 
@@ -151,13 +153,13 @@ def test_an_inverting_deformation_remeshes_in_auto_and_raises_in_morph(test_cham
     scene, ch = test_chamber
     fold = _fold(morpher.dome)
     with pytest.raises(MeshInversionError, match="remesh"):
-        deform_chamber(morpher, fold, scene, mode="morph")
-    r = deform_chamber(morpher, fold, scene)  # the one real remesh of these tests
+        deform_chamber(morpher, fold, scene.mesh, mode="morph")
+    r = deform_chamber(morpher, fold, scene.mesh)  # the one real remesh of these tests
     assert r.path == "remesh" and "inverted" in r.reason
     assert r.quality.n_inverted == 0
     # mirrored back, every element would invert: no pull-back, the reason says the floor applies
     assert r.pulled_back is None and "remeshing floor" in r.reason
-    # fTetWild keeps the surface within its envelope, not on it: ~0.1 % of the volume here
+    # the remesh fills the morphed boundary, whose dome nodes lie on the fold's triangles
     assert r.chamber.mesh.volumes.sum() == pytest.approx(chamber_surface(fold).volume, rel=5e-3)
     # electrodes are clipped exactly on the new base: the same areas as on the reference mesh
     np.testing.assert_allclose(
@@ -195,7 +197,7 @@ def test_the_remesh_fallback_gives_the_same_mesh_every_time(test_chamber, morphe
     (the mesher is deterministic), and so is its pull-back onto the reference chamber."""
     scene, _ = test_chamber
     deformed = _press(scene, (3e-3, 0.0), 2e-3)
-    a, b = (deform_chamber(morpher, deformed, scene, "remesh", use_cache=False) for _ in range(2))
+    a, b = (deform_chamber(morpher, deformed, scene.mesh, "remesh", use_cache=False) for _ in range(2))
     assert a.path == b.path == "remesh" and a.chamber is not b.chamber
     np.testing.assert_array_equal(a.chamber.mesh.nodes, b.chamber.mesh.nodes)
     np.testing.assert_array_equal(a.chamber.mesh.tets, b.chamber.mesh.tets)
@@ -216,7 +218,7 @@ def test_a_remeshed_press_gives_the_morphs_voltage_change(test_chamber, morpher)
     volts = lambda c: ForwardModel.from_chamber(c, scene).solve(scene.saline.conductivity).voltages(protocol)  # noqa: E731
     v_ref = volts(ch)
     dv_morph = volts(morpher(deformed)) - v_ref
-    r = deform_chamber(morpher, deformed, scene, "remesh")
+    r = deform_chamber(morpher, deformed, scene.mesh, "remesh")
     assert r.pulled_back is not None and "pulled back" in r.reason
     dv_remesh = r.change(volts, v_ref) - v_ref
     rms = lambda x: float(np.sqrt(np.mean(x**2)))  # noqa: E731
@@ -277,7 +279,7 @@ def test_dropping_elements_renumbers_nodes_and_electrodes(test_chamber, morpher)
 def test_auto_untangles_then_remeshes_when_the_quality_drops_below_the_threshold(test_chamber, morpher, monkeypatch):
     scene, ch = test_chamber
     calls = []
-    monkeypatch.setattr(morph, "_remesh", lambda deformed, scene, use_cache: calls.append(deformed) or ch)
+    monkeypatch.setattr(morph, "_remesh", lambda morpher, deformed, spec, use_cache: calls.append(deformed) or ch)
     deformed = _press(scene, (0.0, 0.0), 2.5e-3)
     _, q = morpher.morph(deformed)
     ratio = q.min_shape / morpher.reference_quality.min_shape
@@ -285,7 +287,7 @@ def test_auto_untangles_then_remeshes_when_the_quality_drops_below_the_threshold
     plain = morpher(deformed)
     # just below the threshold: the interior nodes of the worst elements are untangled first,
     # and the morph passes (only interior nodes moved, the reason says so)
-    rescued = deform_chamber(morpher, deformed, scene, min_quality_ratio=min(1.0, 1.01 * ratio))
+    rescued = deform_chamber(morpher, deformed, scene.mesh, min_quality_ratio=min(1.0, 1.01 * ratio))
     assert rescued.path == "morph" and "untangled" in rescued.reason and not calls
     assert rescued.quality.min_shape >= 1.01 * q.min_shape
     moved = np.any(rescued.chamber.mesh.nodes != plain.mesh.nodes, axis=1)
@@ -293,14 +295,14 @@ def test_auto_untangles_then_remeshes_when_the_quality_drops_below_the_threshold
     # where untangling cannot lift them (here: made to do nothing), the morph falls back on quality
     with monkeypatch.context() as m:
         m.setattr(morph, "untangle", lambda nodes, *a, **k: nodes)
-        below = deform_chamber(morpher, deformed, scene, min_quality_ratio=min(1.0, 1.01 * ratio))
+        below = deform_chamber(morpher, deformed, scene.mesh, min_quality_ratio=min(1.0, 1.01 * ratio))
     assert below.path == "remesh" and "quality" in below.reason and len(calls) == 1
-    above = deform_chamber(morpher, deformed, scene, min_quality_ratio=0.99 * ratio)
+    above = deform_chamber(morpher, deformed, scene.mesh, min_quality_ratio=0.99 * ratio)
     assert above.path == "morph" and above.quality == q and "untangled" not in above.reason
     np.testing.assert_array_equal(above.chamber.mesh.nodes, plain.mesh.nodes)  # a passing morph is untouched
     # "morph" never falls back on quality; "remesh" always remeshes
-    assert deform_chamber(morpher, deformed, scene, "morph", min_quality_ratio=1.0).path == "morph"
-    r = deform_chamber(morpher, deformed, scene, "remesh")
+    assert deform_chamber(morpher, deformed, scene.mesh, "morph", min_quality_ratio=1.0).path == "morph"
+    r = deform_chamber(morpher, deformed, scene.mesh, "remesh")
     assert r.path == "remesh" and "mode = 'remesh'" in r.reason and len(calls) == 2
 
 
@@ -308,10 +310,10 @@ def test_bad_arguments_name_the_parameter(test_chamber, morpher):
     scene, ch = test_chamber
     dome = morpher.dome
     with pytest.raises(ValueError, match="mode"):
-        deform_chamber(morpher, dome, scene, mode="smooth")
+        deform_chamber(morpher, dome, scene.mesh, mode="smooth")
     for bad in (-0.1, 1.5, float("nan")):
         with pytest.raises(ValueError, match="min_quality_ratio"):
-            deform_chamber(morpher, dome, scene, min_quality_ratio=bad)
+            deform_chamber(morpher, dome, scene.mesh, min_quality_ratio=bad)
     with pytest.raises(ValueError, match="min_dihedral_deg"):
         ChamberMorpher(ch, dome, min_dihedral_deg=75.0)
     coarse = dome_from_scene(scene, n_rim=32)

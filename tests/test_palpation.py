@@ -19,16 +19,17 @@ from jointsim.scene import SceneError, scene_from_dict
 RADII = (4e-3, 7.5e-3, 15e-3)  # the paper's 8, 15 and 30 mm targets
 
 
-def _coarse(scene):
-    return replace(scene, membrane=replace(scene.membrane, rim_vertices=32, layers=1))
+def _coarse(scene, cells=None):
+    scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=32, layers=1))
+    return scene if cells is None else replace(scene, reconstruction=replace(scene.reconstruction, cells=cells))
 
 
 @pytest.fixture(scope="module")
 def pal(test_chamber):
     scene, chamber = test_chamber
     # 50 mm/s: 1 mm per 50 Hz frame, so each target is 0, 1, 2, 1, 0 mm (5 frames)
-    spec = replace(scene.palpation, target_radii=RADII, depth=2e-3, speed=50e-3, hold=0.0, cells=3000)
-    p = Palpation(_coarse(scene), spec, chamber=chamber)
+    spec = replace(scene.palpation, target_radii=RADII, depth=2e-3, speed=50e-3, hold=0.0)
+    p = Palpation(_coarse(scene, cells=3000), spec, chamber=chamber)
     yield p
     p.free()
 
@@ -82,10 +83,11 @@ def test_zero_indentation_gives_zero_dv(pal, run):
     assert (rec["depth"][first] == 0).all() and (rec["force"][first] == 0).all()
     assert (rec["dv_clean"][first] == 0).all()
     for f in (f for f in frames if f.frame == 0):
-        np.testing.assert_array_equal(f.chamber.chamber.mesh.nodes, pal.reference.mesh.nodes)
+        np.testing.assert_array_equal(f.chamber.chamber.mesh.nodes, pal.instrument.reference.mesh.nodes)
     noise = rec["dv"][first]
-    assert noise.std() == pytest.approx(pal.dv_noise_std, rel=0.1)
-    assert pal.noise_std == pytest.approx(np.abs(pal.v_ref).mean() / 10 ** (74.2 / 20))
+    ro = pal.instrument.readout
+    assert noise.std() == pytest.approx(ro.dv_noise_std, rel=0.1)
+    assert ro.noise_std == pytest.approx(np.abs(ro.v_ref).mean() / 10 ** (74.2 / 20))
 
 
 def _rotation_spread(dv):
@@ -109,8 +111,9 @@ def test_an_on_axis_target_gives_16_fold_symmetric_voltage_changes(pal, run):
     for dv in rec["dv_clean"][rec["depth"] > 0.5e-3]:
         spread = _rotation_spread(dv)
         assert np.median(spread) < 0.025 and spread.max() < 0.18
-    off = indent_dome(pal.reference_dome, (2e-3, 0.0), 2e-3, 7.5e-3, 2e-3)
-    assert np.median(_rotation_spread(pal.voltages(pal.morpher(off.dome)) - pal.v_ref)) > 0.05
+    inst = pal.instrument
+    off = indent_dome(inst.reference_dome, (2e-3, 0.0), 2e-3, 7.5e-3, 2e-3)
+    assert np.median(_rotation_spread(inst.readout.voltages(inst.morpher(off.dome), True) - inst.readout.v_ref)) > 0.05
 
 
 def test_dv_grows_with_depth_and_with_target_size(run):
@@ -171,7 +174,7 @@ def test_a_dataset_sample_of_the_same_press_reproduces_the_frame(pal, run, test_
     rec, _ = run
     scene, chamber = test_chamber
     frames = np.flatnonzero((rec["target"] == 1) & (rec["frame"] >= 1) & (rec["frame"] <= 2))
-    setup = DatasetSetup(replace(_coarse(scene), palpation=pal.spec), chamber, seed=0)
+    setup = DatasetSetup(pal.scene, chamber, seed=0)
     try:
         draw = GroupDraw(0, 0, RADII[1], rec["position"][frames[0], :2].copy(), np.inf, 1.0, scene.saline.conductivity,
                          scene.electrodes.contact_impedance[0], np.zeros((16, 2)), 74.2, rec["depth"][frames].copy())
@@ -196,11 +199,13 @@ def test_the_rings_symmetries_move_a_frame_with_its_press(pal):
     from jointsim.calibration.regression import moved_by_symmetry
     from jointsim.eit.protocol import ring_symmetries
 
-    def rel_dv(xy):
-        dent = indent_dome(pal.reference_dome, tuple(xy), 2e-3, 7.5e-3, 2e-3)
-        return (pal.voltages(pal.morpher(dent.dome)) - pal.v_ref) / pal.v_ref
+    inst = pal.instrument
 
-    sym = ring_symmetries(pal.protocol, pal.scene.electrodes.first_angle_deg)
+    def rel_dv(xy):
+        dent = indent_dome(inst.reference_dome, tuple(xy), 2e-3, 7.5e-3, 2e-3)
+        return (inst.readout.voltages(inst.morpher(dent.dome), True) - inst.readout.v_ref) / inst.readout.v_ref
+
+    sym = ring_symmetries(inst.protocol, pal.scene.electrodes.first_angle_deg)
     assert len(sym) == 32
     xy = np.array([6e-3, 2e-3])
     f0 = rel_dv(xy)
@@ -218,8 +223,8 @@ def test_force_mode_settles_at_the_commanded_force(test_chamber):
     """A 30 mN press switched on at first contact: the rig's force-mode loop contracts by
     ~0.85 per frame at this contact stiffness (~25 N/m), so 40 frames settle to ≪ 1 %."""
     scene, chamber = test_chamber
-    spec = replace(scene.palpation, mode="force", target_radii=(7.5e-3,), force=0.03, force_ramp=0.0, hold=0.8, cells=500)
-    pal = Palpation(_coarse(scene), spec, chamber=chamber)
+    spec = replace(scene.palpation, mode="force", target_radii=(7.5e-3,), force=0.03, force_ramp=0.0, hold=0.8)
+    pal = Palpation(_coarse(scene, cells=500), spec, chamber=chamber)
     frames = list(run_palpation(pal))
     pal.free()
     assert len(frames) == 41
@@ -242,7 +247,8 @@ from jointsim.scene import load_scene
 
 scene = load_scene(sys.argv[1]).with_mesh_preset("test")
 scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=32, layers=1))
-pal = Palpation(scene, replace(scene.palpation, target_radii=(4e-3, 7.5e-3), depth=1e-3, speed=50e-3, hold=0.0, cells=1000))
+scene = replace(scene, reconstruction=replace(scene.reconstruction, cells=1000))
+pal = Palpation(scene, replace(scene.palpation, target_radii=(4e-3, 7.5e-3), depth=1e-3, speed=50e-3, hold=0.0))
 
 def run(path, stop_at=None):
     store = open_store(path, pal.schema(), scene_toml="", seed=0, n_records=pal.n_records, params=pal.params())
@@ -304,8 +310,8 @@ def test_a_hold_reuses_the_chamber_and_draws_fresh_noise(test_chamber):
     (with OpenBLAS's Haswell kernels they cycled at ±8.7e-20 m for ever and no frame was
     reused; on AVX-512 they happened to decay to an exact 0 by the 11th frame)."""
     scene, chamber = test_chamber
-    spec = replace(scene.palpation, target_radii=(7.5e-3,), depth=1e-3, speed=50e-3, hold=0.3, cells=1000)
-    p = Palpation(_coarse(scene), spec, chamber=chamber)
+    spec = replace(scene.palpation, target_radii=(7.5e-3,), depth=1e-3, speed=50e-3, hold=0.3)
+    p = Palpation(_coarse(scene, cells=1000), spec, chamber=chamber)
     try:
         frames = list(run_palpation(p))
     finally:
@@ -314,34 +320,38 @@ def test_a_hold_reuses_the_chamber_and_draws_fresh_noise(test_chamber):
     assert len(reused) >= 10  # the hold frames after the servo has settled below HOLD_MOVE
     for f in reused:
         assert f.chamber is frames[f.frame - 1].chamber
-        np.testing.assert_array_equal(f.voltages_clean, f.chamber.change(p.voltages, p.v_ref))
+        np.testing.assert_array_equal(f.voltages_clean, p.instrument.readout.change(f.chamber))
         assert not np.array_equal(f.voltages, frames[f.frame - 1].voltages)  # fresh noise
 
 
 def test_per_carrier_contact_impedance_option(pal):
     """With ``fdm_contact_impedance``, injection s runs at FDM carrier s with that carrier's
     contact impedances: doubling carrier 3's changes injection 3's voltages and no other."""
-    import copy
+    from jointsim.instrument import Readout
 
+    inst = pal.instrument
     e = pal.scene.electrodes
     rows = [tuple(e.contact_impedance)] * 16
     rows[3] = tuple(2 * z for z in e.contact_impedance)
-    fdm = copy.copy(pal)
-    fdm.scene = replace(pal.scene, electrodes=replace(e, contact_impedance_by_freq=tuple(rows)))
-    fdm.spec = replace(pal.spec, fdm_contact_impedance=True)
-    v, v0 = fdm.voltages(pal.reference).reshape(16, 16), pal.v_ref.reshape(16, 16)
+    scene = replace(pal.scene, electrodes=replace(e, contact_impedance_by_freq=tuple(rows)))
+    fdm = Readout.on(inst.reference, scene, inst.protocol, rng=None, reference_frames=50, fdm=True)
+    v, v0 = fdm.v_ref.reshape(16, 16), inst.readout.v_ref.reshape(16, 16)
+    fdm.free()
     np.testing.assert_allclose(np.delete(v, 3, axis=0), np.delete(v0, 3, axis=0), rtol=1e-9)
     assert np.abs(v[3] - v0[3]).max() > 1e-3 * np.abs(v0[3]).max()
 
 
-def test_a_chamber_pressed_flat_is_refused_naming_the_depth(pal):
+def test_a_chamber_pressed_flat_is_refused_as_too_deep(pal):
+    """A press that brings the membrane within 0.2 mm of the electrodes is a pose the chamber
+    cannot take (a dataset draws again, a palpation stops with the frame named)."""
     from jointsim.geometry import DomeSurface
+    from jointsim.mesh.morph import ChamberCollapse
 
-    d = pal.reference_dome
+    d = pal.instrument.reference_dome
     v = d.vertices.copy()
     v[:, 2] = np.minimum(v[:, 2], 0.1e-3)  # the membrane down to 0.1 mm over the electrodes
-    with pytest.raises(ValueError, match="palpation.depth_mm is too deep"):
-        pal.deform(DomeSurface(v, d.faces, d.rim))
+    with pytest.raises(ChamberCollapse, match="0.10 mm above the base.*too deep"):
+        pal.instrument.deform(DomeSurface(v, d.faces, d.rim))
 
 
 def test_force_profile_and_bad_settings():
@@ -352,7 +362,7 @@ def test_force_profile_and_bad_settings():
     for bad, key in [({"mode": "pinch"}, "palpation.mode"), ({"depth_mm": 30}, "palpation.depth_mm"),
                      ({"target_diameters_mm": [8, -1]}, r"palpation.target_diameters_mm\[1\]"),
                      ({"xy_mm": [25, 0]}, "palpation.xy_mm"), ({"speed_mm_per_s": 0}, "palpation.speed_mm_per_s"),
-                     ({"mesh_update": "sometimes"}, "palpation.mesh_update"),
+                     ({"mesh_update": "sometimes"}, "mesh.update"),
                      ({"fdm_contact_impedance": True}, "palpation.fdm_contact_impedance"),
                      ({"target_radii_mm": [4], "target_diameters_mm": [8]}, r"\[palpation\]")]:
         with pytest.raises(SceneError, match=key):

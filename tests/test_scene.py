@@ -44,6 +44,13 @@ def test_paper_scene_holds_the_papers_values(paper_scene):
         ({"membrane": {"shear_modulus_kpa": 0}}, "membrane.shear_modulus_kpa"),
         ({"membrane": {"layers": 0}}, "membrane.layers"),
         ({"membrane": {"law": "yeoh", "yeoh_c_kpa": [-1, 0, 0]}}, r"membrane.yeoh_c_kpa\[0\]"),
+        ({"mesh": {"update": "sometimes"}}, "mesh.update"),
+        ({"reconstruction": {"cells": 10}}, "reconstruction.cells"),
+        ({"reconstruction": {"lambda_method": "guess"}}, "reconstruction.lambda_method"),
+        ({"reconstruction": {"lambda_depth_mm": 0}}, "reconstruction.lambda_depth_mm"),
+        ({"reconstruction": {"lambda_target_radius_mm": -2}}, "reconstruction.lambda_target_radius_mm"),
+        ({"reconstruction": {"lambda_xy_mm": [19.5, 5.0]}}, "reconstruction.lambda_xy_mm"),
+        ({"reconstruction": {"lambda_target_radius_mm": 5, "lambda_target_diameter_mm": 10}}, r"\[reconstruction\]"),
     ],
 )
 def test_bad_values_are_rejected_naming_the_key(data, key):
@@ -170,3 +177,34 @@ def test_a_scene_file_that_is_not_utf8_text_is_refused_naming_it(tmp_path):
     f.write_text('extends = "paper_sensor"\n', encoding="utf-16")
     with pytest.raises(SceneError, match=r"utf16\.toml: not a UTF-8 text file"):
         load_scene(f)
+
+
+def test_keys_that_moved_section_are_read_from_the_old_place_with_a_warning(tmp_path):
+    """[palpation] cells, lambda_method and mesh_update, from before [reconstruction] and
+    [mesh] update held them, still load (warned of) into their new place; given in both places
+    with different values they are refused naming both."""
+    old = {"palpation": {"cells": 2000, "lambda_method": "gcv", "mesh_update": "remesh", "depth_mm": 2.0}}
+    with pytest.warns(UserWarning, match=r"palpation.cells -> reconstruction.cells.*palpation.mesh_update -> mesh.update"):
+        s = scene_from_dict(old)
+    assert (s.reconstruction.cells, s.reconstruction.lambda_method, s.mesh.update) == (2000, "gcv", "remesh")
+    assert s.palpation.depth == pytest.approx(2e-3)
+    with pytest.raises(SceneError, match=r"palpation.cells = 2000 and reconstruction.cells = 3000"):
+        scene_from_dict({"palpation": {"cells": 2000}, "reconstruction": {"cells": 3000}})
+    # an old key in a scene that extends one written with the new key: the extending file wins
+    (tmp_path / "old.toml").write_text('extends = "paper_sensor"\n[palpation]\nmesh_update = "morph"\n')
+    with pytest.warns(UserWarning, match="mesh.update"):
+        assert load_scene(tmp_path / "old.toml").mesh.update == "morph"
+
+
+def test_a_size_given_by_radius_replaces_the_extended_scenes_diameter(tmp_path):
+    """The paper scene gives λ's press by diameter; a scene extending it may give a radius."""
+    (tmp_path / "r.toml").write_text('extends = "paper_sensor"\n[reconstruction]\nlambda_target_radius_mm = 4.0\n'
+                                     '[palpation]\ntarget_radii_mm = [3.0]\n')
+    s = load_scene(tmp_path / "r.toml")
+    assert s.reconstruction.lambda_radius == pytest.approx(4e-3) and s.palpation.target_radii == pytest.approx((3e-3,))
+
+
+def test_the_papers_reconstruction_is_the_one_every_job_images_with(paper_scene):
+    r = paper_scene.reconstruction
+    assert (r.cells, r.lambda_method) == (7000, "kfold")  # paper II.C: 7 k hexahedra, λ by cross-validation
+    assert (r.lambda_radius, r.lambda_depth, *r.lambda_xy) == pytest.approx((7.5e-3, 3e-3, 0.0, 0.0))

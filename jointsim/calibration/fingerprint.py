@@ -95,7 +95,7 @@ def provenance_fingerprint(provenance: Mapping[str, Any]) -> dict[str, Any]:
     (``params["scene"]``, as ``jointsim dataset`` writes it), else from its scene TOML and
     recorded overrides (:func:`scene_from_provenance`)."""
     scene = (provenance.get("params") or {}).get("scene")
-    if isinstance(scene, Mapping) and all(s in scene for s in SENSOR_KEYS):
+    if isinstance(scene, Mapping) and all(s in scene or LEGACY_SECTIONS.get(s) in scene for s in SENSOR_KEYS):
         return sensor_fingerprint(scene)
     return sensor_fingerprint(scene_from_provenance(provenance))
 

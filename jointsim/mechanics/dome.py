@@ -1,10 +1,13 @@
-"""The dome membrane as a 3-D solid: prism layers through the thickness on the inner chamber
-surface, split into tetrahedra and raised to P2; rim bonded to the base; saline pressure on the
-inner surface; a rigid spherical target pressed onto the outer surface.
+"""The membrane model: a moulded body under its loads, solved pose after pose.
 
-``press_dome`` is the function the coupled pipeline calls: a scene, a target pose, and back
-comes the deformed inner chamber surface (a DomeSurface, ready for ``morph_chamber`` or a
-remesh), with the contact force, contact area, displaced saline volume and solver figures.
+:class:`MembraneModel` puts together the body (:func:`~.body.membrane_body`: the moulding
+meshed, its bonded boundary), the energy terms on it (:func:`~.loads.membrane_terms`: strain
+energy, saline pressure, the target's contact and friction) and owns the load-stepping solver:
+a target move split into steps, each solved by Newton from a predictor (the tangent of the last
+equilibrium, or the secant of the last two), cut back when it fails, the first contact solved
+on its own, a closed chamber's pressure found as the multiplier of its volume, force control by
+secant steps on the depth. Deployment by inflation is :mod:`.inflation`'s, checkpoints
+:mod:`.checkpoint`'s. Each press returns a :class:`MembraneState`.
 """
 
 from __future__ import annotations
@@ -14,14 +17,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..geometry import DomeSurface
-from ..scene import MEMBRANE_ELEMENTS, MEMBRANE_LAYERS, membrane_layers
-from .contact import SphereContact, SphereFriction, nodal_areas
-from .fem import ElasticTerm, P2Mesh
+from .body import membrane_body
+from .checkpoint import membrane_state, restore_membrane
+from .inflation import inflate
+from .loads import membrane_terms
 from .materials import Material
 from .newton import NewtonError, NewtonSystem, minimize_energy
-from .pressure import PressureTerm, linear_subtriangles
-from .prisms import is_flat, membrane_mesh, on_rim_circle, on_spheres, sphere_centre
-from .wedge import WedgeElasticTerm, WedgeMesh
 
 __all__ = ["MembraneModel", "MembraneState", "UnreachablePose", "ECOFLEX_00_50", "membrane_material"]
 
@@ -134,190 +135,51 @@ class MembraneModel:
         inflate_from: np.ndarray | None = None,
         element: str = "wedge15",
     ):
-        if element not in MEMBRANE_ELEMENTS:
-            raise ValueError(f"element = {element!r}: allowed values are {MEMBRANE_ELEMENTS}")
-        layers = membrane_layers(MEMBRANE_LAYERS[element] if layers is None else layers, "layers")
-        if element == "wedge15" and volumetric != "pointwise":
-            raise ValueError(f"volumetric = {volumetric!r}: the wedge15 element has its own (projected) volumetric form; "
-                             "volumetric applies to element = 'p2_tet' only")
-        self.element = element
         # converged when the out-of-balance nodal force is below force_tol (N): by default
         # 1e-6·μ·t², a millionth of the force that strains a membrane-thick cube by one
         self.force_tol = force_tol if force_tol is not None else 1e-6 * material.mu * thickness**2
         self._step_tol = self.force_tol  # the current step's (see FORCE_RTOL)
+        self.body = body = membrane_body(dome, thickness, layers, element, isoparametric)
+        self.loads = loads = membrane_terms(body, material, pressure=pressure, target_radius=target_radius, penalty=penalty,
+                                            friction=friction, volumetric=volumetric, device=device)
+        self.element = element
         self.dome = dome
         self.thickness = thickness
-        # on a spherical dome the elements are curved onto the true inner, layer and outer
-        # spheres (isoparametric P2) instead of faceted chords
-        centre = sphere_centre(dome) if isoparametric else None
-        lin, self.n_surface = membrane_mesh(dome, thickness, layers, centre)
-        flat = is_flat(dome)
-        rim_radius = float(np.hypot(*dome.vertices[dome.rim, :2].T).min())
-        place = on_rim_circle(rim_radius) if flat else None if centre is None else on_spheres(centre, 1e-9 * np.ptp(lin.nodes))
-        # device: where Warp runs the element kernel ("cpu", or "cuda:0" where a GPU is); the
-        # contact, pressure and sparse solves stay on the host
-        if element == "wedge15":
-            self.mesh = WedgeMesh.on_membrane(dome, thickness, layers, centre, place)
-            self.elastic = WedgeElasticTerm(self.mesh, material, device=device)
-        else:
-            self.mesh = P2Mesh.from_linear(lin, place)
-            self.elastic = ElasticTerm(self.mesh, material, volumetric=volumetric, device=device)
+        self.mesh, self.n_surface = body.mesh, body.n_surface
+        self.outer_faces, self.inner_tris = body.outer_faces, body.inner_tris
+        self.elastic, self.pressure, self.contact, self.friction = loads.elastic, loads.pressure, loads.contact, loads.friction
         X = self.mesh.nodes
-        bf = self.mesh.boundary_faces
-        n = self.n_surface
-        on_inner = np.all(bf[:, :3] < n, axis=1)
-        on_outer = np.all(bf[:, :3] >= layers * n, axis=1) & np.all(bf[:, :3] < (layers + 1) * n, axis=1)
-        self.outer_faces = bf[on_outer]  # 6-node faces with every corner on the outermost layer
-        # the inner faces point into the chamber (out of the solid): the chamber volume has sign −1
-        self.inner_tris = linear_subtriangles(bf[on_inner])
-        self.pressure = PressureTerm(X, self.inner_tris, pressure, sign=-1.0)
-        nodes, w = nodal_areas(X, linear_subtriangles(self.outer_faces))
-        h = thickness / layers
-        k = penalty if penalty is not None else 100 * 3 * material.mu / h
-        # the contact Hessian's curvature term is exact up to 1 % of a layer's thickness of
-        # penetration (equilibria sit at 1–2 µm: quadratic convergence there) and capped beyond,
-        # where trial states 0.5 mm deep would make it strongly indefinite (measured, 64-rim
-        # membrane to 3 mm: 45 factorisations against 50 uncapped-out and 52 exact)
-        self.contact = SphereContact(X, nodes, w, target_radius, k, curvature_cap=0.01 * h)
-        self.contact.centre = np.array([0.0, 0.0, 1e3])  # far away until pressed
-        self.friction = SphereFriction(self.contact, friction, slip=1e-3 * h) if friction > 0 else None
         self.closed = bool(closed)
-        self.fixed = np.zeros_like(X, bool)
-        if flat:  # a flat sheet bonded at its edge face, through its thickness
-            self.fixed[np.hypot(X[:, 0], X[:, 1]) >= rim_radius * (1 - 1e-9)] = True
-        else:  # the bonded rim
-            self.fixed[np.abs(X[:, 2]) < 1e-9 * np.ptp(X)] = True
+        self.fixed = body.fixed.copy()
         self.u = np.zeros_like(X)
         indptr, indices, _ = self.mesh.sparsity
         self.system = NewtonSystem(indptr, indices, ~self.fixed.ravel())
         if inflate_to is not None:
             # deployed by inflation (a membrane moulded flat): the pressure is what it takes
-            self._inflate(float(inflate_to), material.mu, rim_radius, inflate_from)
+            inflate(self, float(inflate_to), material.mu, body.rim_radius, inflate_from)
         elif pressure != 0.0:
             # the reservoir head inflates the stress-free dome before any contact
             self.u = minimize_energy([self.elastic, self.pressure], self.u, self.fixed, system=self.system).u
         # displaced volume is counted from the pressurised, untouched dome; a closed chamber is
         # sealed in that state and keeps this volume
         self.V0 = self.pressure.volume(self.u)
-        self._history: list[tuple[np.ndarray, np.ndarray]] = []
+        self.history: list[tuple[np.ndarray, np.ndarray]] = []
         self._iterations = 0  # Newton iterations of the last press
         self._step_its = 0  # of the step being solved (_tally)
         self._moved = False  # whether the target moves in the step being solved
-        self._compliance: float | None = None  # dV/dp of the chamber, for the closed-chamber secant
-
-    def _inflate(self, height: float, mu: float, a: float, start: np.ndarray | None = None, rtol: float = 1e-4,
-                 max_iter: int = 30) -> None:
-        """Raise the saline pressure until the inner surface's apex (its node nearest the axis)
-        stands ``height`` above the base (rim radius ``a``), to ``rtol``; the model is left there,
-        at that pressure. ``start``: a displacement (n_nodes, 3) of this mesh already inflated to
-        about that height (an earlier model's, its moduli scaled or its target another); the
-        search then starts from it at the pressure that best balances it, instead of from the
-        flat sheet (one equilibrium, no Newton iteration, instead of ~4: 0.6 s against 11.6 s at
-        64/2)."""
-        X = self.mesh.nodes[: self.n_surface]
-        if not 0 < height < a:
-            raise ValueError(f"inflate_to = {height}: must be in (0, {a:.4g}) m, a dome no higher than the rim's radius")
-        apex = int(np.argmin(np.hypot(X[:, 0], X[:, 1])))
-        moulded = float(X[apex, 2])
-        if height <= moulded:
-            raise ValueError(f"inflate_to = {height}: must exceed the apex's moulded height {moulded:.4g} m")
-        # start from a thin membrane's estimate: the target cap stretched equibiaxially by its
-        # arc over its chord, tension μt(1 − λ⁻⁶), p = 2T/R; then secant steps on log z(log p)
-        # (z ∝ p^⅓ for a membrane), each equilibrium warm-started from the last
-        R = (a * a + height * height) / (2 * height)
-        lam = R * np.arcsin(a / R) / a
-        p_est = 2 * mu * self.thickness * (1 - lam**-6) / R
-
-        def apex_at(p: float) -> float:
-            self.pressure.pressure = p
-            res = minimize_energy([self.elastic, self.pressure], self.u, self.fixed, rtol=0.0, atol=self.force_tol, system=self.system)
-            self.u = res.u
-            return float(X[apex, 2] + self.u[apex, 2])
-
-        def point(p: float) -> tuple[float, float]:  # (log pressure, log rise of the apex)
-            return np.log(p), np.log(apex_at(p) - moulded)
-
-        if start is None:
-            # straight to the estimate: Newton's line search takes the flat sheet there (measured
-            # 25-28 iterations on the paper's dome, against ~50 through a ramp); where it cannot, a
-            # ramp from a plate-like deflection in steps of 4x in pressure (~1.6x in height)
-            try:
-                pts = [point(p_est)]
-            except NewtonError:
-                self.u = np.zeros_like(self.u)
-                pts = [point(p) for p in p_est * 4.0 ** np.arange(-3, 1)]
-        else:
-            start = np.asarray(start, float)
-            if start.shape != self.u.shape or not np.isfinite(start).all():
-                raise ValueError(f"inflate_from: must be a finite displacement of shape {self.u.shape}, got {start.shape}")
-            self.u = np.where(self.fixed, 0.0, start)
-            # W'(u) = p V'(u) at equilibrium: the p that leaves the least out-of-balance force
-            free = ~self.fixed.ravel()
-            g = self.elastic.evaluate(self.u, False)[1][free]
-            dV = self.pressure.volume_gradient(self.u)[free]
-            p0 = float(g @ dV / (dV @ dV))
-            pts = [point(p0 if p0 > 0 else p_est)]
-        target = np.log(height - moulded)
-        for _ in range(max_iter):
-            lp1, lz1 = pts[-1]
-            if abs(np.exp(lz1) - (height - moulded)) <= rtol * height:
-                return
-            lp0, lz0 = pts[-2] if len(pts) > 1 else (lp1, lz1)
-            slope = (lz1 - lz0) / (lp1 - lp0) if lp1 != lp0 else 1 / 3
-            step = (target - lz1) / max(slope, 0.05)
-            lp = lp1 + float(np.clip(step, -np.log(4.0), np.log(4.0)))
-            pts.append(point(float(np.exp(lp))))
-        last = (moulded + np.exp(pts[-1][1])) * 1e3
-        raise NewtonError(f"inflation to an apex height of {height * 1e3:.4g} mm: not reached in {max_iter} pressure steps "
-                          f"(last {last:.4g} mm at {np.exp(pts[-1][0]):.4g} Pa)")
+        self.compliance: float | None = None  # dV/dp of the chamber, for the closed-chamber secant
 
     @property
     def terms(self) -> list:
-        return [self.elastic, self.pressure, self.contact] + ([self.friction] if self.friction else [])
+        return self.loads.all
 
     def get_state(self) -> dict[str, np.ndarray]:
-        """Everything the next :meth:`press` depends on, as plain arrays (for checkpoints):
-        displacement, the last two equilibria (the secant predictor), target centre, pressure
-        and the closed chamber's compliance estimate."""
-        hist = self._history
-        return {
-            "u": self.u.copy(),
-            "hist_centre": np.array([c for c, _ in hist]).reshape(len(hist), 3),
-            "hist_u": np.array([u for _, u in hist]).reshape((len(hist),) + self.u.shape),
-            "centre": self.contact.centre.copy(),
-            "pressure": np.float64(self.pressure.pressure),
-            "compliance": np.float64(np.nan if self._compliance is None else self._compliance),
-            # where the solver's factor (the next step's tangent predictor) was taken; (0, n, 3): none
-            "tangent_u": self._tangent_u(),
-            # friction's stick anchors (SphereFriction.commit): node indices and anchor − centre
-            "friction_nodes": self.friction.anchor_nodes.copy() if self.friction is not None else np.zeros(0, np.int64),
-            "friction_anchors": self.friction.anchors.copy() if self.friction is not None else np.zeros((0, 3)),
-        }
-
-    def _tangent_u(self) -> np.ndarray:
-        s = self.system
-        ready = self.TANGENT_PREDICTOR and s is not None and s.tangent_ready and s.tangent_u is not None
-        return np.array(s.tangent_u, float)[None] if ready else np.zeros((0,) + self.u.shape)
+        """Everything the next :meth:`press` depends on (:func:`~.checkpoint.membrane_state`)."""
+        return membrane_state(self)
 
     def set_state(self, state: dict[str, np.ndarray]) -> None:
-        """Restore a :meth:`get_state` of a model built from the same scene and mesh."""
-        u = np.asarray(state["u"], float)
-        if u.shape != self.u.shape:
-            raise ValueError(f"state['u']: shape {u.shape}, this membrane has {self.u.shape} (another mesh?)")
-        self.u = u.copy()
-        self._history = [(np.array(c, float), np.array(v, float)) for c, v in zip(state["hist_centre"], state["hist_u"])]
-        self.contact.centre = np.array(state["centre"], float)
-        self.pressure.pressure = float(state["pressure"])
-        c = float(state.get("compliance", np.nan))
-        self._compliance = None if np.isnan(c) else c
-        if self.friction is not None:  # a state saved before the anchors: none held
-            self.friction.anchor_nodes = np.asarray(state.get("friction_nodes", np.zeros(0)), np.int64).copy()
-            self.friction.anchors = np.asarray(state.get("friction_anchors", np.zeros((0, 3))), float).reshape(-1, 3).copy()
-        tangent = np.asarray(state.get("tangent_u", np.zeros((0,) + u.shape)), float)
-        if self.TANGENT_PREDICTOR and len(tangent):
-            self.system.factor_tangent(self.terms, tangent[0])
-        elif self.system is not None:
-            self.system.tangent_ready = False
+        """Restore a :meth:`get_state` (:func:`~.checkpoint.restore_membrane`)."""
+        restore_membrane(self, state)
 
     def first_contact_height(self, xy: np.ndarray) -> float:
         """Centre height of the target coming down at ``xy`` when it touches the outer surface
@@ -408,8 +270,8 @@ class MembraneModel:
         self._iterations += res.iterations
         if self.friction is not None:
             self.friction.commit(res.u)
-        self._history.append((to.copy(), res.u.copy()))
-        self._history = self._history[-2:]
+        self.history.append((to.copy(), res.u.copy()))
+        self.history = self.history[-2:]
         self.u = res.u
         return res
 
@@ -453,26 +315,26 @@ class MembraneModel:
         """Closed chamber: the saline pressure p is the multiplier of the constraint V = V0, found
         by secant steps on p (V decreases monotonically with −p; dV/dp starts from a probe)."""
         p0, V = self.pressure.pressure, self.pressure.volume(res.u)
-        if self._compliance is None:
+        if self.compliance is None:
             self.pressure.pressure = p0 + 1.0  # 1 Pa probe of the chamber compliance
             probe = self._newton(res.u)
-            self._compliance = max((self.pressure.volume(probe.u) - V) / 1.0, 1e-300)
+            self.compliance = max((self.pressure.volume(probe.u) - V) / 1.0, 1e-300)
             self.pressure.pressure = p0
         # a pressure change Δp adds Δp·∂V/∂u to the residual; below the step's force tolerance
         # Newton would not move, so the volume could not be resolved to rtol·V0: solve to a tenth
         # of the residual of the pressure change that moves the volume by that much
         free = ~self.fixed.ravel()
         dV = np.linalg.norm(self.pressure.volume_gradient(res.u)[free])
-        atol = min(self._step_tol, 0.1 * rtol * self.V0 / self._compliance * dV)
+        atol = min(self._step_tol, 0.1 * rtol * self.V0 / self.compliance * dV)
         for _ in range(max_iter):
             if abs(V - self.V0) <= rtol * self.V0:
                 return res
             p_prev, V_prev = self.pressure.pressure, V
-            self.pressure.pressure = p_prev + (self.V0 - V) / self._compliance
+            self.pressure.pressure = p_prev + (self.V0 - V) / self.compliance
             res = self._newton(res.u, atol=atol)
             V = self.pressure.volume(res.u)
             if V != V_prev:
-                self._compliance = max((V - V_prev) / (self.pressure.pressure - p_prev), 1e-300)
+                self.compliance = max((V - V_prev) / (self.pressure.pressure - p_prev), 1e-300)
         raise NewtonError(f"closed chamber: volume {V * 1e9:.6g} mm³ after {max_iter} pressure updates, sealed {self.V0 * 1e9:.6g} mm³")
 
     def press_to_force(self, xy: np.ndarray, force: float, rtol: float = 1e-3, max_iter: int = 30) -> MembraneState:
@@ -540,9 +402,9 @@ class MembraneModel:
     def _extrapolate(self, centre: np.ndarray) -> np.ndarray:
         """Initial guess for the target at ``centre``: the last equilibrium moved along the
         secant of the last two (the response to a small target motion is nearly linear)."""
-        if len(self._history) < 2:
+        if len(self.history) < 2:
             return self.u
-        (c0, u0), (c1, u1) = self._history
+        (c0, u0), (c1, u1) = self.history
         step = np.linalg.norm(c1 - c0)
         if step == 0:
             return self.u

@@ -444,9 +444,9 @@ class SoftTargetModel(MembraneModel):
 
     def _extrapolate(self, centre: np.ndarray) -> np.ndarray:
         """The secant predictor of both bodies (see :meth:`MembraneModel._extrapolate`)."""
-        if len(self._history) < 2:
+        if len(self.history) < 2:
             return self.u
-        (c0, u0), (c1, u1) = self._history
+        (c0, u0), (c1, u1) = self.history
         step = np.linalg.norm(c1 - c0)
         if step == 0:
             return self.u
