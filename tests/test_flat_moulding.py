@@ -98,11 +98,11 @@ def test_bad_moulding_and_inflation_height_are_rejected():
 def test_where_newton_cannot_go_straight_to_the_estimate_the_inflation_ramps(monkeypatch):
     """The inflation's first solve goes from the flat sheet straight to the thin-membrane
     pressure; should that fail, it restarts from flat on a ramp and still reaches the height."""
-    import jointsim.mechanics.dome as dome
+    import jointsim.mechanics.inflation as inflation
     from jointsim.mechanics.newton import NewtonError
 
     calls = []
-    solve = dome.minimize_energy
+    solve = inflation.minimize_energy
 
     def failing_first(*a, **k):
         calls.append(k.get("system"))
@@ -110,7 +110,7 @@ def test_where_newton_cannot_go_straight_to_the_estimate_the_inflation_ramps(mon
             raise NewtonError("simulated: no descent")
         return solve(*a, **k)
 
-    monkeypatch.setattr(dome, "minimize_energy", failing_first)
+    monkeypatch.setattr(inflation, "minimize_energy", failing_first)
     m = MembraneModel(flat_disc(0.02, 16), 2e-3, layers=1, inflate_to=0.01)
     apex = int(np.argmin(np.hypot(*m.mesh.nodes[: m.n_surface, :2].T)))
     assert m.u[apex, 2] == pytest.approx(0.01, rel=1e-4)
