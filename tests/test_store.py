@@ -249,11 +249,11 @@ def test_resuming_from_another_code_commit_warns_and_keeps_the_records(tmp_path,
     import jointsim.io.store as store
 
     path = tmp_path / "run"
-    monkeypatch.setattr(store, "_git_commit", lambda: "a" * 40)
+    monkeypatch.setattr(store, "git_commit", lambda: "a" * 40)
     _open(path).put(0, _record(0))
     _open(path)  # the same commit: silent
     assert "warning" not in capsys.readouterr().err
-    monkeypatch.setattr(store, "_git_commit", lambda: "b" * 40)
+    monkeypatch.setattr(store, "git_commit", lambda: "b" * 40)
     assert _open(path).done().tolist() == [0]
     err = capsys.readouterr().err
     assert "b" * 40 in err and "earlier sessions ran " + "a" * 40 in err

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from ..io.export import atomic_path
-from ..io.store import Records
+from ..io.records import Records
 from .fingerprint import fingerprint_digest
 from .maps import APPLIED, CalibrationMap
 from .report import write_csv

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from ..eit.protocol import RingSymmetry, ring_symmetries, skip_protocol
-from ..io.store import package_versions, utc_now
+from ..io.provenance import package_versions, utc_now
 from .com import fit_com_map
 from .curves import ALONG, LevelCurves, default_levels, fit_level_curves, value_at
 from .data import Samples, split_groups, voltage_features

@@ -133,7 +133,7 @@ def load_samples(path: str | Path) -> Samples:
     """The calibration fields of the dataset store ``path`` (``NAME.h5`` from ``jointsim
     dataset``), verified against its digest. A ValueError naming the problem for a file that
     is missing or not a record store, a store of another schema, or missing fields."""
-    from ..io.store import open_records
+    from ..io.records import open_records
 
     path = Path(path)
     if not path.is_file():

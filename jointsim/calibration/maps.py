@@ -31,7 +31,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..io.export import atomic_path
-from ..io.store import package_versions, utc_now
+from ..io.provenance import package_versions, utc_now
 from ..scene import Scene
 from .com import ComMap
 from .curves import LevelCurves, Monotone

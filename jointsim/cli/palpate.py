@@ -107,7 +107,8 @@ def run(args: argparse.Namespace) -> int:
     # to run unless its conditional numerical reproducibility is on; a resumed run must give the
     # frames an uninterrupted one gives. Read by MKL when it first runs, i.e. after this line.
     os.environ.setdefault("MKL_CBWR", "AUTO")
-    from ..io.store import exclusive, open_records, open_store
+    from ..io.records import open_records
+    from ..io.store import exclusive, open_store
     from ..mechanics.fem import warp_device
     from ..palpation import Palpation, program_params, run_palpation
     from ..palpation.report import VtuSeries, summarise, write_pvd, write_report, write_setup

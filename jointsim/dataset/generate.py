@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 
 from ..instrument import Instrument, Readout
-from ..io.store import Field, Schema
+from ..io.schema import Field, Schema
 from ..mechanics.build import membrane_from_scene
 from ..mechanics.dome import MembraneModel, UnreachablePose
 from ..mechanics.newton import NewtonError

@@ -55,7 +55,8 @@ import numpy as np
 
 from .._cores import available_cores
 from ..geometry import electrode_layout
-from ..io.store import RecordStore, attach, exclusive, open_records, open_store
+from ..io.records import open_records
+from ..io.store import RecordStore, attach, exclusive, open_store
 from ..mesh.chamber import ChamberMesh
 from ..mesh.electrodes import disc_patches
 from ..mesh.tetmesh import TetMesh

@@ -1,8 +1,10 @@
 """Crash-safe, resumable record store shared by ``jointsim palpate`` and ``jointsim dataset``.
 
-Owns the record schema (named fields with a fixed shape and dtype), the layout of a run in
-progress (``NAME.partial/``), its consolidation into one HDF5 file (``NAME.h5``) with full
-provenance, and reading that file back. It neither computes records nor schedules work.
+Owns the layout of a run in progress (``NAME.partial/``), its writers, and its consolidation
+into one HDF5 file (``NAME.h5``) with full provenance. The record schema and the data digest
+are :mod:`.schema`'s, the identity and session records :mod:`.provenance`'s, reading a
+finalised file :mod:`.records`' (re-exported here: one import gives a job the whole store). It
+neither computes records nor schedules work.
 
 A run in progress::
 
@@ -39,7 +41,6 @@ timings) are stored but left out of that digest.
 from __future__ import annotations
 
 import fcntl
-import hashlib
 import json
 import os
 import platform
@@ -47,15 +48,11 @@ import re
 import secrets
 import shutil
 import socket
-import subprocess
 import sys
 import tempfile
-import tomllib
 import zipfile
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
-from datetime import datetime, timezone
-from importlib import metadata
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Mapping, Sequence
 
@@ -63,6 +60,12 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .export import atomic_path
+from .provenance import (
+    DEFAULT_PACKAGES, check_versions, comparable, first_difference, git_commit, identity, package_versions, sessions,
+    utc_now, warn_if_code_changed,
+)
+from .records import Records, final_path, open_records
+from .schema import NAME_PATTERN, STORE_FORMAT, Field, Schema, data_digest
 
 __all__ = [
     "STORE_FORMAT",
@@ -79,17 +82,9 @@ __all__ = [
     "exclusive",
 ]
 
-STORE_FORMAT = 1
-DEFAULT_PACKAGES = (
-    "jointsim", "numpy", "scipy", "warp-lang", "mujoco", "gmsh", "trimesh",
-    "meshio", "h5py", "pypardiso",
-)
-
-_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _FILE_RE = re.compile(r"^r(\d+)_(\d+)x(\d+)\.[0-9a-f]+\.npz$")
 _FANOUT = 10_000  # records per sub-directory: keeps directories small at millions of records
 _CHUNK_BYTES = 1 << 20  # HDF5 chunk size along the record axis
-_HASH_BLOCK_BYTES = 16 << 20
 
 
 def _file_mode() -> int:
@@ -103,242 +98,7 @@ _FILE_MODE = _file_mode()
 
 
 # --------------------------------------------------------------------------------------------
-# Schema
-
-
-@dataclass(frozen=True)
-class Field:
-    """One named array per record: ``shape`` excludes the record axis, ``()`` is a scalar.
-    A ``volatile`` field (wall-clock timings) may differ between two runs of the same data and
-    is left out of ``data_sha256``."""
-
-    name: str
-    shape: tuple[int, ...] = ()
-    dtype: str = "float64"
-    unit: str = ""
-    doc: str = ""
-    volatile: bool = False
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not _NAME_RE.match(self.name):
-            raise ValueError(f"field name {self.name!r}: letters, digits and '_' only, not starting with a digit")
-        shape = (self.shape,) if isinstance(self.shape, (int, np.integer)) else tuple(self.shape)
-        if not all(isinstance(s, (int, np.integer)) and s >= 1 for s in shape):
-            raise ValueError(f"field {self.name!r}: shape {self.shape!r} must be a tuple of integers ≥ 1")
-        try:
-            dt = np.dtype(self.dtype)
-        except TypeError as e:
-            raise ValueError(f"field {self.name!r}: dtype {self.dtype!r} is not a NumPy dtype ({e})") from None
-        if dt.kind not in "biufc":
-            raise ValueError(f"field {self.name!r}: dtype {dt} is not numeric or bool (allowed kinds: b, i, u, f, c)")
-        object.__setattr__(self, "shape", tuple(int(s) for s in shape))
-        object.__setattr__(self, "dtype", dt.name)
-        object.__setattr__(self, "volatile", bool(self.volatile))
-
-    @property
-    def np_dtype(self) -> np.dtype:
-        return np.dtype(self.dtype)
-
-    @property
-    def row_bytes(self) -> int:
-        return self.np_dtype.itemsize * int(np.prod(self.shape, dtype=np.int64))
-
-
-@dataclass(frozen=True)
-class Schema:
-    """The fields every record carries, in order; ``name`` and ``version`` identify the layout
-    for readers (bump ``version`` when a command changes what it writes)."""
-
-    fields: tuple[Field, ...]
-    name: str = "records"
-    version: int = 1
-
-    def __post_init__(self) -> None:
-        fields = tuple(self.fields)
-        if not fields or not all(isinstance(f, Field) for f in fields):
-            raise ValueError("a schema needs one or more Field objects")
-        names = [f.name for f in fields]
-        if dup := sorted({n for n in names if names.count(n) > 1}):
-            raise ValueError(f"schema {self.name!r}: duplicate field name(s) {dup}")
-        if not isinstance(self.version, (int, np.integer)) or self.version < 1:
-            raise ValueError(f"schema {self.name!r}: version {self.version!r} must be an integer ≥ 1")
-        object.__setattr__(self, "fields", fields)
-        object.__setattr__(self, "version", int(self.version))
-
-    @property
-    def names(self) -> tuple[str, ...]:
-        return tuple(f.name for f in self.fields)
-
-    def __getitem__(self, name: str) -> Field:
-        for f in self.fields:
-            if f.name == name:
-                return f
-        raise KeyError(f"no field {name!r} in schema {self.name!r} (fields: {', '.join(self.names)})")
-
-    def to_json(self) -> dict[str, Any]:
-        return {"name": self.name, "version": self.version, "fields": [asdict(f) for f in self.fields]}
-
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "Schema":
-        return cls(tuple(Field(**f) for f in d["fields"]), name=d["name"], version=d["version"])
-
-    def validate(self, record: Mapping[str, ArrayLike], index: int | None = None) -> dict[str, np.ndarray]:
-        """The record's arrays cast to the declared dtypes; a ValueError naming the field for a
-        missing or extra field, a wrong shape, or a dtype that does not convert (same kind)."""
-        where = "record" if index is None else f"record {index}"
-        if not isinstance(record, Mapping):
-            raise TypeError(f"{where}: expected a mapping of field name to array, got {type(record).__name__}")
-        if missing := [n for n in self.names if n not in record]:
-            raise ValueError(f"{where}: missing field(s) {missing}; schema {self.name!r} declares {list(self.names)}")
-        if extra := sorted(set(record) - set(self.names), key=str):
-            raise ValueError(f"{where}: field(s) {extra} not in schema {self.name!r}, which declares {list(self.names)}")
-        out = {}
-        for f in self.fields:
-            a = np.asarray(record[f.name])
-            if a.shape != f.shape:
-                raise ValueError(f"{where}: field {f.name!r} has shape {a.shape}, the schema declares {f.shape}")
-            if not np.can_cast(a.dtype, f.np_dtype, casting="same_kind"):
-                raise ValueError(
-                    f"{where}: field {f.name!r} has dtype {a.dtype}, which does not convert to the declared {f.dtype}"
-                )
-            out[f.name] = a.astype(f.np_dtype, copy=False)
-        return out
-
-
-# --------------------------------------------------------------------------------------------
-# Provenance
-
-
-def package_versions(packages: Iterable[str] = DEFAULT_PACKAGES) -> dict[str, str]:
-    """Installed versions of ``packages`` (distribution names; absent ones left out) and Python."""
-    out = {"python": platform.python_version()}
-    for p in packages:
-        try:
-            out[p] = metadata.version(p)
-        except metadata.PackageNotFoundError:
-            if p == "jointsim":
-                from .. import __version__
-
-                out[p] = __version__
-    return out
-
-
-def _git_commit() -> str | None:
-    """The checkout's commit (with ``-dirty`` for uncommitted changes to tracked files), if any."""
-    root = Path(__file__).resolve().parents[2]
-    try:
-        head = subprocess.run(["git", "-C", root, "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
-        if head.returncode:
-            return None
-        dirty = subprocess.run(
-            ["git", "-C", root, "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True, timeout=10
-        )
-        return head.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
-    except (OSError, subprocess.SubprocessError):
-        return None
-
-
-def _sessions(partial: Path) -> list[dict]:
-    """The run's session records, oldest first; not the hidden temporary file of an opener that
-    is writing its own (atomic_path's ``.name.*.json``, which the glob would match)."""
-    files = sorted(p for p in (partial / "sessions").glob("*.json") if not p.name.startswith("."))
-    return [json.loads(p.read_text()) for p in files]
-
-
-def _warn_if_code_changed(partial: Path, commit: str | None) -> None:
-    """Warn (stderr) when a run is resumed from another jointsim checkout commit than earlier
-    sessions: the package version check cannot see a development commit change, and records
-    written before and after may then differ (a solver change moves equilibria)."""
-    if commit is None:
-        return
-    earlier = {s.get("jointsim_git") for s in _sessions(partial)} - {None, commit}
-    if earlier:
-        print(
-            f"warning: resuming {partial} with jointsim commit {commit}; earlier sessions ran "
-            f"{', '.join(sorted(earlier))} (records from each are kept; see its sessions/ files)",
-            file=sys.stderr,
-        )
-
-
-def utc_now(timespec: str = "milliseconds") -> str:
-    """The current UTC time in ISO 8601 (provenance timestamps)."""
-    return datetime.now(timezone.utc).isoformat(timespec=timespec)
-
-
-def _json_normal(x: Any, what: str) -> Any:
-    try:
-        return json.loads(json.dumps(x, sort_keys=True, allow_nan=False))
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"{what} must be JSON-serialisable with finite numbers: {e}") from None
-
-
-def _identity(
-    schema: Schema, scene_toml: str, seed: int | None, n_records: int | None, params: Mapping[str, Any] | None,
-    versions: Mapping[str, str],
-) -> dict[str, Any]:
-    if not isinstance(scene_toml, str):
-        raise TypeError(f"scene_toml must be the scene file's text, got {type(scene_toml).__name__}")
-    try:
-        tomllib.loads(scene_toml)
-    except tomllib.TOMLDecodeError as e:
-        raise ValueError(f"scene_toml is not valid TOML: {e}") from None
-    if seed is not None and not (isinstance(seed, (int, np.integer)) and seed >= 0):
-        raise ValueError(f"seed = {seed!r}: an integer ≥ 0, or None")
-    if n_records is not None and not (isinstance(n_records, (int, np.integer)) and n_records >= 1):
-        raise ValueError(f"n_records = {n_records!r}: an integer ≥ 1, or None when not known yet")
-    ident = {
-        "store_format": STORE_FORMAT,
-        "schema": schema.to_json(),
-        "scene_toml": scene_toml,
-        "seed": None if seed is None else int(seed),
-        "n_records": None if n_records is None else int(n_records),
-        "params": dict(params or {}),
-        "versions": dict(versions),
-    }
-    return _json_normal(ident, "params")
-
-
-def _comparable(ident: Mapping[str, Any]) -> dict[str, Any]:
-    """The identity as compared on resume: the scene parsed (comments and layout may change),
-    schema fields keyed by name so a difference names the field, versions left out."""
-    d = {k: v for k, v in ident.items() if k not in ("versions", "scene_toml")}
-    d["scene"] = tomllib.loads(ident["scene_toml"])
-    s = ident["schema"]
-    d["schema"] = {
-        "name": s["name"], "version": s["version"], "field order": [f["name"] for f in s["fields"]],
-        "fields": {f["name"]: {k: v for k, v in f.items() if k != "name"} for f in s["fields"]},
-    }
-    return d
-
-
-def _first_difference(a: Any, b: Any, path: str = "") -> str | None:
-    if isinstance(a, dict) and isinstance(b, dict):
-        for k in sorted(set(a) | set(b), key=str):
-            if k not in a or k not in b:
-                old, new = (repr(m[k]) if k in m else "absent" for m in (a, b))
-                return f"{path}{k}: {old} in the store, {new} now"
-            if d := _first_difference(a[k], b[k], f"{path}{k}."):
-                return d
-        return None
-    return None if a == b else f"{path.rstrip('.')}: {a!r} in the store, {b!r} now"
-
-
-def _check_versions(stored: Mapping[str, str], here: Mapping[str, str], where: Path) -> None:
-    diff = [f"{p} {stored[p]} in the store, {here.get(p, 'absent')} here" for p in stored if stored[p] != here.get(p)]
-    if diff:
-        raise ValueError(
-            f"{where}: package versions differ from the run's ({'; '.join(diff)}); results may not "
-            "match bit for bit. Pass allow_version_change=True to mix them anyway."
-        )
-
-
-# --------------------------------------------------------------------------------------------
 # Files of a run in progress
-
-
-def _final_path(path: str | Path) -> Path:
-    path = Path(path)
-    return path if path.suffix in (".h5", ".hdf5") else path.with_name(path.name + ".h5")
 
 
 def _partial_path(final: Path) -> Path:
@@ -353,7 +113,7 @@ def exclusive(path: str | Path) -> Iterator[None]:
     The lock is ``flock`` on a file beside the store (``.NAME.lock``), which the system releases
     however the holder ends, so a run killed with SIGKILL can be resumed at once. Workers of the
     run (:func:`attach`) take no lock."""
-    final = _final_path(path)
+    final = final_path(path)
     lock = final.with_name(f".{final.name}.lock")
     lock.parent.mkdir(parents=True, exist_ok=True)
     fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
@@ -456,19 +216,6 @@ def _load(path: Path, prefixes: tuple[str, ...] = ("",)) -> dict[str, np.ndarray
 def _preview(a: np.ndarray, k: int = 10) -> str:
     s = ", ".join(str(int(x)) for x in a[:k])
     return s + (f", … ({a.size - k} more)" if a.size > k else "")
-
-
-def _data_digest(columns: Mapping[str, Any], schema: Schema, n: int) -> str:
-    """SHA-256 of the non-volatile fields in schema order, little-endian, rows 0 … n−1;
-    ``columns`` maps a field name to anything sliceable along rows (HDF5 dataset, array)."""
-    h = hashlib.sha256(f"jointsim-store-{STORE_FORMAT} n={n}\n".encode())
-    for f in (f for f in schema.fields if not f.volatile):
-        le = f.np_dtype.newbyteorder("<")
-        h.update(f"{f.name} {le.str} {f.shape}\n".encode())
-        rows = max(1, _HASH_BLOCK_BYTES // f.row_bytes)
-        for a in range(0, n, rows):
-            h.update(np.ascontiguousarray(columns[f.name][a : a + rows], dtype=le).data)
-    return h.hexdigest()
 
 
 # --------------------------------------------------------------------------------------------
@@ -636,7 +383,7 @@ class RecordStore:
 
         ident = dict(self.identity, n_records=n)
         meta = json.loads((self.partial / "meta.json").read_text())
-        run = {"created": meta["created"], "finalised": utc_now(), "finalised_on": socket.gethostname(), "sessions": _sessions(self.partial)}
+        run = {"created": meta["created"], "finalised": utc_now(), "finalised_on": socket.gethostname(), "sessions": sessions(self.partial)}
         text = h5py.string_dtype()
         with atomic_path(self.path) as tmp:
             with h5py.File(tmp, "w", rdcc_nbytes=8 << 20) as h5:
@@ -650,7 +397,7 @@ class RecordStore:
                     )
                     d.attrs.update(unit=f.unit, doc=f.doc, volatile=f.volatile)
                 _copy_rows(cols, self.schema, files, idx, file, pos, n)
-                digest = _data_digest(cols, self.schema, n)
+                digest = data_digest(cols, self.schema, n)
                 prov = h5.create_group("provenance")
                 prov.create_dataset("identity", data=json.dumps(ident, sort_keys=True, indent=1), dtype=text, track_times=False)
                 prov.create_dataset("scene_toml", data=ident["scene_toml"], dtype=text, track_times=False)
@@ -727,7 +474,7 @@ def _check_checkpoint(checkpoint: Mapping[str, ArrayLike] | None, index: int) ->
         raise TypeError(f"record {index}: checkpoint must be a mapping of name to array, got {type(checkpoint).__name__}")
     out = {}
     for k, v in checkpoint.items():
-        if not isinstance(k, str) or not _NAME_RE.match(k):
+        if not isinstance(k, str) or not NAME_PATTERN.match(k):
             raise ValueError(f"record {index}: checkpoint name {k!r}: letters, digits and '_' only")
         a = np.asarray(v)
         if a.dtype.kind not in "biufc":
@@ -760,24 +507,24 @@ def open_store(
     shapes the data, e.g. a mesh-preset override), and by default the same package versions.
     Safe to call from several processes at once. Records this call as a session (time, host,
     ``command``, default ``sys.argv``). A FileExistsError when ``path`` already exists."""
-    final = _final_path(path)
+    final = final_path(path)
     if final.exists():
         raise FileExistsError(f"{final} already exists (a finished run); remove it or write to another path")
     versions = package_versions(packages)
-    ident = _identity(schema, scene_toml, seed, n_records, params, versions)
+    ident = identity(schema, scene_toml, seed, n_records, params, versions)
     partial = _partial_path(final)
     (partial / "sessions").mkdir(parents=True, exist_ok=True)
     _write_json_once(partial / "meta.json", {"identity": ident, "created": utc_now()})
     stored = _read_meta(partial)["identity"]
-    if diff := _first_difference(_comparable(stored), _comparable(ident)):
+    if diff := first_difference(comparable(stored), comparable(ident)):
         raise ValueError(
             f"{partial} holds a different run ({diff}); resume only the same run (same schema, scene, "
             "seed, n_records, params), or write to another path"
         )
     if not allow_version_change:
-        _check_versions(stored["versions"], versions, partial)
-    commit = _git_commit()
-    _warn_if_code_changed(partial, commit)
+        check_versions(stored["versions"], versions, partial)
+    commit = git_commit()
+    warn_if_code_changed(partial, commit)
     session = {
         "started": utc_now(), "host": socket.gethostname(), "pid": os.getpid(), "platform": platform.platform(),
         "command": list(sys.argv if command is None else command), "versions": versions, "jointsim_git": commit,
@@ -793,11 +540,11 @@ def attach(path: str | Path, *, batch: int = 1, fsync: bool = True, allow_versio
     """A writer on a run already started by :func:`open_store` (e.g. in a Dask or Ray task):
     schema and identity from the store; refuses other package versions unless
     ``allow_version_change``."""
-    final = _final_path(path)
+    final = final_path(path)
     partial = _partial_path(final)
     stored = _read_meta(partial)["identity"]
     if not allow_version_change:
-        _check_versions(stored["versions"], package_versions(stored["versions"].keys() - {"python"}), partial)
+        check_versions(stored["versions"], package_versions(stored["versions"].keys() - {"python"}), partial)
     schema = Schema.from_json(stored["schema"])
     return RecordStore(final, schema, stored, batch=batch, fsync=fsync, allow_version_change=allow_version_change)
 
@@ -814,46 +561,3 @@ def _read_meta(partial: Path) -> dict[str, Any]:
     if d["identity"].get("store_format") != STORE_FORMAT:
         raise ValueError(f"{partial}: store format {d['identity'].get('store_format')} , this jointsim reads {STORE_FORMAT}")
     return d
-
-
-# --------------------------------------------------------------------------------------------
-# Reading a finalised file
-
-
-@dataclass(frozen=True)
-class Records:
-    """A finalised store: ``fields[name]`` is (N, *shape) in index order; ``provenance`` what
-    defines the data (schema, scene_toml, seed, n_records, params, versions); ``run`` what may
-    differ between two runs of the same data (times, hosts, sessions' command lines)."""
-
-    fields: dict[str, np.ndarray]
-    schema: Schema
-    provenance: dict[str, Any]
-    run: dict[str, Any]
-    data_sha256: str
-
-    def __getitem__(self, name: str) -> np.ndarray:
-        return self.fields[name]
-
-    def __len__(self) -> int:
-        return int(self.provenance["n_records"])
-
-
-def open_records(path: str | Path, fields: Sequence[str] | None = None, *, verify: bool = True) -> Records:
-    """Read a file written by :meth:`RecordStore.finalize`: the named ``fields`` (all when None)
-    as arrays; with ``verify``, recompute ``data_sha256`` from all fields and refuse a mismatch."""
-    import h5py
-
-    path = _final_path(path)
-    with h5py.File(path, "r") as h5:
-        prov = json.loads(h5["provenance/identity"].asstr()[()])
-        run = json.loads(h5["run/info"].asstr()[()])
-        schema = Schema.from_json(prov["schema"])
-        names = list(schema.names if fields is None else fields)
-        for n in names:
-            schema[n]  # KeyError naming the schema's fields
-        g = h5["records"]
-        digest = str(h5.attrs["data_sha256"])
-        if verify and _data_digest(g, schema, prov["n_records"]) != digest:
-            raise ValueError(f"{path}: data does not match its data_sha256; the file is damaged")
-        return Records({n: g[n][()] for n in names}, schema, prov, run, digest)

@@ -38,7 +38,8 @@ import numpy as np
 from ..eit.noise import gain_drift
 from ..instrument import STAGES as FRAME_STAGES
 from ..instrument import Instrument, Reading, stream
-from ..io.store import Field, RecordStore, Schema
+from ..io.schema import Field, Schema
+from ..io.store import RecordStore
 from ..mechanics.build import membrane_from_scene
 from ..mechanics.dome import MembraneModel, MembraneState
 from ..mechanics.fem import warp_device

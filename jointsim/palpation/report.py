@@ -20,7 +20,7 @@ import numpy as np
 from .. import __version__
 from ..io.export import atomic_path, write_npz, write_voxels_vtu, write_vtu
 from ..io.figures import pyplot
-from ..io.store import Records
+from ..io.records import Records
 from ..mesh.tetmesh import TetMesh
 from ..metrics import largest_cluster
 from ..reconstruction.grid import ChamberGrid, VoxelGrid
