@@ -109,3 +109,26 @@ def test_there_is_no_import_cycle():
     for node in sorted(graph):
         if node not in state and (cycle := visit(node)):
             pytest.fail("import cycle: " + " -> ".join(cycle))
+
+
+def part_graph() -> str:
+    """The imports between parts, top layer first, as a Markdown table (ARCHITECTURE.md shows it)."""
+    uses: dict[str, set[str]] = {}
+    for m, t, _ in IMPORTS:
+        if _part(m) and _part(t) and _part(m) != _part(t):
+            uses.setdefault(_part(m), set()).add(_part(t))
+    rows = ["| layer | part | imports |", "|---|---|---|"]
+    for i in reversed(range(len(LAYERS))):
+        for p in sorted(LAYERS[i]):
+            below = sorted(uses.get(p, ()), key=lambda q: (-RANK[q], q))
+            rows.append(f"| {i + 1} | `{p}` | {', '.join(f'`{q}`' for q in below) or '–'} |")
+    return "\n".join(rows)
+
+
+def test_architecture_md_shows_the_import_graph_as_it_is():
+    text = (PACKAGE.parent / "ARCHITECTURE.md").read_text()
+    assert part_graph() in text, "ARCHITECTURE.md's import table is out of date: paste `python tests/test_architecture.py`"
+
+
+if __name__ == "__main__":  # python tests/test_architecture.py: the table in ARCHITECTURE.md
+    print(part_graph())

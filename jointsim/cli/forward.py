@@ -7,12 +7,10 @@ reconstruction matrix on the voxel grid, the potentials as VTU for ParaView and 
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
-from .. import __version__
 from .common import add_scene_arguments, scene_from_args, stage
 
 OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
@@ -30,8 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..eit.protocol import skip_protocol
-    from ..instrument import Instrument, stream
-    from ..io.export import atomic_path, write_mat, write_npz, write_vtu
+    from ..studies.rest import read_at_rest, write_at_rest
 
     scene = scene_from_args(args)
     skip = scene.drive.skip if args.skip is None else args.skip
@@ -42,55 +39,21 @@ def run(args: argparse.Namespace) -> int:
     out: Path = args.out
     t: dict[str, float] = {}
     print(f"jointsim forward: scene {scene.name}, mesh preset {scene.mesh.preset}, P{scene.mesh.element_order} elements, skip-{skip}")
-    flat = scene.membrane.moulding == "flat"
     zf = scene.electrodes.contact_impedance_by_freq
     protocol = skip_protocol(scene.electrodes.count, skip, scene.drive.current)
-    what = ("membrane inflated, chamber mesh (cached after the first run)" + (" on the flat moulding" if flat else "")
+    what = ("membrane inflated, chamber mesh (cached after the first run)" + (" on the flat moulding" if scene.membrane.moulding == "flat" else "")
             + f", {protocol.n_el} lead fields" + (f" per carrier ({len(zf)} contact impedances)" if zf is not None else "")
             + ("" if args.no_jacobian else ", Jacobian and lambda"))
     with stage(what, t):
-        inst = Instrument.build(scene, protocol=protocol, fdm=zf is not None, imaging=not args.no_jacobian,
-                                cells=args.voxels, backend=args.solver)
-    ch, ro = inst.reference, inst.readout
-    print("  " + ch.quality().summary())
-    # the untouched sensor read as one frame: the instrument's frame step at rest
-    reading = inst.measure(inst.reference_dome, stream(scene.noise.seed, "frame"), image=False)
+        inst, reading = read_at_rest(scene, protocol, imaging=not args.no_jacobian, cells=args.voxels, backend=args.solver)
+    print("  " + inst.reference.quality().summary())
     v = reading.voltages_clean
-    print(
-        f"  {v.size} voltages: mean |V| {np.abs(v).mean() * 1e3:.2f} mV, max |V| {np.abs(v).max() * 1e3:.1f} mV; "
-        f"noise std {ro.noise_std * 1e6:.2f} uV at {scene.noise.snr_db} dB"
-    )
-    fields = ro.fields(ch, True)
-    arrays = dict(voltages=v, voltages_noisy=reading.voltages, stim=protocol.stim, meas=protocol.meas, transfer=fields.transfer)
-    if inst.imager is not None:
-        grid = inst.imager.grid
-        arrays.update(
-            jacobian_voxels=inst.imager.jacobian,
-            reconstruction_matrix=inst.imager.reconstructor.R,
-            voxel_active=grid.active,
-            voxel_volume=grid.volume,
-            voxel_origin=grid.grid.origin,
-            voxel_spacing=grid.grid.spacing,
-            voxel_shape=np.array(grid.grid.shape),
-        )
-    sigma = np.full(ch.mesh.n_tets, ro.conductivity)
-    with stage("write outputs", t):
-        write_npz(out / "forward.npz", **arrays)
-        write_vtu(out / "chamber.vtu", ch.mesh, {"sigma": sigma}, {"potential_inj": fields.potentials(protocol)})
-        write_mat(out / "forward_eidors.mat", ch.mesh, sigma, v, protocol.stim, protocol.meas, ch.electrodes,
-                  ro.forward.z, ch.ground)
-        meta = {
-            "jointsim": __version__,
-            "scene": scene.to_dict(),
-            "skip": skip,
-            "mesh_key": inst.chamber.key,
-            "quality": ch.quality().__dict__,
-            "lambda": None if inst.imager is None else inst.imager.reconstructor.lam,
-            "lambda_press": inst.lambda_press,
-            "timings_s": {**inst.setup_timings, **t},
-        }
-        with atomic_path(out / "forward.json") as tmp:
-            tmp.write_text(json.dumps(meta, indent=2, default=float))
-    inst.free()
+    print(f"  {v.size} voltages: mean |V| {np.abs(v).mean() * 1e3:.2f} mV, max |V| {np.abs(v).max() * 1e3:.1f} mV; "
+          f"noise std {inst.readout.noise_std * 1e6:.2f} uV at {scene.noise.snr_db} dB")
+    try:
+        with stage("write outputs", {}):
+            write_at_rest(out, inst, reading, t)
+    finally:
+        inst.free()
     print(f"  wrote {out}/forward.npz, chamber.vtu, forward_eidors.mat, forward.json")
     return 0

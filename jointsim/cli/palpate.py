@@ -97,8 +97,6 @@ def configure(args: argparse.Namespace):
         if args.seed < 0:
             raise ValueError(f"--seed = {args.seed}: must be >= 0")
         noise = replace(noise, seed=args.seed)
-    if args.vtu_every < 0:
-        raise ValueError(f"--vtu-every = {args.vtu_every}: must be >= 0")
     return replace(scene, membrane=m, palpation=spec, noise=noise)
 
 
@@ -107,13 +105,14 @@ def run(args: argparse.Namespace) -> int:
     # to run unless its conditional numerical reproducibility is on; a resumed run must give the
     # frames an uninterrupted one gives. Read by MKL when it first runs, i.e. after this line.
     os.environ.setdefault("MKL_CBWR", "AUTO")
-    from ..io.records import open_records
-    from ..io.store import exclusive, open_store
     from ..mechanics.fem import warp_device
-    from ..palpation import Palpation, program_params, run_palpation
-    from ..palpation.report import VtuSeries, summarise, write_pvd, write_report, write_setup
+    from ..palpation.job import palpate
+    from ..palpation.pipeline import program_params
+    from ..palpation.report import summarise
 
     scene = configure(args)
+    if args.vtu_every < 0:
+        raise ValueError(f"--vtu-every = {args.vtu_every}: must be >= 0")
     device = warp_device(args.device, "--device")
     cmap = None
     if args.calibration is not None:  # refused before any work when built for another sensor
@@ -123,38 +122,21 @@ def run(args: argparse.Namespace) -> int:
         cmap.check_scene(scene, f"calibration map {args.calibration}")
     spec = scene.palpation
     out: Path = args.out
-    h5 = out / "palpation.h5"
     command = "jointsim palpate " + " ".join(shlex.quote(a) for a in (sys.argv[2:] if sys.argv[1:2] == ["palpate"] else []))
-    params = program_params(scene, spec)
+    n = program_params(scene, spec)["n_records"]
     diam = ", ".join(f"{2e3 * r:g}" for r in spec.target_radii)
     print(f"jointsim palpate: scene {scene.name}, mesh {scene.mesh.preset} P{scene.mesh.element_order}, {spec.mode} mode, targets {diam} mm, "
-          f"{params['n_records']} frames at {scene.noise.frame_rate_hz:g} Hz -> {out}")
-    with exclusive(h5):  # a second palpate on this --out is refused now, not at finalize
-        if h5.exists():
-            rec = open_records(h5)
-            if rec.provenance["params"] != json.loads(json.dumps(params)):
-                raise ValueError(f"{h5} holds a finished run with other settings; remove it or use another --out")
-            print(f"  {h5} is complete ({len(rec)} frames): reports rewritten from it")
-        else:
-            pal = Palpation(scene, spec, device=device)
-            print("  set-up: " + ", ".join(f"{k} {v:.1f} s" for k, v in pal.setup_timings.items())
-                  + f"; chamber {pal.instrument.reference.mesh.n_tets:,} tets, membrane {pal.membrane_nodes:,} nodes ({scene.membrane.element}), "
-                  f"{pal.instrument.grid.n_cells:,} voxels, lambda {pal.instrument.imager.reconstructor.lam:.3g}")
-            store = open_store(h5, pal.schema(), scene_toml=scene_toml(args.scene), seed=scene.noise.seed,
-                               n_records=pal.n_records, params=params, command=shlex.split(command))
-            done = len(store.done())
-            if done:
-                print(f"  resuming: {done} of {pal.n_records} frames already stored")
-            write_setup(out, pal)
-            export = VtuSeries(out, pal, args.vtu_every) if args.vtu_every else None
-            with tqdm(total=pal.n_records, unit="frame", disable=None if args.progress is None else not args.progress) as bar:
-                for f in run_palpation(pal, store, export=export, progress=bar.update):
-                    bar.set_postfix_str(f"target {2e3 * f.segment.radius:g} mm, depth {f.record['depth'] * 1e3:.2f} mm, "
-                                        f"F {f.state.force[2] * 1e3:.1f} mN", refresh=False)
-            store.finalize(compression="gzip")
-            pal.free()
-            rec = open_records(h5)
-    written = write_pvd(out, scene.noise.frame_rate_hz) + write_report(out, rec, command)
+          f"{n} frames at {scene.noise.frame_rate_hz:g} Hz -> {out}")
+    with tqdm(total=n, unit="frame", disable=None if args.progress is None else not args.progress) as bar:
+        def progress(k, f):
+            bar.update(k)
+            if f is not None:
+                bar.set_postfix_str(f"target {2e3 * f.segment.radius:g} mm, depth {f.record['depth'] * 1e3:.2f} mm, "
+                                    f"F {f.state.force[2] * 1e3:.1f} mN", refresh=False)
+
+        job = palpate(scene, out, scene_text=scene_toml(args.scene), command=command, device=device,
+                      vtu_every=args.vtu_every, say=tqdm.write, progress=progress)
+    rec, written = job.records, job.written
     for r in summarise(rec):
         print(f"  {r['diameter_mm']:g} mm: depth {r['max_depth_mm']:.2f} mm, F {r['max_force_mN']:.1f} mN, "
               f"displaced {r['max_displaced_mm3']:.0f} mm^3, peak RMS dV {r['peak_rms_dv_uV']:.0f} uV, "
@@ -167,5 +149,5 @@ def run(args: argparse.Namespace) -> int:
             print(f"  calibrated, target {r['target']} at its deepest frame: x {r['cal_x_mm']:.2f} y {r['cal_y_mm']:.2f} mm, "
                   f"depth {r['cal_depth_mm']:.2f} mm (true {r['true_depth_mm']:.2f}), diameter {r['cal_diameter_mm']:.1f} mm "
                   f"(true {r['true_diameter_mm']:.1f}), modulus {r['modulus_kPa']:.3g} kPa")
-    print(f"  wrote {h5}, {len(written)} report files to {out}")
+    print(f"  wrote {out / 'palpation.h5'}, {len(written)} report files to {out}")
     return 0
