@@ -33,8 +33,9 @@ class DomeSurface:
 class ElectrodeLayout:
     """Disc electrodes on the base plane: ``centres`` (n_el, 3), ``radii`` (n_el,).
 
-    Ring electrodes come first (0 … count−1, anticlockwise from ``first_angle_deg``); the
-    central ground is the last one, index ``ground``."""
+    The driven electrodes come first (the paper's ring: 0 … count−1, anticlockwise from
+    ``first_angle_deg``; a layout given as data: in the order its generators made them), the
+    reference (the paper's central ground) last, index ``ground``."""
 
     centres: np.ndarray
     radii: np.ndarray
@@ -46,7 +47,11 @@ class ElectrodeLayout:
 
 
 def electrode_layout(scene: Scene) -> ElectrodeLayout:
+    """The electrodes of ``scene``'s [electrodes]: the paper's ring and central ground, or its discs."""
     e = scene.electrodes
+    if e.discs:
+        d = np.asarray(e.discs, float)
+        return ElectrodeLayout(np.column_stack([d[:, :2], np.zeros(len(d))]), d[:, 2].copy(), ground=len(d) - 1)
     ang = np.deg2rad(e.first_angle_deg) + 2 * np.pi * np.arange(e.count) / e.count
     ring = np.column_stack([e.ring_radius * np.cos(ang), e.ring_radius * np.sin(ang), np.zeros(e.count)])
     centres = np.vstack([ring, np.zeros((1, 3))])

@@ -38,7 +38,7 @@ import numpy as np
 from .eit.forward import ForwardModel, LeadFields
 from .eit.jacobian import jacobian
 from .eit.noise import noise_std
-from .eit.protocol import Protocol, skip_protocol
+from .eit.protocol import Protocol, scene_protocol
 from .geometry import DomeSurface, chamber_surface, electrode_layout
 from .mechanics.build import membrane_from_scene
 from .mechanics.dome import MembraneModel
@@ -116,7 +116,8 @@ class Readout:
         """The readout of ``scene``'s electrodes on the chamber ``reference`` (the untouched
         sensor), with the scene's saline, contact impedances and SNR unless given
         (``contact_impedance``: one value for every electrode, the ground included;
-        ``offsets`` (n_ring, 2) m: the ring electrodes moved in the base plane). The measured
+        ``offsets`` (k, 2) m: the first k electrodes moved in the base plane, the driven ones and
+        a floating reference; a passive reference stays). The measured
         reference is drawn from ``rng`` (None: noise-free). ``fdm``: per-carrier contact
         impedances ([electrodes] contact_impedance_by_freq_ohm_m2)."""
         e = scene.electrodes
@@ -384,7 +385,7 @@ class Instrument:
                                  f"{scene.membrane.moulding!r})")
             reference = morpher(reference_dome)
         if protocol is None:
-            protocol = skip_protocol(scene.electrodes.count, scene.drive.skip, scene.drive.current)
+            protocol = scene_protocol(scene)
         with timed(t, "forward"):
             readout = Readout.on(reference, scene, protocol, rng=stream(seed, "reference"),
                                  reference_frames=reference_frames, fdm=fdm, backend=backend)

@@ -17,6 +17,8 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 __all__ = [
     "SceneError",
     "Chamber",
@@ -65,10 +67,19 @@ class Chamber:
 
 @dataclass(frozen=True)
 class ElectrodeRing:
-    """Ring of disc electrodes on the base plus a central ground disc (SI units).
+    """The electrodes on the base (SI units): disc electrodes driven and measured, ``count`` of
+    them, and one reference electrode (the paper's central ground), last.
 
-    ``contact_impedance`` has one value per ring electrode (Ω·m²); ``contact_impedance_by_freq``
-    is optional, shape (n_frequencies, count), one row per FDM carrier.
+    The paper's layout (``discs`` empty): a ring of ``count`` discs of ``diameter`` at
+    ``ring_radius``, electrode 0 at ``first_angle_deg``, anticlockwise, and the central ground
+    of ``ground_diameter``. Any other layout is ``discs``: (x, y, radius) of every electrode, the
+    reference last, built in a scene by generators ([[electrodes.ring]], [[electrodes.grid]],
+    [[electrodes.disc]]); ``reference`` False when it is floating (no electrode is a passive
+    reference: the last one is the solver's, and the protocol's patterns span every electrode).
+
+    ``contact_impedance`` has one value per driven electrode (Ω·m²), ``ground_contact_impedance``
+    the reference's; ``contact_impedance_by_freq`` is optional, shape (n_frequencies, count),
+    one row per FDM carrier.
     """
 
     count: int = 16
@@ -79,6 +90,19 @@ class ElectrodeRing:
     ground_contact_impedance: float = 1e-3
     contact_impedance_by_freq: tuple[tuple[float, ...], ...] | None = None
     first_angle_deg: float = 0.0
+    discs: tuple[tuple[float, float, float], ...] = ()
+    reference: bool = True
+
+    @property
+    def is_ring(self) -> bool:
+        """The paper's layout: one ring and a central ground."""
+        return not self.discs
+
+    @property
+    def n_active(self) -> int:
+        """Electrodes that are not a passive reference: the driven ones, and the last one too
+        where the reference floats (the protocol's patterns span it; a dataset moves it)."""
+        return self.count + (0 if self.reference else 1)
 
 
 @dataclass(frozen=True)
@@ -88,11 +112,20 @@ class Saline:
 
 @dataclass(frozen=True)
 class Drive:
-    """Current injection: amplitude per injection, FDM carriers, and the skip-N protocol."""
+    """Current injection: amplitude per injection, FDM carriers, and the protocol: skip-N
+    injections (injection i drives electrode i against i + N + 1), each frame measuring
+    ``measure`` "reference" (every driven electrode against the reference, the paper's) or
+    "adjacent" (EIDORS '{ad}': electrode l against l + 1). Or any protocol as data: ``stim``
+    (n_stim, n) A into each of the n active electrodes per injection and ``meas`` (n_stim,
+    n_meas, n) weights, EIDORS's stim_pattern and meas_pattern (the reference's column left
+    out where there is one; every row summing to zero where it floats)."""
 
     current: float = 120e-6
     frequencies: tuple[float, ...] = tuple(2750.0 + 725.0 * k for k in range(16))
     skip: int = 8
+    measure: str = "reference"
+    stim: tuple[tuple[float, ...], ...] | None = None
+    meas: tuple[tuple[tuple[float, ...], ...], ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -363,6 +396,132 @@ def _number_list(key: str, v: Any, n: int | None, lo: float, hi: float, lo_open:
     return tuple(_check_number(f"{key}[{i}]", x, lo, hi, lo_open, False) for i, x in enumerate(v))
 
 
+# --------------------------------------------------------------------------------------------
+# [electrodes] layouts as data
+
+
+LAYOUT_GENERATORS = ("ring", "grid", "disc")
+RING_KEYS = ("count", "ring_radius_mm", "diameter_mm", "ground_diameter_mm", "first_angle_deg")  # the paper's layout  # [[electrodes.<generator>]] tables, electrodes made in this order
+GRID_KINDS = ("square", "hex")
+MEASUREMENTS = ("reference", "adjacent")  # [drive] measure
+# every disc ends at least this far inside the base's rim: the dome meets the base there, and a
+# disc in the corner would leave the saline above it thinner than the mesh can resolve
+EDGE_CLEARANCE_MM = 0.5
+MIN_ELECTRODE_GAP_MM = 0.1  # edge to edge: the mesher embeds every outline, and they must not touch
+MAX_ELECTRODES = 129
+
+
+def _layout(t: "_Table", base_r: float) -> tuple[tuple[tuple[float, float, float], ...], bool]:
+    """The electrodes of [[electrodes.ring]], [[electrodes.grid]] and [[electrodes.disc]] (in
+    that order, each in file order) as (x, y, radius) m, the reference moved last, and whether
+    there is one ([electrodes] reference: an electrode's index in that order, or "none")."""
+    for k in RING_KEYS:
+        if k in t.data:
+            raise SceneError(f"electrodes.{k}: describes the paper's ring; with [[electrodes.ring|grid|disc]] tables "
+                             "give each generator's own sizes instead")
+    discs: list[tuple[float, float, float]] = []
+    where: list[str] = []
+    for kind in LAYOUT_GENERATORS:
+        tables = t.raw(kind, [])
+        if not isinstance(tables, list) or not all(isinstance(g, dict) for g in tables):
+            raise SceneError(f"electrodes.{kind}: must be an array of tables ([[electrodes.{kind}]])")
+        for i, g in enumerate(tables):
+            name = f"electrodes.{kind}[{i}]"
+            u = _Table(g, name)
+            d = u.number("diameter_mm", 2.0, 0.0, base_r, lo_open=True)
+            if kind == "ring":
+                n = u.integer("count", 16, 1, MAX_ELECTRODES)
+                r = u.number("radius_mm", 15.0, 0.0, base_r)
+                phase = math.radians(u.number("phase_deg", 0.0, -360.0, 360.0))
+                pts = [(r * math.cos(phase + 2 * math.pi * k / n), r * math.sin(phase + 2 * math.pi * k / n)) for k in range(n)]
+            elif kind == "grid":
+                pitch = u.number("pitch_mm", 5.0, 0.0, base_r, lo_open=True)
+                shape = u.choice("kind", "square", GRID_KINDS)
+                within = u.number("within_mm", base_r - EDGE_CLEARANCE_MM - d / 2, 0.0, base_r)
+                m = int(within // pitch) + 1
+                dy = pitch * (math.sqrt(3) / 2 if shape == "hex" else 1.0)
+                pts = []
+                for j in range(-int(within // dy) - 1, int(within // dy) + 2):
+                    shift = 0.5 * pitch if shape == "hex" and j % 2 else 0.0
+                    pts += [(k * pitch + shift, j * dy) for k in range(-m - 1, m + 2)]
+                pts = [(x, y) for x, y in pts if math.hypot(x, y) <= within + 1e-9]
+                if not pts:
+                    raise SceneError(f"{name}: no grid point within {within:g} mm of the axis")
+            else:
+                pts = [tuple(_number_list(f"{name}.xy_mm", u.raw("xy_mm", None), 2, -base_r, base_r, False))]
+            u.finish()
+            discs += [(x, y, d / 2) for x, y in pts]
+            where += [f"{name} electrode {k}" for k in range(len(pts))]
+    if not 3 <= len(discs) <= MAX_ELECTRODES:
+        raise SceneError(f"[electrodes]: the generators make {len(discs)} electrodes; a layout has 3 to {MAX_ELECTRODES}")
+    c, r = np.array([d[:2] for d in discs]), np.array([d[2] for d in discs])
+    reach = np.hypot(c[:, 0], c[:, 1]) + r
+    if (bad := np.flatnonzero(reach > base_r - EDGE_CLEARANCE_MM + 1e-9)).size:
+        k = int(bad[0])
+        raise SceneError(f"{where[k]}: at ({c[k, 0]:g}, {c[k, 1]:g}) mm it reaches {reach[k]:.3g} mm from the axis; every disc must "
+                         f"end {EDGE_CLEARANCE_MM:g} mm inside the base radius {base_r:g} mm")
+    gaps = np.hypot(*(c[:, None] - c[None]).transpose(2, 0, 1)) - r[:, None] - r[None]
+    np.fill_diagonal(gaps, np.inf)
+    if gaps.min() < MIN_ELECTRODE_GAP_MM:
+        a, b = np.unravel_index(int(np.argmin(gaps)), gaps.shape)
+        raise SceneError(f"{where[a]} and {where[b]}: {'overlap' if gaps[a, b] < 0 else 'are closer than'} "
+                         f"{'' if gaps[a, b] < 0 else f'{MIN_ELECTRODE_GAP_MM:g} mm '}(edge gap {gaps[a, b]:.3g} mm); "
+                         "electrodes must be apart")
+    ref = t.raw("reference", None)
+    if ref == "none":
+        reference, k = False, len(discs) - 1
+    elif isinstance(ref, int) and not isinstance(ref, bool) and 0 <= ref < len(discs):
+        reference, k = True, ref
+    else:
+        raise SceneError(f"electrodes.reference = {ref!r}: the index of the reference electrode (0 to {len(discs) - 1}, "
+                         "numbered in the order the generators make them: rings, grids, discs) or \"none\" for a floating reference")
+    order = [i for i in range(len(discs)) if i != k] + [k]
+    return tuple((discs[i][0] * MM, discs[i][1] * MM, discs[i][2] * MM) for i in order), reference
+
+
+PATTERN_KEYS = ("stim_ua", "meas")  # [drive]: a protocol as data, instead of skip and measure
+
+
+def _patterns(t: "_Table", n: int, reference: bool) -> tuple[tuple | None, tuple | None]:
+    """[drive] stim_ua (n_stim, n) µA and meas ((n_meas, n) for every injection, or (n_stim,
+    n_meas, n)) over the ``n`` active electrodes, as SI tuples; (None, None) when not given."""
+    if not any(k in t.data for k in PATTERN_KEYS):
+        return None, None
+    if not all(k in t.data for k in PATTERN_KEYS):
+        raise SceneError("[drive]: a protocol as data needs both stim_ua (currents per injection) and meas (measurement weights)")
+    for k in ("skip", "measure"):
+        if k in t.data:
+            raise SceneError(f"drive.{k}: give skip and measure, or stim_ua and meas, not both")
+    try:
+        stim = np.array(t.raw("stim_ua", None), dtype=float) * 1e-6
+        meas = np.array(t.raw("meas", None), dtype=float)
+    except (TypeError, ValueError):
+        raise SceneError("drive.stim_ua, drive.meas: must be rectangular arrays of numbers") from None
+    if stim.ndim != 2 or stim.shape[1] != n or not len(stim):
+        raise SceneError(f"drive.stim_ua: must be (n_stim, {n}) µA, one row per injection over the {n} active electrodes, "
+                         f"got shape {stim.shape}")
+    if meas.ndim == 2:
+        meas = np.broadcast_to(meas, (len(stim),) + meas.shape)
+    if meas.ndim != 3 or meas.shape[0] != len(stim) or meas.shape[2] != n or not meas.shape[1]:
+        raise SceneError(f"drive.meas: must be (n_meas, {n}) or ({len(stim)}, n_meas, {n}) weights, got shape {meas.shape}")
+    if not (np.isfinite(stim).all() and np.isfinite(meas).all()) or not np.abs(stim).max() > 0:
+        raise SceneError("drive.stim_ua, drive.meas: must be finite, with some current")
+    if not reference:
+        if (bad := np.flatnonzero(np.abs(stim.sum(axis=1)) > 1e-9 * np.abs(stim).max())).size:
+            raise SceneError(f"drive.stim_ua[{bad[0]}]: with a floating reference every injection's currents must sum to zero")
+        if np.abs(meas.sum(axis=2)).max() > 1e-9 * np.abs(meas).max():
+            raise SceneError("drive.meas: with a floating reference every measurement's weights must sum to zero")
+    return tuple(map(tuple, stim.tolist())), tuple(tuple(map(tuple, m)) for m in meas.tolist())
+
+
+def _layout_room(centres: np.ndarray, radii: np.ndarray, base_r: float) -> tuple[float, float]:
+    """(smallest edge gap between electrodes, least room to the rim beyond EDGE_CLEARANCE_MM), mm."""
+    gaps = np.hypot(*(centres[:, None] - centres[None]).transpose(2, 0, 1)) - radii[:, None] - radii[None]
+    np.fill_diagonal(gaps, np.inf)
+    edge = base_r - EDGE_CLEARANCE_MM - (np.hypot(centres[:, 0], centres[:, 1]) + radii)
+    return float(gaps.min()), float(edge.min())
+
+
 def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     """Build and validate a :class:`Scene` from a parsed TOML mapping (keys with units)."""
     data = _moved_keys(dict(data))
@@ -383,25 +542,38 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     chamber = Chamber(base_r * MM, height * MM, thick * MM)
 
     t = _Table(data.get("electrodes", {}), "electrodes")
-    count = t.integer("count", 16, 3, 64)
-    diam = t.number("diameter_mm", 2.0, 0.0, base_r, lo_open=True)
-    gdiam = t.number("ground_diameter_mm", 4.0, 0.0, base_r, lo_open=True)
-    ring_lo = gdiam / 2 + diam / 2
-    ring_hi = base_r - diam / 2
-    ring = t.number("ring_radius_mm", 15.0, ring_lo, ring_hi, lo_open=True, hi_open=True)
-    pitch = 2 * ring * math.sin(math.pi / count)
-    if pitch <= diam:
-        raise SceneError(
-            f"electrodes.diameter_mm = {diam:g}: must be below the ring pitch "
-            f"{pitch:.3g} mm (electrodes would overlap)"
-        )
+    generated = [k for k in LAYOUT_GENERATORS if k in t.data]
+    if generated:
+        discs, reference = _layout(t, base_r)
+        count = len(discs) - 1
+        ring = diam = gdiam = first = 0.0  # the ring's own sizes: not this layout's
+    else:
+        count = t.integer("count", 16, 3, 64)
+        diam = t.number("diameter_mm", 2.0, 0.0, base_r, lo_open=True)
+        gdiam = t.number("ground_diameter_mm", 4.0, 0.0, base_r, lo_open=True)
+        ring_lo = gdiam / 2 + diam / 2
+        ring_hi = base_r - diam / 2 - EDGE_CLEARANCE_MM
+        ring = t.number("ring_radius_mm", 15.0, ring_lo, ring_hi, lo_open=True)
+        pitch = 2 * ring * math.sin(math.pi / count)
+        if pitch <= diam:
+            raise SceneError(
+                f"electrodes.diameter_mm = {diam:g}: must be below the ring pitch "
+                f"{pitch:.3g} mm (electrodes would overlap)"
+            )
+        first = t.number("first_angle_deg", 0.0, -360.0, 360.0)
+        discs, reference = (), True
     z = _number_list(
         "electrodes.contact_impedance_ohm_m2", t.raw("contact_impedance_ohm_m2", 1e-3), count, 0.0, 1.0, True
     )
     zg = t.number("ground_contact_impedance_ohm_m2", 1e-3, 0.0, 1.0, lo_open=True)
     zf_raw = t.raw("contact_impedance_by_freq_ohm_m2", None)
-    first = t.number("first_angle_deg", 0.0, -360.0, 360.0)
     t.finish()
+    # room each electrode has: to its nearest neighbour's edge, and to the base's rim (mm)
+    centres = (np.array([(d[0], d[1]) for d in discs]) / MM if discs else
+               np.array([(ring * math.cos(math.radians(first) + 2 * math.pi * k / count),
+                          ring * math.sin(math.radians(first) + 2 * math.pi * k / count)) for k in range(count)] + [(0.0, 0.0)]))
+    radii = np.array([d[2] for d in discs]) / MM if discs else np.append(np.full(count, diam / 2), gdiam / 2)
+    gap, edge = _layout_room(centres, radii, base_r)
 
     t = _Table(data.get("saline", {}), "saline")
     sigma = t.number("conductivity_s_per_m", 0.37, 0.0, 100.0, lo_open=True)
@@ -410,7 +582,16 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     t = _Table(data.get("drive", {}), "drive")
     current = t.number("current_ua", 120.0, 0.0, 1e5, lo_open=True)
     freqs = _number_list("drive.frequencies_hz", t.raw("frequencies_hz", list(Drive().frequencies)), None, 0.0, 1e7, True)
-    skip = t.integer("skip", 8, 0, count // 2)
+    # skip-N over the driven electrodes (every electrode where the reference floats)
+    n_driven = count + (0 if reference else 1)  # ElectrodeRing.n_active
+    skip = t.raw("skip", min(8, n_driven // 2))  # the paper's skip-8, or opposite on fewer electrodes
+    if isinstance(skip, bool) or not isinstance(skip, int) or not 0 <= skip <= n_driven // 2:
+        raise SceneError(f"drive.skip = {skip!r}: must be an integer in [0, {n_driven // 2}] for {n_driven} driven electrodes")
+    stim, meas = _patterns(t, n_driven, reference)
+    measure = t.choice("measure", "reference" if reference else "adjacent", MEASUREMENTS)
+    if measure == "reference" and not reference and stim is None:
+        raise SceneError("drive.measure = 'reference': the layout has no reference electrode (electrodes.reference = \"none\"); "
+                         "measure \"adjacent\" pairs")
     t.finish()
 
     zf = None
@@ -478,16 +659,16 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     return Scene(
         name=name,
         chamber=chamber,
-        electrodes=ElectrodeRing(count, ring * MM, diam * MM, gdiam * MM, z, zg, zf, first),
+        electrodes=ElectrodeRing(count, ring * MM, diam * MM, gdiam * MM, z, zg, zf, first, discs, reference),
         saline=Saline(sigma),
-        drive=Drive(current * 1e-6, freqs, skip),
+        drive=Drive(current * 1e-6, freqs, skip, measure, stim, meas),
         noise=Noise(snr, seed, drift, rate),
         mesh=MeshSpec(preset, max_edge * MM, refine, zone * MM, grading, element_order, update),
         membrane=Membrane(law, mu * 1e3, tuple(c * 1e3 for c in yc), bulk_ratio, layers, p_res, closed, rim_vertices, volumetric, moulding, element),
         target=target,
         reconstruction=_reconstruction(data.get("reconstruction", {}), base_r, height, thick),
         palpation=_palpation(data.get("palpation", {}), base_r, height, thick, zf is not None),
-        dataset=_dataset(data.get("dataset", {}), base_r, height, ring, diam, count, zone),
+        dataset=_dataset(data.get("dataset", {}), base_r, height, float(np.max(np.hypot(*centres[:-1].T))), gap, edge, zone),
     )
 
 
@@ -548,6 +729,10 @@ def scene_data(path: str | Path, _chain: tuple[Path, ...] = ()) -> dict[str, Any
         if isinstance(value, dict) and isinstance(merged.get(key), dict):
             # a size given by radius here replaces the base's by diameter, and the other way round
             drop = {b for pair in SIZE_ALIASES for a, b in (pair, pair[::-1]) if a in value}
+            if key == "electrodes" and any(g in value for g in LAYOUT_GENERATORS):
+                drop |= set(RING_KEYS)  # a layout given as data replaces the other scene's ring
+            if key == "drive" and any(k in value for k in PATTERN_KEYS):
+                drop |= {"skip", "measure"}  # and a protocol as data the other's skip-N
             merged[key] = {**{k: v for k, v in merged[key].items() if k not in drop}, **value}
         else:
             merged[key] = value
@@ -566,7 +751,8 @@ def scene_toml(path: str | Path) -> str:
 
 
 def _toml(data: dict[str, Any]) -> str:
-    """TOML text of a scene mapping (top-level scalars, then one table per section)."""
+    """TOML text of a scene mapping (top-level scalars, then one table per section, its arrays
+    of tables, such as [[electrodes.ring]], after its keys)."""
     def value(v: Any) -> str:
         if isinstance(v, bool):
             return "true" if v else "false"
@@ -578,10 +764,17 @@ def _toml(data: dict[str, Any]) -> str:
             return "[" + ", ".join(value(x) for x in v) + "]"
         raise SceneError(f"scene value {v!r}: not representable in a scene file")
 
+    def tables(v: Any) -> bool:
+        return isinstance(v, list) and bool(v) and all(isinstance(x, dict) for x in v)
+
     lines = [f"{k} = {value(v)}" for k, v in data.items() if not isinstance(v, dict)]
     for k, v in data.items():
         if isinstance(v, dict):
-            lines += ["", f"[{k}]"] + [f"{kk} = {value(vv)}" for kk, vv in v.items()]
+            lines += ["", f"[{k}]"] + [f"{kk} = {value(vv)}" for kk, vv in v.items() if not tables(vv)]
+            for kk, vv in v.items():
+                if tables(vv):
+                    for t in vv:
+                        lines += ["", f"[[{k}.{kk}]]"] + [f"{a} = {value(b)}" for a, b in t.items()]
     return "\n".join(lines) + "\n"
 
 
@@ -813,8 +1006,11 @@ def _range(t: _Table, k: str, default: tuple[float, float], lo: float, hi: float
     return a, b
 
 
-def _dataset(data: dict[str, Any], base_r: float, height: float, ring: float, diam: float, count: int, zone: float) -> DatasetSpec:
-    """Parse [dataset] (units in the key names); lengths of the sensor in mm."""
+def _dataset(data: dict[str, Any], base_r: float, height: float, ring: float, gap: float, edge: float, zone: float) -> DatasetSpec:
+    """Parse [dataset] (units in the key names); lengths of the sensor in mm: ``ring`` the
+    outermost driven electrode's distance from the axis, ``gap`` the smallest edge-to-edge
+    distance between electrodes, ``edge`` the least room between an electrode and the rim
+    (beyond the clearance every layout keeps)."""
     t = _Table(data, "dataset")
     d = DatasetSpec()
     has_r, has_d = "radius_mm" in data, "diameter_mm" in data
@@ -832,9 +1028,9 @@ def _dataset(data: dict[str, Any], base_r: float, height: float, ring: float, di
     scale = _range(t, "membrane_scale", d.membrane_scale, 0.05, 20.0)
     sigma = _range(t, "conductivity_s_per_m", d.conductivity, 0.0, 100.0, lo_open=True)
     z = _range(t, "contact_impedance_ohm_m2", d.contact_impedance, 0.0, 1.0, lo_open=True)
-    # a jittered disc stays inside the refined zone of the mesh and clear of its neighbours
-    gap = 2 * ring * math.sin(math.pi / count) - diam
-    jit_hi = min(zone, gap / 2, base_r - ring - diam / 2)
+    # a jittered disc stays inside the refined zone of the mesh, clear of its neighbours and
+    # inside the base (the layout keeps every disc EDGE_CLEARANCE_MM inside the rim)
+    jit_hi = max(0.0, min(zone, gap / 2, edge))
     jitter = t.number("electrode_jitter_mm", min(0.1, jit_hi), 0.0, jit_hi)
     snr = _range(t, "snr_db", d.snr_db, *SNR_RANGE_DB)
     rigid = t.number("rigid_fraction", 1.0, 0.0, 1.0)

@@ -111,7 +111,7 @@ def test_cli_rejects_a_bad_scene_with_the_key(tmp_path):
     bad.write_text("[electrodes]\nring_radius_mm = 25.0\n")
     r = _jointsim("forward", str(bad), "--out", str(tmp_path / "out"))
     assert r.returncode == 2
-    assert "electrodes.ring_radius_mm = 25: must be in (3, 19)" in r.stderr
+    assert "electrodes.ring_radius_mm = 25: must be in (3, 18.5]" in r.stderr
     assert "Traceback" not in r.stderr
     assert not (tmp_path / "out").exists()
 

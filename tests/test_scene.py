@@ -59,7 +59,8 @@ def test_bad_values_are_rejected_naming_the_key(data, key):
 
 
 def test_error_states_the_allowed_range():
-    with pytest.raises(SceneError, match=r"must be in \(3, 19\)"):
+    # the ring's discs end at least EDGE_CLEARANCE_MM (0.5) inside the 20 mm base: 20 - 1 - 0.5
+    with pytest.raises(SceneError, match=r"must be in \(3, 18.5\]"):
         scene_from_dict({"electrodes": {"ring_radius_mm": 25}})
 
 

@@ -124,10 +124,13 @@ def _binned(by: np.ndarray, pred: np.ndarray, edges: Sequence[float], truth: np.
 
 def _ring_symmetries(samples: Samples, n_meas: int) -> list[RingSymmetry]:
     """The electrode ring's symmetries under the store's drive protocol (from its sensor
-    fingerprint); none for a synthetic store or one whose frames are not that protocol's."""
+    fingerprint); none for a synthetic store, a layout other than the paper's ring, or one
+    whose frames are not that protocol's."""
     if samples.source.get("synthetic"):
         return []
     fp = samples.fingerprint
+    if fp.get("electrodes.discs") or fp.get("drive.stim") or fp.get("drive.measure", "reference") != "reference":
+        return []  # a layout given as data, or other measurements: the ring's symmetries are not known to hold
     try:
         protocol = skip_protocol(int(fp["electrodes.count"]), int(fp["drive.skip"]), float(fp["drive.current"]))
     except (KeyError, TypeError, ValueError):

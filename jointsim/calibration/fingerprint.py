@@ -43,7 +43,8 @@ SENSOR_KEYS: dict[str, tuple[str, ...]] = {
 # existed, so maps and datasets recorded without them still match the scenes they were built for
 # (the representative press λ is chosen on: before [reconstruction], a paper-scene palpation's)
 OPTIONAL_KEYS: dict[str, Any] = {
-    "mesh.element_order": 1, "membrane.moulding": "cap", "reconstruction.lambda_radius": 7.5e-3,
+    "mesh.element_order": 1, "membrane.moulding": "cap", "electrodes.discs": [], "electrodes.reference": True,
+    "drive.measure": "reference", "drive.stim": None, "drive.meas": None, "reconstruction.lambda_radius": 7.5e-3,
     "reconstruction.lambda_depth": 3e-3, "reconstruction.lambda_xy": [0.0, 0.0],
 }
 # sections values were recorded in before they moved (scene.MOVED_KEYS): read there when a

@@ -27,7 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..eit.protocol import skip_protocol
+    from ..eit.protocol import scene_protocol
     from ..studies.rest import read_at_rest, write_at_rest
 
     scene = scene_from_args(args)
@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     t: dict[str, float] = {}
     print(f"jointsim forward: scene {scene.name}, mesh preset {scene.mesh.preset}, P{scene.mesh.element_order} elements, skip-{skip}")
     zf = scene.electrodes.contact_impedance_by_freq
-    protocol = skip_protocol(scene.electrodes.count, skip, scene.drive.current)
+    protocol = scene_protocol(scene, skip)
     what = ("membrane inflated, chamber mesh (cached after the first run)" + (" on the flat moulding" if scene.membrane.moulding == "flat" else "")
             + f", {protocol.n_el} lead fields" + (f" per carrier ({len(zf)} contact impedances)" if zf is not None else "")
             + ("" if args.no_jacobian else ", Jacobian and lambda"))

@@ -27,6 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--cells", type=int, default=7000, help="reconstruction voxels in the bounding box (default 7000)")
     p.add_argument("--lambda-method", choices=["kfold", "loo", "gcv", "lcurve"], default="kfold")
+    p.add_argument("--skips", help="skip-N protocols to compare, comma-separated (default: 0 to n/2 for the layout's n electrodes)")
     p.add_argument("--no-mesh-floor", action="store_true", help="skip the mesh-noise floor (two extra meshings)")
 
 
@@ -43,7 +44,17 @@ def run(args: argparse.Namespace) -> int:
     lo, hi = SNR_RANGE_DB
     if args.snr_db is not None and not lo <= args.snr_db <= hi:
         raise ValueError(f"--snr-db = {args.snr_db:g}: must be in [{lo:g}, {hi:g}] dB (as [noise] snr_db)")
+    n = scene.electrodes.n_active
+    skips = tuple(range(n // 2 + 1))
+    if args.skips is not None:
+        try:
+            skips = tuple(int(v) for v in args.skips.split(",") if v.strip())
+        except ValueError:
+            skips = ()
+        if not skips or any(not 0 <= k <= n // 2 for k in skips):
+            raise ValueError(f"--skips = {args.skips!r}: comma-separated integers in [0, {n // 2}] for {n} driven electrodes")
     cfg = StudyConfig(
+        skips=skips,
         target_radius=radius * 1e-3,
         depth=args.depth_mm * 1e-3,
         snr_db=scene.noise.snr_db if args.snr_db is None else args.snr_db,

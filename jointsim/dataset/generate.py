@@ -178,7 +178,9 @@ def dataset_schema(n_electrodes: int, n_meas: int, n_cells: int | None) -> Schem
 # scene values added after stores were first written, with the behaviour before they existed:
 # recorded only where they differ from it, so a store written before still resumes
 LATER_KEYS: dict[tuple[str, str], object] = {("membrane", "moulding"): "cap", ("membrane", "element"): UNRECORDED_ELEMENT,
-                                             ("mesh", "update"): "auto"}
+                                             ("mesh", "update"): "auto", ("electrodes", "discs"): (),
+                                             ("electrodes", "reference"): True, ("drive", "measure"): "reference",
+                                             ("drive", "stim"): None, ("drive", "meas"): None}
 
 
 def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str) -> dict[str, Any]:
@@ -206,7 +208,7 @@ class DatasetSetup:
         self.spec = scene.dataset
         self.seed = int(seed)
         self.instrument = Instrument.build(scene, chamber=chamber, reference_frames=self.spec.reference_frames)
-        self.n_electrodes = scene.electrodes.count
+        self.n_electrodes = scene.electrodes.n_active  # the electrodes a draw moves
         inst = self.instrument
         self.schema = dataset_schema(self.n_electrodes, inst.readout.n_meas, inst.grid.n_cells if self.spec.images else None)
 

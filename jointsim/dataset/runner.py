@@ -303,10 +303,10 @@ def generate_dataset(
             setup = DatasetSetup(scene, chamber, seed)
             n_cells = setup.instrument.grid.n_cells
             setup.free()
-        from ..eit.protocol import skip_protocol
+        from ..eit.protocol import scene_protocol
 
-        n_meas = skip_protocol(scene.electrodes.count, scene.drive.skip, scene.drive.current).n_meas
-        schema = dataset_schema(scene.electrodes.count, n_meas, n_cells)
+        n_meas = scene_protocol(scene).n_meas
+        schema = dataset_schema(scene.electrodes.n_active, n_meas, n_cells)
         store = open_store(final, schema, scene_toml=scene_toml if scene_toml is not None else f'name = "{scene.name}"\n',
                            seed=int(seed), n_records=int(n_samples), params=dataset_params(scene, n_samples, sha),
                            command=command)

@@ -12,7 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Protocol", "RingSymmetry", "ring_symmetries", "skip_protocol", "skip_pairs"]
+from ..scene import Scene
+
+__all__ = ["Protocol", "RingSymmetry", "ring_symmetries", "skip_protocol", "skip_pairs", "scene_protocol"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -55,6 +57,19 @@ class Protocol:
         """Measurements from electrode voltages (n_stim, n_el) → (n_meas,), injection-major."""
         return np.einsum("sme,se->sm", self.meas, electrode_voltages).ravel()
 
+    def floating(self) -> "Protocol":
+        """This protocol's patterns, which span every electrode of a layout with no passive
+        reference, on the driven electrodes of the forward model, whose reference (potential 0,
+        taking the rest of each injection's current) is the last electrode: its column
+        dropped. Exact when every injection's currents and every measurement's weights sum to
+        zero (then neither depends on which electrode the solver grounds); else a ValueError."""
+        scale = max(np.abs(self.stim).max(), 1e-300)
+        if np.abs(self.stim.sum(axis=1)).max() > 1e-12 * scale:
+            raise ValueError("a floating reference: every injection's currents must sum to zero")
+        if np.abs(self.meas.sum(axis=2)).max() > 1e-12 * max(np.abs(self.meas).max(), 1e-300):
+            raise ValueError("a floating reference: every measurement's weights must sum to zero (differential)")
+        return Protocol(self.stim[:, :-1], self.meas[:, :, :-1])
+
 
 def skip_pairs(n_el: int, skip: int) -> np.ndarray:
     """(n_el, 2) source/sink electrodes: injection i drives i (+) against i + skip + 1 (−)."""
@@ -82,6 +97,21 @@ def skip_protocol(n_el: int = 16, skip: int = 8, current: float = 120e-6, measur
     else:
         raise ValueError(f"measure = {measure!r}: allowed values are 'ground', 'adjacent'")
     return Protocol(stim, m)
+
+
+def scene_protocol(scene: Scene, skip: int | None = None) -> Protocol:
+    """The protocol of ``scene``'s [drive] on its [electrodes]: its patterns given as data, or
+    skip-N (``skip`` overriding its N, and any patterns) over the driven electrodes against the
+    reference, or adjacent pairs; where the reference floats, patterns over every electrode
+    reduced by :meth:`Protocol.floating`."""
+    e, d = scene.electrodes, scene.drive
+    if d.stim is not None and skip is None:  # a protocol given as data
+        p = Protocol(np.array(d.stim), np.array(d.meas))
+        return p if e.reference else p.floating()
+    skip = d.skip if skip is None else skip
+    if e.reference:
+        return skip_protocol(e.count, skip, d.current, "ground" if d.measure == "reference" else "adjacent")
+    return skip_protocol(e.count + 1, skip, d.current, "adjacent").floating()
 
 
 @dataclass(frozen=True, eq=False)

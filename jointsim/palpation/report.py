@@ -329,7 +329,7 @@ def _figures(out: Path, rec: Records, grid: ChamberGrid, rows: list[dict]) -> li
         ax.plot(t, 1e3 * rec["rms_dv"][sel], color="tab:red", lw=2.2, label="δV (RMS over channels)")
         ax.set_title(f"{r['diameter_mm']:g} mm target")
         ax.set_xlabel("time (s)")
-    axes[0, 0].set_ylabel("δV (mV), 256 channels")
+    axes[0, 0].set_ylabel(f"δV (mV), {rec['dv'].shape[1]} channels")
     axes[0, 0].legend(loc="upper left", fontsize=8)
     fig.suptitle("Voltage changes with δV highlighted (cf. paper Fig. 4A)", fontsize=10)
     fig.tight_layout()

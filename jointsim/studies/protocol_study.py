@@ -1,6 +1,7 @@
 """The protocol-optimisation study of the paper (sections III.A / IV.A, Fig. 2 G–H).
 
-For each skip-N injection protocol (N = 0…8, all 16 electrodes measured against ground) and a
+For each skip-N injection protocol (N = 0…n/2: 0…8 on the paper's 16 electrodes, all measured
+against ground, or as the scene's [drive] measure says) and a
 representative indentation at several contact positions: the RMS voltage change δV, the total
 sensitivity J_sens in the chamber, the difference image (zeroth-order Tikhonov, λ by k-fold
 cross-validation), the perturbation's CoM error against the true centre of the displaced
@@ -26,7 +27,7 @@ import trimesh
 
 from ..eit.forward import ForwardModel
 from ..eit.jacobian import jacobian
-from ..eit.protocol import skip_protocol
+from ..eit.protocol import scene_protocol
 from ..geometry import dome_from_scene, electrode_layout
 from ..instrument import Instrument
 from ..mechanics.geometric import indent_dome
@@ -41,7 +42,7 @@ __all__ = ["StudyConfig", "StudyResult", "run_protocol_study", "mesh_noise_floor
 
 @dataclass(frozen=True)
 class StudyConfig:
-    skips: tuple[int, ...] = tuple(range(9))
+    skips: tuple[int, ...] | None = None  # default: 0 … n/2 for the layout's n driven electrodes
     # contact positions (x, y) in m: the centre and points along and between electrode axes
     positions: tuple[tuple[float, float], ...] = ((0.0, 0.0), (5e-3, 0.0), (0.0, 8e-3), (-7e-3, -7e-3), (10e-3, 4e-3))
     target_radius: float = 7.5e-3  # a 15 mm diameter target, the paper's middle size
@@ -55,8 +56,8 @@ class StudyConfig:
     mesh_floor: bool = True
 
     def __post_init__(self) -> None:
-        if not self.skips or any(not 0 <= s <= 14 for s in self.skips):
-            raise ValueError(f"skips = {self.skips}: each must be in [0, 14] for 16 electrodes")
+        if self.skips is not None and (not self.skips or any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in self.skips)):
+            raise ValueError(f"skips = {self.skips}: integers >= 0, at least one (each at most n/2 of the layout's n driven electrodes)")
         if self.target_radius <= 0:
             raise ValueError(f"target_radius = {self.target_radius}: must be > 0 m")
         if self.depth <= 0:
@@ -130,6 +131,11 @@ def run_protocol_study(scene: Scene, config: StudyConfig = StudyConfig(), progre
         raise ValueError(f"membrane.moulding = {scene.membrane.moulding!r}: the protocol study takes the moulded cap only (\"cap\")")
     tick = progress or (lambda n=1: None)
     n_el = scene.electrodes.count
+    n = scene.electrodes.n_active
+    if config.skips is None:
+        config = replace(config, skips=tuple(range(n // 2 + 1)))
+    if max(config.skips) > n // 2:
+        raise ValueError(f"skips = {list(config.skips)}: each must be in [0, {n // 2}] for {n} driven electrodes")
     dome = dome_from_scene(scene)
     scene = replace(scene, noise=replace(scene.noise, snr_db=config.snr_db))
     inst = Instrument.build(scene, dome=dome, chamber=chamber_mesh(scene), imaging=False)
@@ -137,7 +143,7 @@ def run_protocol_study(scene: Scene, config: StudyConfig = StudyConfig(), progre
     tick()
     grid = ChamberGrid.over(ch.mesh, config.n_cells)
     # one readout per skip; they share their solves (the reference's, then each position's)
-    readouts = {s: inst.readout.with_protocol(skip_protocol(n_el, s, scene.drive.current)) for s in config.skips}
+    readouts = {s: inst.readout.with_protocol(scene_protocol(scene, s)) for s in config.skips}
     protocols = {s: r.protocol for s, r in readouts.items()}
     v_ref = {s: r.v_ref for s, r in readouts.items()}
     f0 = inst.readout.fields(inst.reference, True)
@@ -145,7 +151,7 @@ def run_protocol_study(scene: Scene, config: StudyConfig = StudyConfig(), progre
     tick()
 
     P = len(config.positions)
-    v_def = {s: np.empty((P, n_el * n_el)) for s in config.skips}
+    v_def = {s: np.empty((P, readouts[s].n_meas)) for s in config.skips}
     centres, volumes = np.empty((P, 3)), np.empty(P)
     for i, xy in enumerate(config.positions):
         ind = indent_dome(dome, xy, config.depth, config.target_radius, scene.chamber.membrane_thickness)
@@ -185,7 +191,8 @@ def run_protocol_study(scene: Scene, config: StudyConfig = StudyConfig(), progre
     result = StudyResult(
         config, scene, grid, centres, volumes, v_ref, dv, dv_clean, j_sens, lambdas, images, metrics, metrics_raw, std
     )
-    result.mirror_pairs = mirror_pair_differences(v_def, n_el)
+    ring = scene.electrodes.is_ring and scene.drive.measure == "reference"
+    result.mirror_pairs = mirror_pair_differences(v_def, n_el) if ring else {}
     if config.mesh_floor:
         result.floor = mesh_noise_floor(scene, f0, protocols)
         tick()
@@ -228,18 +235,23 @@ def mesh_noise_floor(scene: Scene, fields, protocols: dict) -> dict[str, dict[in
     most 1 µm (the mesher is deterministic, so meshing the same chamber again gives the same
     mesh; a jitter far below the physical scale gives another); ``rotate`` meshes the chamber
     with the electrode ring rotated by one pitch (360°/n, a symmetry of the dome's
-    triangulation) and permutes the electrodes back. The morphed (fixed-topology) path has no
+    triangulation) and permutes the electrodes back (the paper's ring only). The morphed (fixed-topology) path has no
     such floor: no deformation gives the reference mesh itself."""
     n_el = scene.electrodes.count
-    out: dict[str, dict[int, float]] = {"jitter": {}, "rotate": {}}
+    ring = scene.electrodes.is_ring and scene.drive.measure == "reference"
+    out: dict[str, dict[int, float]] = {"jitter": {}, **({"rotate": {}} if ring else {})}
     again = _fields(jittered_chamber(scene, 1e-6), scene)
+    for s, p in protocols.items():
+        v = fields.voltages(p)
+        out["jitter"][s] = float(20 * np.log10(np.abs(v).mean() / rms(again.voltages(p) - v)))
+    if not ring:  # the turn by one pitch is a symmetry of the paper's ring only
+        return out
     pitch = 360.0 / n_el
     rot_scene = replace(scene, electrodes=replace(scene.electrodes, first_angle_deg=scene.electrodes.first_angle_deg + pitch))
     rotated = _fields(chamber_mesh(rot_scene), rot_scene)
     for s, p in protocols.items():
         v = fields.voltages(p)
         ref = np.abs(v).mean()
-        out["jitter"][s] = float(20 * np.log10(ref / rms(again.voltages(p) - v)))
         # electrode l of the rotated ring sits where electrode l + 1 was: the same physical
         # frame is injection i, electrode j of the original ↔ injection i − 1, electrode j − 1
         vr = rotated.voltages(p).reshape(n_el, n_el)
