@@ -921,9 +921,11 @@ def _palpation(data: dict[str, Any], base_r: float, height: float, thick: float,
         radii = tuple(d / 2 for d in diam)
     if not radii:
         raise SceneError("palpation.target_diameters_mm: must list at least one target")
-    depth = t.number("depth_mm", 3.0, 0.0, height + thick)
+    # past first contact at the apex, the sphere's lowest point reaches the base's membrane
+    # thickness (what the mechanics can take: MembraneModel.press) after the dome's height
+    depth = t.number("depth_mm", 3.0, 0.0, height)
     if mode != "force" and depth == 0:
-        raise SceneError(f"palpation.depth_mm = 0: must be in (0, {height + thick:g}] in {mode} mode")
+        raise SceneError(f"palpation.depth_mm = 0: must be in (0, {height:g}] in {mode} mode")
     speed = t.number("speed_mm_per_s", 25.0, 0.0, 1000.0, lo_open=True)
     hold = t.number("hold_s", 0.5, 0.0, 60.0)
     gap = t.number("gap_mm", 0.0, 0.0, 50.0)

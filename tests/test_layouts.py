@@ -175,3 +175,36 @@ def test_a_protocol_given_as_data_is_that_protocol(tmp_path):
     (tmp_path / "p.toml").write_text('extends = "paper_sensor"\n[drive]\nstim_ua = ' + str((p8.stim * 1e6).tolist())
                                      + '\nmeas = ' + str(np.eye(16).tolist()) + '\n')
     np.testing.assert_allclose(scene_protocol(load_scene(tmp_path / "p.toml")).stim, p8.stim, rtol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def inner8(paper_scene):
+    from jointsim.scene import SCENES_DIR
+
+    s = load_scene(SCENES_DIR / "ring16_inner8.toml").with_mesh_preset("test")
+    return replace(s, membrane=replace(s.membrane, rim_vertices=32, layers=1),
+                   reconstruction=replace(s.reconstruction, cells=1000))
+
+
+def test_the_jobs_run_on_a_layout_given_as_data(inner8):
+    """A dataset group and the protocol study on 16 ring + 8 internal electrodes: 24 electrodes
+    moved per draw, 576 measurements per sample, one study row per skip asked for; the internal
+    electrodes see the press (their rows of δV are not zero)."""
+    from jointsim.dataset.generate import DatasetSetup
+    from jointsim.instrument import deployed_chamber
+    from jointsim.studies.protocol_study import StudyConfig, run_protocol_study
+
+    setup = DatasetSetup(inner8, deployed_chamber(inner8), seed=1)
+    try:
+        records, _ = setup.group(0, 2)
+    finally:
+        setup.free()
+    assert records[0]["electrode_jitter"].shape == (24, 2) and records[0]["dv"].shape == (576,)
+    assert 0 < records[0]["displaced_volume"] < records[1]["displaced_volume"]
+    cfg = StudyConfig(skips=(0, 8), positions=((0.0, 0.0), (5e-3, 0.0)), noise_repeats=2, n_cells=1000, mesh_floor=False)
+    result = run_protocol_study(inner8, cfg)
+    assert [r["skip"] for r in result.table()] == [0, 8] and result.dv_clean[8].shape == (2, 576)
+    inner_rows = result.dv_clean[8].reshape(2, 24, 24)[:, :, 16:]  # every injection, the 8 internal electrodes
+    assert np.abs(inner_rows).max() > 0.05 * np.abs(result.dv_clean[8]).max()
+    with pytest.raises(ValueError, match=r"skips = \[13\]: each must be in \[0, 12\] for 24 driven electrodes"):
+        run_protocol_study(inner8, replace(cfg, skips=(13,)))

@@ -360,6 +360,8 @@ def test_force_profile_and_bad_settings():
     with pytest.raises(ValueError, match="force = "):
         force_profile(-1.0, 0.2, 0.5, 50.0)
     for bad, key in [({"mode": "pinch"}, "palpation.mode"), ({"depth_mm": 30}, "palpation.depth_mm"),
+                     # past the 10 mm dome's height the sphere would press the membrane onto the base
+                     ({"depth_mm": 11.5}, r"palpation.depth_mm = 11.5: must be in \[0, 10\]"),
                      ({"target_diameters_mm": [8, -1]}, r"palpation.target_diameters_mm\[1\]"),
                      ({"xy_mm": [25, 0]}, "palpation.xy_mm"), ({"speed_mm_per_s": 0}, "palpation.speed_mm_per_s"),
                      ({"mesh_update": "sometimes"}, "mesh.update"),

@@ -71,9 +71,9 @@ def configure(args: argparse.Namespace):
     if args.mode is not None:
         spec = replace(spec, mode=args.mode)
     if args.depth is not None:
-        hi = (c.dome_height + c.membrane_thickness) * 1e3
+        hi = c.dome_height * 1e3  # as palpation.depth_mm: beyond it the sphere would press the membrane onto the base
         if not 0 < args.depth <= hi:
-            raise ValueError(f"--depth = {args.depth}: must be in (0, {hi:g}] mm")
+            raise ValueError(f"--depth = {args.depth}: must be in (0, {hi:g}] mm (the dome's height)")
         spec = replace(spec, depth=args.depth * 1e-3)
     if args.force is not None:
         if not 0 < args.force <= 10:
