@@ -582,6 +582,8 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     t = _Table(data.get("drive", {}), "drive")
     current = t.number("current_ua", 120.0, 0.0, 1e5, lo_open=True)
     freqs = _number_list("drive.frequencies_hz", t.raw("frequencies_hz", list(Drive().frequencies)), None, 0.0, 1e7, True)
+    if not freqs:
+        raise SceneError("drive.frequencies_hz = []: at least one carrier frequency (the paper's FDM drive has 16)")
     # skip-N over the driven electrodes (every electrode where the reference floats)
     n_driven = count + (0 if reference else 1)  # ElectrodeRing.n_active
     skip = t.raw("skip", min(8, n_driven // 2))  # the paper's skip-8, or opposite on fewer electrodes

@@ -219,6 +219,36 @@ def test_a_finished_file_is_not_recomputed(scene, scene_file, reference):
         generate_dataset(scene, N + 1, reference[0].path, seed=SEED)
 
 
+def test_a_damaged_finished_file_is_found_by_a_rerun(scene, scene_file, reference, tmp_path):
+    """Four bytes flipped in a chunk of a finished store: the rerun that would say "nothing to
+    do" reads the file back against its data_sha256 and refuses it, naming the file."""
+    import shutil
+
+    import h5py
+
+    path = tmp_path / "damaged.h5"
+    shutil.copy(reference[0].path, path)
+    with h5py.File(path, "r") as h5:
+        ds = h5["records/voltages"]
+        offset = ds.id.get_chunk_info(0).byte_offset if ds.chunks else ds.id.get_offset()
+    with open(path, "r+b") as f:
+        f.seek(offset + 64)
+        b = f.read(4)
+        f.seek(offset + 64)
+        f.write(bytes(x ^ 0xFF for x in b))
+    with pytest.raises(ValueError, match=rf"{path.name}: .*damaged.*move it away and run again"):
+        _generate(scene, scene_file, path, workers=1)
+
+
+def test_a_scheduler_that_does_not_answer_is_one_error(scene, scene_file, tmp_path, monkeypatch):
+    pytest.importorskip("distributed")
+    import jointsim.dataset.runner as runner
+
+    monkeypatch.setattr(runner, "SCHEDULER_TIMEOUT_S", 2.0)
+    with pytest.raises(ValueError, match=r"scheduler 'tcp://127.0.0.1:9': cannot connect within 2 s"):
+        _generate(scene, scene_file, tmp_path / "nowhere", scheduler="tcp://127.0.0.1:9")
+
+
 def test_force_control_samples_at_the_drawn_forces(scene, scene_file, tmp_path):
     """control = "force": one press, its samples at forces one in each third of force_n, reached
     to the press's tolerance (1e-3), at increasing depths."""
@@ -317,6 +347,10 @@ def test_the_command_line_rejects_bad_input_with_exit_2(tmp_path, capsys):
     assert main(["dataset", str(bad), "--n", "3", "--out", str(tmp_path / "x")]) == 2
     assert "dataset.radius_mm" in capsys.readouterr().err
     assert main(["dataset", str(bad.with_name("none.toml")), "--n", "0"]) == 2
+    # a seed the store cannot record (a signed 64-bit integer), refused before any work
+    assert main(["dataset", "--n", "3", "--seed", str(2**64), "--out", str(tmp_path / "y")]) == 2
+    assert "--seed = 18446744073709551616: must be in [0, 2^63 - 1]" in capsys.readouterr().err
+    assert not (tmp_path / "y.h5").exists() and not (tmp_path / "y.partial").exists()
 
 
 def test_a_worker_that_dies_ends_the_run_with_one_clear_error():

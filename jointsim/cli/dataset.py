@@ -47,8 +47,8 @@ def run(args: argparse.Namespace) -> int:
         scene = replace(scene, dataset=replace(scene.dataset, images=args.images))
     if args.n < 1:
         raise ValueError(f"--n = {args.n}: must be >= 1 (labelled samples)")
-    if args.seed is not None and args.seed < 0:
-        raise ValueError(f"--seed = {args.seed}: must be >= 0")
+    if args.seed is not None and not 0 <= args.seed <= 2**63 - 1:
+        raise ValueError(f"--seed = {args.seed}: must be in [0, 2^63 - 1]")
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers = {args.workers}: must be >= 1")
     d = scene.dataset

@@ -30,10 +30,17 @@ def run(args: argparse.Namespace) -> int:
     from ..eit.protocol import scene_protocol
     from ..studies.rest import read_at_rest, write_at_rest
 
+    from ..linalg import available_backends
+
     scene = scene_from_args(args)
+    if args.solver != "auto" and args.solver not in (here := available_backends()):
+        known = ("superlu", "cholmod", "pardiso")
+        why = "not installed here" if args.solver in known else "not a solver jointsim knows"
+        raise ValueError(f"--solver = {args.solver!r}: {why}; available here: auto, {', '.join(here)}")
     skip = scene.drive.skip if args.skip is None else args.skip
-    if not 0 <= skip <= scene.electrodes.count // 2:
-        raise ValueError(f"--skip = {skip}: must be in [0, {scene.electrodes.count // 2}]")
+    n = scene.electrodes.n_active
+    if not 0 <= skip <= n // 2:
+        raise ValueError(f"--skip = {skip}: must be in [0, {n // 2}] for {n} driven electrodes")
     if args.voxels is not None and args.voxels < 1:
         raise ValueError(f"--voxels = {args.voxels}: must be >= 1")
     out: Path = args.out

@@ -94,8 +94,8 @@ def configure(args: argparse.Namespace):
         spec = replace(spec, xy=(xy[0] * 1e-3, xy[1] * 1e-3))
     noise = scene.noise
     if args.seed is not None:
-        if args.seed < 0:
-            raise ValueError(f"--seed = {args.seed}: must be >= 0")
+        if not 0 <= args.seed <= 2**63 - 1:
+            raise ValueError(f"--seed = {args.seed}: must be in [0, 2^63 - 1] (as [noise] seed)")
         noise = replace(noise, seed=args.seed)
     return replace(scene, membrane=m, palpation=spec, noise=noise)
 

@@ -66,8 +66,10 @@ from .generate import DatasetSetup, dataset_params, dataset_schema, group_indice
 
 __all__ = ["DatasetRun", "generate_dataset", "default_workers", "THREAD_VARIABLES"]
 
+MAX_SEED = 2**63 - 1  # as [noise] seed: the store records it as a signed 64-bit integer
 THREAD_VARIABLES = ("MKL_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 CHAMBER_FILE = "chamber.npz"
+SCHEDULER_TIMEOUT_S = 15.0
 
 
 @dataclass(frozen=True)
@@ -224,7 +226,14 @@ def _run_local(tasks: Sequence[tuple], workers: int, tick: Callable[[tuple], Non
 def _run_dask(tasks: Sequence[tuple], scheduler: Any, tick: Callable[[tuple], None]) -> None:
     from distributed import Client, as_completed
 
-    client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+    if isinstance(scheduler, Client):
+        client = scheduler
+    else:
+        try:
+            client = Client(scheduler, timeout=SCHEDULER_TIMEOUT_S)
+        except (OSError, TimeoutError, ValueError) as e:
+            raise ValueError(f"scheduler {scheduler!r}: cannot connect within {SCHEDULER_TIMEOUT_S:g} s ({type(e).__name__}: "
+                             f"{e}); start it (dask scheduler) or check the address, e.g. tcp://host:8786") from None
     try:
         futures = [client.submit(_run_group, *t, pure=False, key=f"jointsim-dataset-group-{t[3]}-{os.urandom(4).hex()}")
                    for t in tasks]
@@ -276,8 +285,8 @@ def generate_dataset(
     if not isinstance(n_samples, (int, np.integer)) or isinstance(n_samples, bool) or n_samples < 1:
         raise ValueError(f"n_samples = {n_samples!r}: must be an integer >= 1")
     seed = scene.noise.seed if seed is None else seed
-    if not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed = {seed!r}: must be an integer >= 0")
+    if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or not 0 <= seed <= MAX_SEED:
+        raise ValueError(f"seed = {seed!r}: must be an integer in [0, 2^63 - 1]")
     workers = default_workers() if workers is None else workers
     if not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ValueError(f"workers = {workers!r}: must be an integer >= 1")
@@ -292,6 +301,13 @@ def generate_dataset(
                 same = json.loads(json.dumps(want)) == prov["params"]
             if not same:
                 raise ValueError(f"{final} holds a finished run with other settings; remove it or write to another path")
+            # a rerun reads the whole file back against its digest: damage (a flipped chunk) is
+            # found here, not by the user's analysis later
+            try:
+                open_records(final, fields=[], verify=True)
+            except (ValueError, OSError) as e:  # a digest mismatch, or a chunk HDF5 cannot decode
+                what = str(e) if isinstance(e, ValueError) else f"{final}: damaged ({e})"
+                raise ValueError(f"{what}; move it away and run again to recompute it") from None
             return DatasetRun(final, n_samples, rec.data_sha256, 0, n_samples, 0, time.perf_counter() - t0)
 
         k = scene.dataset.samples_per_press

@@ -10,6 +10,7 @@ import numpy as np
 from ..geometry import DomeSurface, flat_disc, isotropic_cap
 from ..scene import Scene
 from .dome import MembraneModel, membrane_material
+from .newton import NewtonError
 from .soft_target import SoftTargetModel, soft_material
 
 __all__ = ["membrane_from_scene"]
@@ -38,7 +39,6 @@ def membrane_from_scene(
     ``inflate_from``: for a flat moulding, the membrane's displacement in an earlier model of
     this scene (or of it with its moduli scaled), which the inflation starts from."""
     m = scene.membrane
-    material = membrane_material(m)
     c = scene.chamber
     t = scene.target
     kw = {}
@@ -60,6 +60,20 @@ def membrane_from_scene(
         kw["inflate_from"] = inflate_from
     elif inflate_from is not None:
         raise ValueError("inflate_from: only for a membrane moulded flat ([membrane] moulding = \"flat\")")
+    try:
+        return _model(cls, dome, scene, target_radius, device, kw)
+    except NewtonError as e:
+        # the only solve of a model's construction is its state at rest under the saline
+        what = (f"inflated to the dome height ({c.dome_height * 1e3:g} mm, membrane.moulding = \"flat\")" if flat
+                else f"under membrane.reservoir_pressure_pa = {m.reservoir_pressure:g}")
+        hint = " (a suction this strong collapses the dome)" if not flat and m.reservoir_pressure < 0 else ""
+        raise NewtonError(f"the membrane has no equilibrium at rest {what}{hint}: {e}") from e
+
+
+def _model(cls: type, dome: DomeSurface, scene: Scene, target_radius: float | None, device: str, kw: dict) -> MembraneModel:
+    m, c, t = scene.membrane, scene.chamber, scene.target
+    flat = m.moulding == "flat"
+    material = membrane_material(m)
     return cls(
         dome,
         c.membrane_thickness,

@@ -1,0 +1,39 @@
+"""Bad input found before any work, one line, exit 2 (issue 48): the solver a machine lacks, a
+drive with no carrier, a suction the membrane cannot hold."""
+
+from dataclasses import replace
+
+import pytest
+
+from jointsim.cli.main import main
+from jointsim.linalg import available_backends
+from jointsim.scene import SceneError, scene_from_dict
+
+
+@pytest.mark.parametrize("solver, why", [("cholmod", "not installed here"), ("magic", "not a solver jointsim knows")])
+def test_forward_refuses_a_solver_it_cannot_use_before_any_work(solver, why, tmp_path, capsys):
+    if solver in available_backends():
+        pytest.skip(f"{solver} is installed here")
+    out = tmp_path / "f"
+    assert main(["forward", "--mesh", "test", "--solver", solver, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"--solver = '{solver}': {why}; available here: auto, superlu" in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_a_drive_without_carriers_is_refused_naming_the_key():
+    with pytest.raises(SceneError, match=r"drive.frequencies_hz = \[\]: at least one carrier"):
+        scene_from_dict({"drive": {"frequencies_hz": []}})
+    with pytest.raises(SceneError, match="contact_impedance_by_freq_ohm_m2: must be a list with one row per"):
+        scene_from_dict({"electrodes": {"contact_impedance_by_freq_ohm_m2": []}})
+
+
+def test_a_suction_the_membrane_cannot_hold_names_the_reservoir_pressure(paper_scene):
+    from jointsim.mechanics.build import membrane_from_scene
+    from jointsim.mechanics.newton import NewtonError
+
+    s = paper_scene.with_mesh_preset("test")
+    s = replace(s, membrane=replace(s.membrane, reservoir_pressure=-1e4, rim_vertices=32))
+    with pytest.raises(NewtonError, match=r"no equilibrium at rest under membrane.reservoir_pressure_pa = -10000 "
+                                          r"\(a suction this strong collapses the dome\)"):
+        membrane_from_scene(s)
