@@ -38,7 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--membrane-rim", type=int, help="membrane resolution: vertices on its rim (default: the scene's)")
     p.add_argument("--membrane-layers", type=int, help="membrane element layers through the thickness (default: the scene's)")
     p.add_argument("--device", default="cpu", help="Warp device of the membrane's element kernel: cpu (default) or cuda / cuda:N where a GPU is")
-    p.add_argument("--vtu-every", type=int, default=1, help="write the VTU series every N frames of each target (0: none; default 1)")
+    p.add_argument("--vtu-every", type=int, default=5, help="write the VTU series every N frames of each target and its last (0: none; default 5)")
     p.add_argument("--calibration", type=Path, metavar="MAP",
                    help="calibration map (jointsim calibrate): adds calibrated position, depth, size and stiffness per frame "
                         "(OUT/calibrated.csv, summary.json); refused when built for another sensor")
