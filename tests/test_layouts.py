@@ -208,3 +208,20 @@ def test_the_jobs_run_on_a_layout_given_as_data(inner8):
     assert np.abs(inner_rows).max() > 0.05 * np.abs(result.dv_clean[8]).max()
     with pytest.raises(ValueError, match=r"skips = \[13\]: each must be in \[0, 12\] for 24 driven electrodes"):
         run_protocol_study(inner8, replace(cfg, skips=(13,)))
+
+
+def test_stores_record_the_patterns_and_the_channel_order(paper_scene):
+    """A palpation's and a dataset's identity hold the stimulation and measurement patterns they
+    measured with, and how the voltages are laid out; read back they are the protocol."""
+    from jointsim.dataset.generate import dataset_params
+    from jointsim.eit.protocol import CHANNEL_ORDER
+    from jointsim.palpation import program_params
+
+    grid = load_scene(__import__("jointsim.scene", fromlist=["SCENES_DIR"]).SCENES_DIR / "grid5x5.toml")
+    for scene in (paper_scene, grid):
+        want = scene_protocol(scene)
+        for rec in (program_params(scene)["protocol"], dataset_params(scene, 6, "")["protocol"]):
+            got = Protocol(np.array(rec["stim_A"]), np.array(rec["meas"]))
+            np.testing.assert_array_equal(got.stim, want.stim)
+            np.testing.assert_array_equal(got.meas, want.meas)
+            assert rec["channels"] == CHANNEL_ORDER

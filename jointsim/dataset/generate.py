@@ -51,6 +51,7 @@ from typing import Any
 
 import numpy as np
 
+from ..eit.protocol import scene_protocol
 from ..instrument import Instrument, Readout
 from ..io.schema import Field, Schema
 from ..mechanics.build import membrane_from_scene
@@ -186,7 +187,8 @@ LATER_KEYS: dict[tuple[str, str], object] = {("membrane", "moulding"): "cap", ("
 def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str) -> dict[str, Any]:
     """What shapes the data beyond the scene file's text: the effective scene (after
     command-line overrides: sampling spec, mesh, membrane, noise, reconstruction settings; not
-    the palpation program, which a dataset does not use), N, and the chamber mesh used (a
+    the palpation program, which a dataset does not use), N, the stimulation and measurement
+    patterns with the voltages' channel order, and the chamber mesh used (a
     resumed run continues on the mesh it started with, whatever mesher version the machine
     has). JSON-ready; the store's identity."""
     d = scene.to_dict()
@@ -195,7 +197,8 @@ def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str) -> dict[st
     for (section, key), before in LATER_KEYS.items():
         if d[section].get(key) == before:
             del d[section][key]
-    return {"scene": d, "n_samples": int(n_samples), "chamber_sha256": chamber_sha256}
+    return {"scene": d, "n_samples": int(n_samples), "chamber_sha256": chamber_sha256,
+            "protocol": scene_protocol(scene).to_record()}
 
 
 class DatasetSetup:

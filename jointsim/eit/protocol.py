@@ -14,7 +14,10 @@ import numpy as np
 
 from ..scene import Scene
 
-__all__ = ["Protocol", "RingSymmetry", "ring_symmetries", "skip_protocol", "skip_pairs", "scene_protocol"]
+__all__ = ["Protocol", "RingSymmetry", "ring_symmetries", "skip_protocol", "skip_pairs", "scene_protocol", "CHANNEL_ORDER"]
+
+# how a frame's voltages are laid out, as stores record it beside the patterns
+CHANNEL_ORDER = "voltages[s * n_meas_per_stim + m] = measurement m of injection s (injection-major; EIDORS meas_pattern rows)"
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,6 +59,13 @@ class Protocol:
     def measure(self, electrode_voltages: np.ndarray) -> np.ndarray:
         """Measurements from electrode voltages (n_stim, n_el) → (n_meas,), injection-major."""
         return np.einsum("sme,se->sm", self.meas, electrode_voltages).ravel()
+
+    def to_record(self) -> dict:
+        """The patterns as a store records them (JSON-ready): ``stim_A`` (n_stim, n_el),
+        ``meas`` (n_stim, n_meas_per_stim, n_el), the electrodes they span (the driven ones,
+        in the layout's order; the reference's column is left out) and the channel order."""
+        return {"stim_A": self.stim.tolist(), "meas": self.meas.tolist(), "electrodes": "driven, in the layout's order",
+                "channels": CHANNEL_ORDER}
 
     def floating(self) -> "Protocol":
         """This protocol's patterns, which span every electrode of a layout with no passive

@@ -36,6 +36,7 @@ import mujoco
 import numpy as np
 
 from ..eit.noise import gain_drift
+from ..eit.protocol import scene_protocol
 from ..instrument import STAGES as FRAME_STAGES
 from ..instrument import Instrument, Reading, stream
 from ..io.schema import Field, Schema
@@ -297,7 +298,8 @@ class Palpation:
 def program_params(scene: Scene, spec: PalpationSpec | None = None, rig_path: str | Path | None = None) -> dict[str, Any]:
     """The run settings that shape a palpation's data beyond the scene file's text: the
     effective program (after command-line overrides), the mesh and membrane resolution, the
-    noise, the rig model and the number of frames. JSON-ready; the store's identity uses it,
+    noise, the rig model, the stimulation and measurement patterns with the voltages' channel
+    order, and the number of frames. JSON-ready; the store's identity uses it,
     so a run resumes only with the same settings."""
     spec = scene.palpation if spec is None else spec
     d = asdict(spec)
@@ -312,6 +314,7 @@ def program_params(scene: Scene, spec: PalpationSpec | None = None, rig_path: st
                      if not (k == "element" and v == UNRECORDED_ELEMENT)},
         "noise": asdict(scene.noise),
         "rig": str(rig_path) if rig_path else "scenes/bench_rig.xml",
+        "protocol": scene_protocol(scene).to_record(),
         "n_records": segs[-1].start + segs[-1].n_frames,
         "frames_per_target": [sg.n_frames for sg in segs],
     }
