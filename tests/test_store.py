@@ -216,6 +216,37 @@ def test_finalize_refuses_missing_records_and_says_how_many(tmp_path):
     assert open_records(store.finalize())["frame"].tolist() == list(range(10))
 
 
+def test_a_full_disk_at_finalise_is_an_error_that_keeps_the_records(tmp_path, monkeypatch):
+    """Too little free space for the final file: refused before HDF5 writes a byte (a disk that
+    filled mid-write ended in a segfault); a write that fails anyway (ENOSPC) is the same clear
+    error, no temporary file is left, and the records finalise once there is room."""
+    import shutil
+    from collections import namedtuple
+
+    import jointsim.io.store as store_module
+
+    store = _open(tmp_path / "run", n=3)
+    for i in range(3):
+        store.put(i, _record(i))
+    real = shutil.disk_usage
+    Usage = namedtuple("Usage", "total used free")
+    monkeypatch.setattr(store_module.shutil, "disk_usage", lambda p: Usage(10**9, 10**9 - 4096, 4096))
+    with pytest.raises(ValueError, match=r"cannot finalise .*run.h5: 0.0 MB free on its disk, \d+\.\d MB needed; "
+                                         r"the records are kept in .*run.partial"):
+        store.finalize()
+    monkeypatch.setattr(store_module.shutil, "disk_usage", real)
+
+    def enospc(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(store_module, "_copy_rows", enospc)
+    with pytest.raises(ValueError, match=r"cannot finalise .*: No space left on device; the records are kept"):
+        store.finalize()
+    assert not list(tmp_path.glob(".run*.h5")) and not (tmp_path / "run.h5").exists()
+    monkeypatch.undo()
+    assert open_records(store.finalize())["frame"].tolist() == [0, 1, 2]
+
+
 def test_reopening_resumes_the_same_run_and_refuses_another(tmp_path):
     path = tmp_path / "run"
     _open(path).put(0, _record(0))

@@ -381,10 +381,31 @@ class RecordStore:
             )
         self._check_duplicates(files, idx, file, pos, np.flatnonzero(counts > 1))
 
+        _check_space(self.path, sum(n * f.row_bytes for f in self.schema.fields))
         ident = dict(self.identity, n_records=n)
         meta = json.loads((self.partial / "meta.json").read_text())
         run = {"created": meta["created"], "finalised": utc_now(), "finalised_on": socket.gethostname(), "sessions": sessions(self.partial)}
         text = h5py.string_dtype()
+        try:
+            self._write_final(h5py, text, files, idx, file, pos, n, ident, run, compression)
+        except (OSError, RuntimeError) as e:
+            # the disk filled (HDF5 says so as a RuntimeError, errno 28) or the folder went away
+            # while writing: the temporary file is removed, the partial store is intact
+            if isinstance(e, RuntimeError) and "errno 28" not in str(e) and "No space" not in str(e):
+                raise
+            why = getattr(e, "strerror", None) or str(e)
+            raise ValueError(f"cannot finalise {self.path}: {why}; the records are kept in {self.partial}: "
+                             "free space (or fix the folder) and run again to finalise") from None
+        self._finalised = True
+        if not keep_partial:
+            # renamed first, so a kill during removal never leaves a half-deleted store under its name
+            trash = self.partial.with_name(f".{self.partial.name}.removing-{secrets.token_hex(4)}")
+            os.replace(self.partial, trash)
+            shutil.rmtree(trash, ignore_errors=True)
+        return self.path
+
+    def _write_final(self, h5py, text, files, idx, file, pos, n, ident, run, compression) -> None:
+        """Write the final file under a temporary name, fsync it, rename it into place."""
         with atomic_path(self.path) as tmp:
             with h5py.File(tmp, "w", rdcc_nbytes=8 << 20) as h5:
                 g = h5.create_group("records")
@@ -409,13 +430,6 @@ class RecordStore:
             with open(tmp, "rb+") as fh:  # on disk before the rename makes it the final file
                 os.fsync(fh.fileno())
             os.chmod(tmp, _FILE_MODE)
-        self._finalised = True
-        if not keep_partial:
-            # renamed first, so a kill during removal never leaves a half-deleted store under its name
-            trash = self.partial.with_name(f".{self.partial.name}.removing-{secrets.token_hex(4)}")
-            os.replace(self.partial, trash)
-            shutil.rmtree(trash, ignore_errors=True)
-        return self.path
 
     def _check_duplicates(self, files: _Files, idx: np.ndarray, file: np.ndarray, pos: np.ndarray, dups: np.ndarray) -> None:
         """An index written twice (a retried task, a worker killed after it wrote) is harmless
@@ -433,6 +447,19 @@ class RecordStore:
                             f"record {i} was written twice with different data (field {n!r}; files {p0.name}, {p.name}): "
                             "two writers computed the same index differently; delete the wrong file"
                         )
+
+
+SPACE_MARGIN = 1.1  # free space asked for before finalising: the uncompressed data, plus metadata
+
+
+def _check_space(path: Path, data_bytes: int) -> None:
+    """Refuse to start the final file where the disk cannot hold it (HDF5 does not survive
+    ENOSPC cleanly: a full disk mid-write ended in a segfault). Uncompressed bytes are the bound."""
+    need = int(SPACE_MARGIN * data_bytes) + (1 << 20)
+    free = shutil.disk_usage(path.parent).free
+    if free < need:
+        raise ValueError(f"cannot finalise {path}: {free / 1e6:.1f} MB free on its disk, {need / 1e6:.1f} MB needed; "
+                         f"the records are kept in {_partial_path(path)}: free space and run again to finalise")
 
 
 def _copy_rows(
