@@ -2,7 +2,8 @@
 
 Owns the layout of a membrane's state (displacement, the secant predictor's last two
 equilibria, target centre, saline pressure, the closed chamber's compliance, the tangent the
-next step predicts with, friction's stick anchors), so that a load step can be undone
+next step predicts with, friction's stick anchors, the Newton shift carried between
+regularised steps), so that a load step can be undone
 (:meth:`~jointsim.mechanics.dome.MembraneModel._advance`) and a palpation resumed bit for bit.
 """
 
@@ -35,6 +36,9 @@ def membrane_state(model: Any) -> dict[str, np.ndarray]:
         # friction's stick anchors (SphereFriction.commit): node indices and anchor − centre
         "friction_nodes": model.friction.anchor_nodes.copy() if model.friction is not None else np.zeros(0, np.int64),
         "friction_anchors": model.friction.anchors.copy() if model.friction is not None else np.zeros((0, 3)),
+        # the Levenberg-Marquardt shift a regularised Newton step starts from, carried from one
+        # to the next: without it a resumed run's next regularised step takes another path
+        "newton_shift": np.float64(np.nan if model.system is None else model.system.shift),
     }
 
 def _tangent_u(model: Any) -> np.ndarray:
@@ -56,6 +60,9 @@ def restore_membrane(model: Any, state: dict[str, np.ndarray]) -> None:
     if model.friction is not None:  # a state saved before the anchors: none held
         model.friction.anchor_nodes = np.asarray(state.get("friction_nodes", np.zeros(0)), np.int64).copy()
         model.friction.anchors = np.asarray(state.get("friction_anchors", np.zeros((0, 3))), float).reshape(-1, 3).copy()
+    shift = float(state.get("newton_shift", np.nan))  # a checkpoint of an older version has none
+    if model.system is not None and not np.isnan(shift):
+        model.system.shift = shift
     tangent = np.asarray(state.get("tangent_u", np.zeros((0,) + u.shape)), float)
     if model.TANGENT_PREDICTOR and len(tangent):
         model.system.factor_tangent(model.terms, tangent[0])
