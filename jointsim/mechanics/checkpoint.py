@@ -39,7 +39,17 @@ def membrane_state(model: Any) -> dict[str, np.ndarray]:
         # the Levenberg-Marquardt shift a regularised Newton step starts from, carried from one
         # to the next: without it a resumed run's next regularised step takes another path
         "newton_shift": np.float64(np.nan if model.system is None else model.system.shift),
+        # the target centre and pressure the tangent was factored with (they may have moved since:
+        # a step that converged without a factorisation keeps the factor of the step before)
+        "tangent_context": _tangent_context(model),
     }
+
+def _tangent_context(model: Any) -> np.ndarray:
+    s = model.system
+    if len(_tangent_u(model)) and s.tangent_context is not None:
+        return s.tangent_context.copy()
+    return np.zeros(0)
+
 
 def _tangent_u(model: Any) -> np.ndarray:
     s = model.system
@@ -65,6 +75,13 @@ def restore_membrane(model: Any, state: dict[str, np.ndarray]) -> None:
         model.system.shift = shift
     tangent = np.asarray(state.get("tangent_u", np.zeros((0,) + u.shape)), float)
     if model.TANGENT_PREDICTOR and len(tangent):
+        context = np.asarray(state.get("tangent_context", np.zeros(0)), float)
+        if len(context):  # factor the matrix the tangent was: its centre and pressure, then back
+            centre, pressure = model.contact.centre.copy(), model.pressure.pressure
+            model.contact.centre, model.pressure.pressure = context[:3].copy(), float(context[3])
+            model.system.context = context.copy()
         model.system.factor_tangent(model.terms, tangent[0])
+        if len(context):
+            model.contact.centre, model.pressure.pressure = centre, pressure
     elif model.system is not None:
         model.system.tangent_ready = False

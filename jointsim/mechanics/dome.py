@@ -303,8 +303,13 @@ class MembraneModel:
         self._step_its += res.iterations
         return res
 
+    def factor_context(self) -> np.ndarray:
+        """What the Hessian depends on besides the displacement: target centre and saline pressure."""
+        return np.append(self.contact.centre, self.pressure.pressure)
+
     def _newton(self, guess: np.ndarray, predicted: bool = False, atol: float | None = None):
         atol = self._step_tol if atol is None else atol
+        self.system.context = self.factor_context()
         try:
             return self._tally(minimize_energy(self.terms, guess, self.fixed, rtol=0.0, atol=atol, system=self.system, regularise_first=predicted))
         except NewtonError:
@@ -390,6 +395,7 @@ class MembraneModel:
             # with the penalty's stiffness (~5e4 N/m on the paper's press): the palpation rig's
             # explicit loop then rings by ×2.4 per frame until Newton steps in (a ±0.3 % force
             # oscillation in a hold). Factored once, it serves every later frame of the hold
+            self.system.context = self.factor_context()  # the last equilibrium's: the centre has not moved yet
             self.system.factor_tangent(self.terms, self.u)
             if not self.system.tangent_ready:
                 return None

@@ -154,6 +154,11 @@ class NewtonSystem:
         # last equilibrium's tangent, for predictors: solve_tangent)
         self.tangent_ready = False
         self.tangent_u: np.ndarray | None = None  # the displacement that factor was taken at
+        # what else the caller's Hessian depended on when it is factored (set by the caller before
+        # a solve: the membrane's target centre and saline pressure), recorded with the tangent so
+        # that a checkpoint can factor the same matrix again
+        self.context: np.ndarray | None = None
+        self.tangent_context: np.ndarray | None = None
         self.tangent: PatternSolver = self.full  # the solver holding it
         self._placements: dict[int, tuple[np.ndarray, ...]] = {}  # see _placement
 
@@ -222,6 +227,7 @@ class NewtonSystem:
         a press's first step every full Newton step's Hessian was positive definite (traced
         there, 0.5 mm steps to 3 mm); where it fails, LDLᵀ and its inertia."""
         self.tangent_ready, self.tangent_u = False, u
+        self.tangent_context = None if self.context is None else self.context.copy()
         # SuperLU's one factorisation is both tests (its pivots are the LDLᵀ's): no Cholesky first
         if CHOLESKY_FIRST and self.projected.backend == "pardiso" and self.projected.try_factor(data):
             self.tangent, self.tangent_ready = self.projected, True

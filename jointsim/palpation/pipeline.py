@@ -321,7 +321,7 @@ def program_params(scene: Scene, spec: PalpationSpec | None = None, rig_path: st
 
 
 _MEMBRANE_KEYS = ("u", "hist_centre", "hist_u", "centre", "pressure", "compliance", "tangent_u", "friction_nodes", "friction_anchors",
-                  "newton_shift")
+                  "newton_shift", "tangent_context")
 
 
 def _checkpoint(model: MembraneModel, rig: Rig, force: np.ndarray) -> dict[str, np.ndarray]:
