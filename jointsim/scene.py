@@ -617,7 +617,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
 
     t = _Table(data.get("mesh", {}), "mesh")
     preset = t.raw("preset", "dataset")
-    if preset not in MESH_PRESETS and preset != "custom":
+    if not isinstance(preset, str) or (preset not in MESH_PRESETS and preset != "custom"):
         raise SceneError(f"mesh.preset = {preset!r}: allowed values are {sorted(MESH_PRESETS) + ['custom']}")
     p = MESH_PRESETS.get(preset, MESH_PRESETS["dataset"])
     max_edge = t.number("max_edge_mm", p["max_edge_mm"], 0.05, base_r)
