@@ -37,3 +37,23 @@ def test_a_suction_the_membrane_cannot_hold_names_the_reservoir_pressure(paper_s
     with pytest.raises(NewtonError, match=r"no equilibrium at rest under membrane.reservoir_pressure_pa = -10000 "
                                           r"\(a suction this strong collapses the dome\)"):
         membrane_from_scene(s)
+
+
+def test_an_unknown_flag_gets_the_subcommands_usage_and_version_is_there(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["palpate", "--dome-rim", "32"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.startswith("usage: jointsim palpate") and "jointsim palpate: error: unrecognized arguments: --dome-rim" in err
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.strip() == f"jointsim {__import__('jointsim').__version__}"
+
+
+def test_the_studies_write_under_out_by_default():
+    """Run from the checkout, a study must not overwrite the committed results/."""
+    from jointsim.cli.main import build_parser
+
+    p = build_parser()
+    for command in ("protocol-study", "indent", "stiffness-study", "palpate", "forward"):
+        out = p.parse_args([command]).out
+        assert out.parts[0] == "out", (command, out)

@@ -25,7 +25,7 @@ HELP = "force-indentation sweep of the dome membrane (FEM): CSV, PNG, VTU"
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
-    p.add_argument("--out", type=Path, default=Path("results/indentation"), help="output folder")
+    p.add_argument("--out", type=Path, default=Path("out/indentation"), help="output folder (default out/indentation; the committed results are written with --out results/indentation)")
     add_target_size_arguments(p, "the scene's [target]")
     p.add_argument("--x-mm", type=float, default=0.0, help="contact position x (default 0)")
     p.add_argument("--y-mm", type=float, default=0.0, help="contact position y (default 0)")

@@ -8,6 +8,7 @@ import argparse
 import sys
 import warnings
 
+from .. import __version__
 from ..scene import SceneError
 from . import calibrate, dataset, forward, indent, mesh, palpate, protocol_study, stiffness_study
 from .common import check_output
@@ -24,11 +25,12 @@ def build_parser() -> argparse.ArgumentParser:
             "Scenes are TOML files (see scenes/paper_sensor.toml)."
         ),
     )
+    p.add_argument("--version", action="version", version=f"jointsim {__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, mod in SUBCOMMANDS.items():
         sp = sub.add_parser(name, help=mod.HELP, description=mod.__doc__)
         mod.add_arguments(sp)
-        sp.set_defaults(handler=mod.run, output=getattr(mod, "OUTPUT", None))
+        sp.set_defaults(handler=mod.run, output=getattr(mod, "OUTPUT", None), parser=sp)
     return p
 
 
@@ -55,7 +57,9 @@ def _warning_line(command: str):
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args, extra = build_parser().parse_known_args(argv)
+    if extra:  # refused by the subcommand's parser: its usage, not the top level's
+        args.parser.error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _warning_line(args.command)

@@ -20,7 +20,7 @@ HELP = "the paper's protocol study (Fig. 2 G-H): skip-0..8 metrics and images"
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
-    p.add_argument("--out", type=Path, default=Path("results/protocol_study"), help="output folder")
+    p.add_argument("--out", type=Path, default=Path("out/protocol_study"), help="output folder (default out/protocol_study; the committed results are written with --out results/protocol_study)")
     add_target_size_arguments(p, "7.5 mm")
     p.add_argument("--depth-mm", type=float, default=2.0, help="indentation beyond first contact (default 2)")
     p.add_argument("--snr-db", type=float, help="noise level (default: the scene's)")

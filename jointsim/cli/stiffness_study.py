@@ -21,7 +21,7 @@ HELP = "stiffness identifiability: force sensitivity to target and membrane modu
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
-    p.add_argument("--out", type=Path, default=Path("results/stiffness_sensitivity"), help="output folder")
+    p.add_argument("--out", type=Path, default=Path("out/stiffness_sensitivity"), help="output folder (default out/stiffness_sensitivity; the committed results are written with --out results/stiffness_sensitivity)")
     add_target_size_arguments(p, "7.5 mm")
     p.add_argument("--moduli-kpa", type=float, nargs="+", default=list(DEFAULT_MODULI_KPA), help="soft target moduli (a rigid one is added)")
     p.add_argument("--depths-mm", type=float, nargs="+", default=list(DEFAULT_DEPTHS_MM), help="stage depths past first contact")
