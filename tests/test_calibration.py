@@ -132,6 +132,14 @@ def test_calibration_recovers_the_known_transforms(built):
     # the goals table says, for every goal, a value and whether it is met
     assert {g["goal"] for g in ev["goals"]} >= {"depth", "modulus (relative)"}
     assert all(isinstance(g["met"], bool) for g in ev["goals"])
+    # met, not met, or undetermined where too few held-out samples (or no value) judge it
+    from jointsim.calibration.build import MIN_JUDGED
+
+    for g in ev["goals"]:
+        q = "modulus" if g["goal"].startswith("modulus") else ""
+        few = g["n"] < MIN_JUDGED.get(q, 20) or not np.isfinite(g["value"])
+        assert g["verdict"] == ("undetermined" if few else "met" if g["value"] <= g["limit"] else "not met")
+        assert g["met"] == (g["verdict"] == "met")
 
 
 def test_direct_regression_learns_and_evaluates_as_sklearn_does(stores):

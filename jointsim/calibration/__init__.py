@@ -1,4 +1,4 @@
-"""Calibration maps from labelled datasets (issue 6, parts 3–4): size curves and their inverse
+"""Calibration maps from labelled datasets: size curves and their inverse
 (:mod:`.curves`), the CoM map (:mod:`.com`), the direct voltage regression (:mod:`.regression`),
 stiffness (:mod:`.stiffness`), the versioned map file and its application (:mod:`.maps`), the
 sensor fingerprint a map holds for (:mod:`.fingerprint`), reading a dataset store

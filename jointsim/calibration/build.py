@@ -4,7 +4,7 @@ Owns the order of the work (split by press → size curves → CoM map → direc
 stiffness), the choice of the per-frame size route (the inverse curve with the least
 held-out median error), and the evaluation of every part on the held-out presses alone:
 median and 95th-percentile errors, over all noise levels and in the band around the goal
-SNR, and the issue's goals with whether each is met. The figures and files are
+SNR, and the goals with whether each is met, not met or undetermined. The figures and files are
 :mod:`jointsim.calibration.report`'s.
 """
 
@@ -32,7 +32,7 @@ SENSING_RADIUS = 15e-3  # m: the CoM goal holds for contacts within the electrod
 MIN_JUDGED = {"modulus": 5}  # held-out presses for the modulus, samples for the rest (default 20) below which
 # a goal is not called met
 SIZE_RANGE = (8e-3, 30e-3)  # m: target diameters the size goal covers
-# the issue's goals at 74 dB: (name, quantity, statistic, limit in mm or as a fraction)
+# the goals at 74 dB: (name, quantity, statistic, limit in mm, or as a fraction for the modulus)
 GOALS = (
     ("CoM xy, r <= 15 mm", "com_xy", "median", 0.5),
     ("CoM xy, r <= 15 mm", "com_xy", "p95", 1.0),
@@ -325,9 +325,11 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
             need = MIN_JUDGED.get(q, 20)
             if np.isfinite(v) and n < need:
                 note = f"only {n} held-out {'presses' if q == 'modulus' else 'samples'} (< {need}): too few to judge"
+            met = bool(np.isfinite(v) and v <= limit and n >= need)
+            # too few held-out samples, or no value: neither met nor not met
+            verdict = "met" if met else ("undetermined" if not np.isfinite(v) or n < need else "not met")
             goals.append({"goal": name, "route": via, "statistic": stat, "limit": limit, "value": v, "n": int(n),
-                          "unit": "" if q == "modulus" else "mm",
-                          "met": bool(np.isfinite(v) and v <= limit and n >= need), "note": note})
+                          "unit": "" if q == "modulus" else "mm", "met": met, "verdict": verdict, "note": note})
     ev["goals"] = goals
 
     cmap = CalibrationMap(

@@ -181,13 +181,13 @@ def _markdown(cal: Calibration, command: str, files: list[str]) -> str:
         f"({sp['test_samples']} samples) held out by press (split seed {sp['seed']}, overlap {sp['overlapping_presses']}). "
         "Every error below is on the held-out presses only.", "",
         f"Goal figures use {ev['goal_band']}.", "",
-        "## Goals (issue 6, at 74 dB)", "",
-        "| goal | route | statistic | limit | held-out value | met |", "|---|---|---|---|---|---|",
+        "## Goals (at 74 dB)", "",
+        "| goal | route | statistic | limit | held-out value | verdict |", "|---|---|---|---|---|---|",
     ]
     for g in ev["goals"]:
         unit = g["unit"] or "(fraction)"
         L.append(f"| {g['goal']} | {g.get('route', 'image')} | {g['statistic']} | {g['limit']:g} {unit} | {_fmt(g['value'])} {g['unit']} | "
-                 f"{'yes' if g['met'] else 'no'}{(' — ' + g['note']) if g['note'] else ''} |")
+                 f"{g.get('verdict', 'met' if g['met'] else 'not met')}{(' — ' + g['note']) if g['note'] else ''} |")
     L += ["", "## CoM map (thin-plate spline, reconstructed CoM → x, y, depth)", "",
           "In x and y the spline fits the correction to the reconstructed CoM; each training point's smoothing is "
           "scaled by its noise power.",
@@ -266,7 +266,7 @@ def write_report(out: str | Path, cal: Calibration, command: str) -> list[Path]:
     written.append(write_csv(out / "regression_comparison.csv", {
         "output": list(OUTPUTS), **{f"{k}_{s}": [comp[o][k][s] for o in OUTPUTS] for k in kinds for s in ("n", "median", "p95")}}))
     g = cal.evaluation["goals"]
-    written.append(write_csv(out / "goals.csv", {k: [r.get(k, "image" if k == "route" else None) for r in g] for k in ("goal", "route", "statistic", "limit", "value", "unit", "met")}))
+    written.append(write_csv(out / "goals.csv", {k: [r.get(k, "image" if k == "route" else None) for r in g] for k in ("goal", "route", "statistic", "limit", "value", "unit", "met", "verdict")}))
     written += [_size_figure(out, cal, "depth"), _size_figure(out, cal, "force"), _com_figure(out, grids)]
     if "stiffness" in t:
         written.append(write_csv(out / "stiffness.csv", t["stiffness"]))

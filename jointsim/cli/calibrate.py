@@ -1,10 +1,10 @@
-"""Calibration maps from a labelled dataset (issue 6): size curves (Σσ, image diameter, RMS δV,
+"""Calibration maps from a labelled dataset: size curves (Σσ, image diameter, RMS δV,
 |F| against target diameter at fixed depth and at fixed force, with their inverse), a CoM map
 (reconstructed CoM → x, y, depth; thin-plate spline), a direct regression from the 256
 voltages, and stiffness where the data allows it, each evaluated on held-out presses (split by
 press, seeded). Writes OUT/calibration_map.h5 (versioned, loads without pickle; use it with
 `jointsim palpate --calibration`), CSV tables, PNG curves and error maps, and OUT/report.md
-saying which of the issue's goals are met."""
+saying which goals are met, not met, or undetermined (too few held-out samples)."""
 
 from __future__ import annotations
 
@@ -83,6 +83,6 @@ def run(args: argparse.Namespace) -> int:
     for g in cal.evaluation["goals"]:
         v = g["value"]
         print(f"  goal {g['goal']} ({g['route']}) {g['statistic']} <= {g['limit']:g} {g['unit']}: "
-              f"{'n/a' if v != v else f'{v:.3g}'} -> {'met' if g['met'] else 'NOT met'}{(' (' + g['note'] + ')') if g['note'] else ''}")
+              f"{'n/a' if v != v else f'{v:.3g}'} -> {g['verdict']}{(' (' + g['note'] + ')') if g['note'] else ''}")
     print(f"  wrote {path} and {len(files)} report files to {args.out}")
     return 0
