@@ -142,6 +142,11 @@ def test_cli_forward_writes_its_outputs(test_chamber, tmp_path):
     meta = json.loads((out / "forward.json").read_text())
     assert meta["scene"]["electrodes"]["count"] == 16
     assert (out / "chamber.vtu").is_file() and (out / "forward_eidors.mat").is_file()
+    # the electrodes are tagged on the chamber's nodes: the 16 ring electrodes and the ground
+    import meshio
+
+    tags = meshio.read(out / "chamber.vtu").point_data["electrode"]
+    assert set(np.unique(tags).tolist()) == set(range(-1, 17))
 
 
 def test_solver_failures_reach_the_user_as_one_line(monkeypatch, capsys):

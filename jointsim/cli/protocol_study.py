@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     )
     steps = 2 + len(cfg.positions) + len(cfg.skips) + int(cfg.mesh_floor)
     print(f"jointsim protocol-study: scene {scene.name}, mesh {scene.mesh.preset}, target r = {radius:g} mm, depth {args.depth_mm:g} mm")
-    with tqdm(total=steps, unit="step", disable=None) as bar:
+    with tqdm(total=steps, unit="step", desc="protocol study (mesh, fields, positions, skips, floor)", disable=None) as bar:
         result = run_protocol_study(scene, cfg, progress=bar.update)
     command = "jointsim protocol-study " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["protocol-study"] else "jointsim protocol-study"
     written = write_study(result, args.out, command)

@@ -20,7 +20,8 @@ import numpy as np
 
 from .tetmesh import TetMesh
 
-__all__ = ["ElectrodePatch", "disc_patches", "plane_face_patch", "FACE_EDGES", "p2_face_basis"]
+__all__ = [
+    "electrode_tags", "ElectrodePatch", "disc_patches", "plane_face_patch", "FACE_EDGES", "p2_face_basis"]
 
 N_POLY = 256
 FACE_EDGES = np.array([[0, 1], [1, 2], [2, 0]])  # the edges of a face's P2 basis, after its vertices
@@ -36,6 +37,15 @@ def p2_face_basis(lam: np.ndarray) -> np.ndarray:
     λ_a(2λ_a − 1), then the edges' 4λ_aλ_b in :data:`FACE_EDGES` order. (..., 6)."""
     a, b = FACE_EDGES.T
     return np.concatenate([lam * (2 * lam - 1), 4 * lam[..., a] * lam[..., b]], axis=-1)
+
+
+def electrode_tags(n_nodes: int, patches: list["ElectrodePatch"]) -> np.ndarray:
+    """(n_nodes,) int: the index of the electrode whose patch covers part of a face at each
+    node, −1 elsewhere (for the VTU exports: the electrodes as a point field)."""
+    tags = np.full(n_nodes, -1, np.int32)
+    for i, p in enumerate(patches):
+        tags[np.unique(np.asarray(p.faces)[np.asarray(p.area) > 0])] = i
+    return tags
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,7 @@ from .. import __version__
 from ..io.export import atomic_path, write_npz, write_voxels_vtu, write_vtu
 from ..io.figures import pyplot
 from ..io.records import Records
+from ..mesh.electrodes import electrode_tags
 from ..mesh.tetmesh import TetMesh
 from ..metrics import largest_cluster
 from ..reconstruction.grid import ChamberGrid, VoxelGrid
@@ -66,7 +67,7 @@ class VtuSeries:
         u = frame.state.u[: m.n_nodes]
         write_vtu(self.dir / f"membrane_{i:05d}.vtu", TetMesh(m.nodes + u, m.tets), point_data={"displacement": u})
         ch = frame.chamber.chamber.mesh
-        cell, point = {}, {}
+        cell, point = {}, {"electrode": electrode_tags(ch.n_nodes, frame.chamber.chamber.electrodes)}
         if frame.chamber.path == "morph":
             cell["dsigma"] = inst.grid.C @ frame.image
             point["displacement"] = ch.nodes - inst.reference.mesh.nodes

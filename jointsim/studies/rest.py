@@ -19,6 +19,7 @@ from .. import __version__
 from ..eit.protocol import Protocol
 from ..instrument import Instrument, Reading, stream
 from ..io.export import atomic_path, write_mat, write_npz, write_vtu
+from ..mesh.electrodes import electrode_tags
 from ..scene import Scene
 from ..timing import timed
 
@@ -57,7 +58,8 @@ def write_at_rest(out: str | Path, inst: Instrument, reading: Reading, timings: 
     sigma = np.full(ch.mesh.n_tets, ro.conductivity)
     with timed(t, "write outputs"):
         write_npz(out / "forward.npz", **arrays)
-        write_vtu(out / "chamber.vtu", ch.mesh, {"sigma": sigma}, {"potential_inj": fields.potentials(protocol)})
+        write_vtu(out / "chamber.vtu", ch.mesh, {"sigma": sigma},
+                  {"potential_inj": fields.potentials(protocol), "electrode": electrode_tags(ch.mesh.n_nodes, ch.electrodes)})
         write_mat(out / "forward_eidors.mat", ch.mesh, sigma, reading.voltages_clean, protocol.stim, protocol.meas,
                   ch.electrodes, ro.forward.z, ch.ground)
         meta = {
