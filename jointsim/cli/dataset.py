@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"jointsim dataset: scene {scene.name}, mesh {scene.mesh.preset} P{scene.mesh.element_order}, {args.n} samples "
           f"({-(-args.n // k)} presses x {k} depths), radius {d.radius[0] * 1e3:g}-{d.radius[1] * 1e3:g} mm, "
           f"depth {d.depth[0] * 1e3:g}-{d.depth[1] * 1e3:g} mm, r <= {d.r_max * 1e3:g} mm, {where} -> {args.out}")
-    bar = tqdm(total=args.n, unit="sample", disable=None if args.progress is None else not args.progress, smoothing=0.1)
+    bar = tqdm(total=args.n, unit="sample", desc="dataset", disable=None if args.progress is None else not args.progress, smoothing=0.1)
 
     def start(done: int, todo: int) -> None:
         if done:

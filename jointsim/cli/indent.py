@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
         scene = replace(scene, membrane=replace(scene.membrane, layers=membrane_layers(args.layers, "--layers")))
     out: Path = args.out
     steps = int(round(args.depth_mm / args.step_mm))
-    with tqdm(total=steps, unit="step", disable=None) as bar:
+    with tqdm(total=steps, unit="step", desc="indentation", disable=None) as bar:
         rows = indentation_sweep(scene, radius, (args.x_mm, args.y_mm), args.depth_mm, args.step_mm, out, device=device,
                                  progress=bar.update, announce=lambda s: print(f"jointsim indent: scene {scene.name}, {s}"))
     for r in rows:

@@ -127,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
     diam = ", ".join(f"{2e3 * r:g}" for r in spec.target_radii)
     print(f"jointsim palpate: scene {scene.name}, mesh {scene.mesh.preset} P{scene.mesh.element_order}, {spec.mode} mode, targets {diam} mm, "
           f"{n} frames at {scene.noise.frame_rate_hz:g} Hz -> {out}")
-    with tqdm(total=n, unit="frame", disable=None if args.progress is None else not args.progress) as bar:
+    with tqdm(total=n, unit="frame", desc="palpation", disable=None if args.progress is None else not args.progress) as bar:
         def progress(k, f):
             bar.update(k)
             if f is not None:
