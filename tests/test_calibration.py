@@ -140,6 +140,14 @@ def test_calibration_recovers_the_known_transforms(built):
         few = g["n"] < MIN_JUDGED.get(q, 20) or not np.isfinite(g["value"])
         assert g["verdict"] == ("undetermined" if few else "met" if g["value"] <= g["limit"] else "not met")
         assert g["met"] == (g["verdict"] == "met")
+    # a map that makes the position worse than the raw image CoM says so
+    from jointsim.calibration.build import worse_than_uncalibrated
+
+    assert worse_than_uncalibrated({"xy_r15": {"median": 1.2, "p95": 2.0}, "raw_xy_r15": {"median": 0.8, "p95": 2.5}}) == [
+        "the CoM map makes the in-plane position worse than the uncalibrated image CoM on held-out presses (median 1.2 mm "
+        "against 0.8 mm within r <= 15 mm): use the raw CoM, or the direct regression, for position"]
+    assert worse_than_uncalibrated({"xy_r15": {"median": 0.5, "p95": 1.0}, "raw_xy_r15": {"median": 0.8, "p95": 2.5}}) == []
+    assert isinstance(ev["warnings"], list)
 
 
 def test_direct_regression_learns_and_evaluates_as_sklearn_does(stores):

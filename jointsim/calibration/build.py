@@ -25,7 +25,7 @@ from .maps import VERSION_PACKAGES, CalibrationMap
 from .regression import KINDS, OUTPUTS, fit_regressor, moved_by_symmetry, noisy_features, regression_targets
 from .stiffness import decades, fit_stiffness, force_sensitivity, group_features
 
-__all__ = ["Settings", "Calibration", "calibrate", "err_stats", "METRICS", "GOALS"]
+__all__ = ["Settings", "Calibration", "calibrate", "err_stats", "worse_than_uncalibrated", "METRICS", "GOALS"]
 
 METRICS = {"depth": ("sum_sigma", "diameter", "rms_dv", "force"), "force": ("sum_sigma", "diameter", "rms_dv")}
 SENSING_RADIUS = 15e-3  # m: the CoM goal holds for contacts within the electrode ring
@@ -88,6 +88,20 @@ def err_stats(e: np.ndarray, scale: float = 1e3) -> dict[str, float]:
     if not len(e):
         return {"n": 0, "median": float("nan"), "p95": float("nan")}
     return {"n": int(len(e)), "median": float(np.median(e) * scale), "p95": float(np.percentile(e, 95) * scale)}
+
+
+def worse_than_uncalibrated(com: dict) -> list[str]:
+    """Warnings where the CoM map makes the held-out in-plane position worse than the raw image
+    CoM it corrects (median or P95, within the electrode ring): the map then should not be used
+    for position."""
+    cal, raw = com.get("xy_r15", {}), com.get("raw_xy_r15", {})
+    out = []
+    for stat in ("median", "p95"):
+        a, b = cal.get(stat, float("nan")), raw.get(stat, float("nan"))
+        if np.isfinite(a) and np.isfinite(b) and a > b:
+            out.append(f"the CoM map makes the in-plane position worse than the uncalibrated image CoM on held-out presses "
+                       f"({stat} {a:.3g} mm against {b:.3g} mm within r <= 15 mm): use the raw CoM, or the direct regression, for position")
+    return out
 
 
 @dataclass
@@ -331,6 +345,7 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
             goals.append({"goal": name, "route": via, "statistic": stat, "limit": limit, "value": v, "n": int(n),
                           "unit": "" if q == "modulus" else "mm", "met": met, "verdict": verdict, "note": note})
     ev["goals"] = goals
+    ev["warnings"] = worse_than_uncalibrated(ev["com"])
 
     cmap = CalibrationMap(
         fingerprint=samples.fingerprint, com=com_map, size=curves, size_route=route, regressor=regs[s.regressor],

@@ -181,6 +181,7 @@ def _markdown(cal: Calibration, command: str, files: list[str]) -> str:
         f"({sp['test_samples']} samples) held out by press (split seed {sp['seed']}, overlap {sp['overlapping_presses']}). "
         "Every error below is on the held-out presses only.", "",
         f"Goal figures use {ev['goal_band']}.", "",
+        *([f"**Warning:** {w}." for w in ev.get("warnings", [])] + [""] if ev.get("warnings") else []),
         "## Goals (at 74 dB)", "",
         "| goal | route | statistic | limit | held-out value | verdict |", "|---|---|---|---|---|---|",
     ]

@@ -84,5 +84,7 @@ def run(args: argparse.Namespace) -> int:
         v = g["value"]
         print(f"  goal {g['goal']} ({g['route']}) {g['statistic']} <= {g['limit']:g} {g['unit']}: "
               f"{'n/a' if v != v else f'{v:.3g}'} -> {g['verdict']}{(' (' + g['note'] + ')') if g['note'] else ''}")
+    for w in cal.evaluation.get("warnings", []):
+        print(f"  warning: {w}")
     print(f"  wrote {path} and {len(files)} report files to {args.out}")
     return 0
