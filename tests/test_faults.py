@@ -57,3 +57,11 @@ def test_the_studies_write_under_out_by_default():
     for command in ("protocol-study", "indent", "stiffness-study", "palpate", "forward"):
         out = p.parse_args([command]).out
         assert out.parts[0] == "out", (command, out)
+
+
+def test_indent_refuses_a_contact_off_the_base_naming_the_flags(tmp_path, capsys):
+    out = tmp_path / "i"
+    assert main(["indent", "--x-mm", "25", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--x-mm, --y-mm = 25, 0: the contact must lie within the base radius 20 mm of the axis" in err
+    assert not out.exists()

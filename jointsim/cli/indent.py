@@ -41,10 +41,14 @@ def run(args: argparse.Namespace) -> int:
     from ..studies.indentation import indentation_sweep
 
     scene = scene_from_args(args)
-    device = warp_device(args.device, "--device")
-    radius = target_radius_mm(args, scene.target.radius * 1e3)
+    base = scene.chamber.base_radius * 1e3
+    if not (abs(args.x_mm) < base and abs(args.y_mm) < base and (args.x_mm**2 + args.y_mm**2) ** 0.5 < base):
+        raise ValueError(f"--x-mm, --y-mm = {args.x_mm:g}, {args.y_mm:g}: the contact must lie within the base radius "
+                         f"{base:g} mm of the axis")
     if not args.depth_mm > 0:
         raise ValueError(f"--depth-mm = {args.depth_mm}: must be > 0")
+    device = warp_device(args.device, "--device")
+    radius = target_radius_mm(args, scene.target.radius * 1e3)
     if not 0 < args.step_mm <= args.depth_mm:
         raise ValueError(f"--step-mm = {args.step_mm}: must be in (0, --depth-mm = {args.depth_mm}]")
     if args.dome_rim is not None:
