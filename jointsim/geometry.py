@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from .scene import Scene
+from .scene import Scene, ring_positions
 
 __all__ = ["DomeSurface", "ElectrodeLayout", "spherical_cap", "isotropic_cap", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
 
@@ -52,8 +52,7 @@ def electrode_layout(scene: Scene) -> ElectrodeLayout:
     if e.discs:
         d = np.asarray(e.discs, float)
         return ElectrodeLayout(np.column_stack([d[:, :2], np.zeros(len(d))]), d[:, 2].copy(), ground=len(d) - 1)
-    ang = np.deg2rad(e.first_angle_deg) + 2 * np.pi * np.arange(e.count) / e.count
-    ring = np.column_stack([e.ring_radius * np.cos(ang), e.ring_radius * np.sin(ang), np.zeros(e.count)])
+    ring = np.column_stack([ring_positions(e.count, e.ring_radius, e.first_angle_deg), np.zeros(e.count)])
     centres = np.vstack([ring, np.zeros((1, 3))])
     radii = np.append(np.full(e.count, e.diameter / 2), e.ground_diameter / 2)
     return ElectrodeLayout(centres, radii, ground=e.count)

@@ -130,7 +130,7 @@ class Readout:
             radii = layout.radii
             patches = disc_patches(reference.mesh, centres, radii, quadratic=order == 2)
         else:
-            patches = _own_patches(reference, order)
+            patches = reference.patches(order)
         if contact_impedance is None:
             z = np.append(np.asarray(e.contact_impedance), e.ground_contact_impedance)
         else:
@@ -206,16 +206,8 @@ class Readout:
 
     def _patches_of(self, chamber: ChamberMesh) -> list[ElectrodePatch]:
         if self.centres is None:
-            return _own_patches(chamber, self.forward.order)
+            return chamber.patches(self.forward.order)
         return disc_patches(chamber.mesh, self.centres, self.radii, quadratic=self.forward.order == 2)
-
-
-def _own_patches(chamber: ChamberMesh, order: int) -> list[ElectrodePatch]:
-    """The chamber's electrode patches; for P2, clipped from the same discs with P2 moments
-    (a chamber's patches carry P1 moments only)."""
-    if order == 2 and any(p.q1 is None for p in chamber.electrodes):
-        return disc_patches(chamber.mesh, chamber.layout.centres, chamber.layout.radii, quadratic=True)
-    return list(chamber.electrodes)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -460,8 +460,7 @@ def _layout(t: "_Table", base_r: float) -> tuple[tuple[tuple[float, float, float
         k = int(bad[0])
         raise SceneError(f"{where[k]}: at ({c[k, 0]:g}, {c[k, 1]:g}) mm it reaches {reach[k]:.3g} mm from the axis; every disc must "
                          f"end {EDGE_CLEARANCE_MM:g} mm inside the base radius {base_r:g} mm")
-    gaps = np.hypot(*(c[:, None] - c[None]).transpose(2, 0, 1)) - r[:, None] - r[None]
-    np.fill_diagonal(gaps, np.inf)
+    gaps = _edge_gaps(c, r)
     if gaps.min() < MIN_ELECTRODE_GAP_MM:
         a, b = np.unravel_index(int(np.argmin(gaps)), gaps.shape)
         raise SceneError(f"{where[a]} and {where[b]}: {'overlap' if gaps[a, b] < 0 else 'are closer than'} "
@@ -514,10 +513,23 @@ def _patterns(t: "_Table", n: int, reference: bool) -> tuple[tuple | None, tuple
     return tuple(map(tuple, stim.tolist())), tuple(tuple(map(tuple, m)) for m in meas.tolist())
 
 
-def _layout_room(centres: np.ndarray, radii: np.ndarray, base_r: float) -> tuple[float, float]:
-    """(smallest edge gap between electrodes, least room to the rim beyond EDGE_CLEARANCE_MM), mm."""
+def _edge_gaps(centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """(n, n) edge-to-edge distances between the discs (negative: overlap), inf on the diagonal."""
     gaps = np.hypot(*(centres[:, None] - centres[None]).transpose(2, 0, 1)) - radii[:, None] - radii[None]
     np.fill_diagonal(gaps, np.inf)
+    return gaps
+
+
+def ring_positions(count: int, radius: float, first_angle_deg: float) -> np.ndarray:
+    """(count, 2) centres of the paper's ring: electrode k at first_angle_deg + 360°·k/count,
+    anticlockwise, at ``radius`` (any length unit)."""
+    ang = np.deg2rad(first_angle_deg) + 2 * np.pi * np.arange(count) / count
+    return np.column_stack([radius * np.cos(ang), radius * np.sin(ang)])
+
+
+def _layout_room(centres: np.ndarray, radii: np.ndarray, base_r: float) -> tuple[float, float]:
+    """(smallest edge gap between electrodes, least room to the rim beyond EDGE_CLEARANCE_MM), mm."""
+    gaps = _edge_gaps(centres, radii)
     edge = base_r - EDGE_CLEARANCE_MM - (np.hypot(centres[:, 0], centres[:, 1]) + radii)
     return float(gaps.min()), float(edge.min())
 
@@ -570,8 +582,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     t.finish()
     # room each electrode has: to its nearest neighbour's edge, and to the base's rim (mm)
     centres = (np.array([(d[0], d[1]) for d in discs]) / MM if discs else
-               np.array([(ring * math.cos(math.radians(first) + 2 * math.pi * k / count),
-                          ring * math.sin(math.radians(first) + 2 * math.pi * k / count)) for k in range(count)] + [(0.0, 0.0)]))
+               np.vstack([ring_positions(count, ring, first), [0.0, 0.0]]))
     radii = np.array([d[2] for d in discs]) / MM if discs else np.append(np.full(count, diam / 2), gdiam / 2)
     gap, edge = _layout_room(centres, radii, base_r)
 
@@ -674,15 +685,19 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     )
 
 
+def _sphere_radius(t: "_Table", radius_key: str, diameter_key: str, default: float, base_r: float) -> float:
+    """A sphere's radius (mm) given by ``radius_key`` or ``diameter_key`` (one of them) in
+    ``t``: a radius in (0, 5 base radii], a diameter in (0, 10]; ``default`` radius otherwise."""
+    if radius_key in t.data and diameter_key in t.data:
+        raise SceneError(f"[{t.name}]: give {radius_key} or {diameter_key}, not both")
+    if diameter_key in t.data:
+        return t.number(diameter_key, 2 * default, 0.0, 10 * base_r, lo_open=True) / 2
+    return t.number(radius_key, default, 0.0, 5 * base_r, lo_open=True)
+
+
 def _target(data: dict[str, Any], base_r: float) -> Target:
     t = _Table(data, "target")
-    has_r, has_d = "radius_mm" in data, "diameter_mm" in data
-    if has_r and has_d:
-        raise SceneError("[target]: give radius_mm or diameter_mm, not both")
-    if has_d:
-        radius = t.number("diameter_mm", 15.0, 0.0, 10 * base_r, lo_open=True) / 2
-    else:
-        radius = t.number("radius_mm", 7.5, 0.0, 5 * base_r, lo_open=True)
+    radius = _sphere_radius(t, "radius_mm", "diameter_mm", 7.5, base_r)
     kind = t.choice("kind", "rigid", ("rigid", "soft"))
     friction = t.number("friction", 0.0, 0.0, 2.0)
     # soft targets: Sylgard 184 ~0.6-3 MPa, tumour-like inclusions ~10-100 kPa (DESIGN.md)
@@ -831,13 +846,7 @@ def _reconstruction(data: dict[str, Any], base_r: float, height: float, thick: f
     t = _Table(data, "reconstruction")
     cells = t.integer("cells", 7000, 100, 200_000)
     lam = t.choice("lambda_method", "kfold", LAMBDA_METHODS)
-    has_r, has_d = "lambda_target_radius_mm" in data, "lambda_target_diameter_mm" in data
-    if has_r and has_d:
-        raise SceneError("[reconstruction]: give lambda_target_radius_mm or lambda_target_diameter_mm, not both")
-    if has_d:
-        radius = t.number("lambda_target_diameter_mm", 15.0, 0.0, 10 * base_r, lo_open=True) / 2
-    else:
-        radius = t.number("lambda_target_radius_mm", 7.5, 0.0, 5 * base_r, lo_open=True)
+    radius = _sphere_radius(t, "lambda_target_radius_mm", "lambda_target_diameter_mm", 7.5, base_r)
     depth = t.number("lambda_depth_mm", min(3.0, height / 2), 0.0, height + thick, lo_open=True)
     xy = _number_list("reconstruction.lambda_xy_mm", t.raw("lambda_xy_mm", [0.0, 0.0]), 2, -base_r, base_r, True)
     if math.hypot(*xy) >= base_r:

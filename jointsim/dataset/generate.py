@@ -243,7 +243,7 @@ class DatasetSetup:
         t: dict[str, float] = {}
         with timed(t, "group_setup"):
             model = self._membrane(draw)
-            ref_dome = inst.dome(model.state().u)
+            ref_dome = inst.dome(model.u)
             ref_chamber = inst.deform(ref_dome).chamber
             rng = _rng(self.seed, draw.group, draw.attempt, 1)
             # the group's sensor: its electrodes, saline, contact impedance and noise; its

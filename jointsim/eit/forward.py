@@ -18,7 +18,7 @@ import numpy as np
 
 from ..linalg import SPD_REFINEMENT, PatternSolver, available_backends, factorize
 from ..mesh.chamber import ChamberMesh
-from ..mesh.electrodes import ElectrodePatch, disc_patches
+from ..mesh.electrodes import ElectrodePatch
 from ..mesh.tetmesh import TetMesh
 from ..scene import Scene
 from .fem import CEMAssembler
@@ -103,10 +103,7 @@ class ForwardModel:
         e = scene.electrodes
         z = np.append(np.asarray(e.contact_impedance), e.ground_contact_impedance)
         order = scene.mesh.element_order if order is None else order
-        electrodes = chamber.electrodes
-        if order == 2 and any(e.q1 is None for e in electrodes):
-            # a chamber's patches carry P1 moments only; the P2 ones come from the same discs
-            electrodes = disc_patches(chamber.mesh, chamber.layout.centres, chamber.layout.radii, quadratic=True)
+        electrodes = chamber.patches(order)
         if like is None or like.order != order or like.backend != backend:
             return cls(chamber.mesh, electrodes, chamber.ground, z, backend, order)
         return like.on(chamber.mesh, electrodes, z)

@@ -73,6 +73,13 @@ class ChamberMesh:
     def quality(self) -> MeshQuality:
         return mesh_quality(self.mesh)
 
+    def patches(self, order: int) -> list[ElectrodePatch]:
+        """The electrode patches for elements of ``order``: the chamber's own (P1 moments), or
+        for P2 clipped again from the same discs with P2 moments."""
+        if order == 2 and any(p.q1 is None for p in self.electrodes):
+            return disc_patches(self.mesh, self.layout.centres, self.layout.radii, quadratic=True)
+        return list(self.electrodes)
+
 
 def cache_dir() -> Path:
     """Mesh cache folder: $JOINTSIM_CACHE, else ~/.cache/jointsim/meshes."""
