@@ -98,6 +98,21 @@ class SphereContact:
         moves by ``dc`` with the nodes held (the energy depends on x − c only)."""
         return _moved_nodes_response(self.evaluate(u, True)[2], self.nodes, dc)
 
+    def parameter_gradients(self, u: np.ndarray) -> np.ndarray:
+        """∂g/∂(c_x, c_y, c_z, R) (3n, 4): how the contact's gradient (the nodal forces, with
+        the nodes held) changes with the sphere's centre and radius. The energy depends on
+        x − c, so ∂g/∂c = −H·(c's move on every node) with the exact Hessian; and
+        g_n = −k w (R − r_n) n̂_n on the nodes inside, so ∂g_n/∂R = −k w n̂_n."""
+        out = np.zeros((self._n, 4))
+        H = self.evaluate(u, True, exact=True)[2]
+        for a in range(3):
+            out[:, a] = -_moved_nodes_response(H, self.nodes, np.eye(3)[a])
+        d, r, pen = self._gap(u)
+        act = pen > 0
+        idx = (3 * self.nodes[act, None] + np.arange(3)).ravel()
+        out[idx, 3] = -((self.stiffness * self.weights[act] / r[act])[:, None] * d[act]).ravel()
+        return out
+
     def force(self, u: np.ndarray) -> np.ndarray:
         """Total force (3,) N that the body exerts on the sphere."""
         d, r, pen = self._gap(u)

@@ -109,6 +109,17 @@ def membrane_material(membrane) -> Material:
     return Material.neo_hookean(membrane.shear_modulus, bulk_ratio=membrane.bulk_ratio)
 
 
+class _ExactContact:
+    """A contact term whose Hessian is exact (its curvature uncapped): the tangent a derivative
+    of the equilibrium needs, where Newton's capped one is an approximation."""
+
+    def __init__(self, contact):
+        self.contact = contact
+
+    def evaluate(self, u: np.ndarray, hessian: bool):
+        return self.contact.evaluate(u, hessian, exact=True)
+
+
 class MembraneModel:
     """The membrane of a dome with its loads; call :meth:`press` for target poses in order
     (each solve warm-starts from the previous one). ``element`` "wedge15" (the default) or
@@ -139,6 +150,9 @@ class MembraneModel:
         # 1e-6·μ·t², a millionth of the force that strains a membrane-thick cube by one
         self.force_tol = force_tol if force_tol is not None else 1e-6 * material.mu * thickness**2
         self._step_tol = self.force_tol  # the current step's (see FORCE_RTOL)
+        # the step's tolerance relative to the contact force (FORCE_RTOL); 0 solves every step to
+        # force_tol, as derivatives by differences of equilibria need (jointsim.design)
+        self.force_rtol = FORCE_RTOL
         self.body = body = membrane_body(dome, thickness, layers, element, isoparametric)
         self.loads = loads = membrane_terms(body, material, pressure=pressure, target_radius=target_radius, penalty=penalty,
                                             friction=friction, volumetric=volumetric, device=device)
@@ -284,7 +298,7 @@ class MembraneModel:
         if self.friction is not None:
             self.friction.lag(u_start, old_centre)
         guess = self._tangent_guess(old_centre, centre) if self.TANGENT_PREDICTOR else None
-        self._step_tol = max(self.force_tol, FORCE_RTOL * float(np.linalg.norm(self.contact.force(self.u))))
+        self._step_tol = max(self.force_tol, self.force_rtol * float(np.linalg.norm(self.contact.force(self.u))))
         self.contact.centre = centre
         self._step_its = 0  # over the step's Newton solves: friction passes, pressure updates (_tally)
         self._moved = bool(np.any(centre != old_centre))
@@ -341,6 +355,41 @@ class MembraneModel:
             if V != V_prev:
                 self.compliance = max((V - V_prev) / (self.pressure.pressure - p_prev), 1e-300)
         raise NewtonError(f"closed chamber: volume {V * 1e9:.6g} mm³ after {max_iter} pressure updates, sealed {self.V0 * 1e9:.6g} mm³")
+
+    def equilibrate(self, pressure: float | None = None) -> MembraneState:
+        """Equilibrium where the target stands with the saline at ``pressure`` Pa (default: as
+        it is), to ``force_tol``: a load changed in place (a reservoir head raised) without a
+        target move. Committed to the model."""
+        if pressure is not None:
+            self.pressure.pressure = float(pressure)
+        self._step_tol = self.force_tol
+        self._step_its = 0
+        res = self._newton(self.u)
+        self.u = res.u
+        self.history = []  # the predictors' equilibria were under the old load
+        return self.state(res.iterations, res.residual)
+
+    def equilibrium_derivative(self, dg: np.ndarray) -> np.ndarray:
+        """du/dθ (n, 3, k) of the equilibrium the model stands at, for loads that change with
+        parameters θ by ``dg`` = ∂g/∂θ (3n, k) (the energy gradient's derivative, the nodes
+        held): by the implicit function theorem g(u(θ), θ) = 0 gives du/dθ = −H⁻¹ ∂g/∂θ on the
+        free components, H the exact Hessian (the contact's curvature uncapped); 0 on the fixed
+        ones. One factorisation. Raises NewtonError where H is not positive definite (no
+        stable equilibrium to differentiate). Frictionless, open chamber only: friction's
+        stick and a closed chamber's volume constraint are not differentiated."""
+        if self.friction is not None or self.closed:
+            raise ValueError("equilibrium_derivative: only a frictionless membrane in an open chamber")
+        dg = np.asarray(dg, float).reshape(self.u.size, -1)
+        exact = _ExactContact(self.contact)
+        terms = [exact if t is self.contact else t for t in self.terms]
+        self.system.context = self.factor_context()
+        self.system.factor_tangent(terms, self.u)
+        if not self.system.tangent_ready:
+            raise NewtonError("equilibrium_derivative: the Hessian is not positive definite at this equilibrium")
+        free = ~self.fixed.ravel()
+        du = np.zeros_like(dg)
+        du[free] = self.system.solve_tangent(-dg[free])
+        return du.reshape(self.u.shape + (dg.shape[1],))
 
     def press_to_force(self, xy: np.ndarray, force: float, rtol: float = 1e-3, max_iter: int = 30) -> MembraneState:
         """Force control: lower the target at ``xy`` until the contact force along z equals

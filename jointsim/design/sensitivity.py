@@ -1,0 +1,243 @@
+"""What a press's measurements depend on: their derivatives with respect to the target's and the
+sensor's parameters, through the coupled model (membrane → chamber → CEM forward).
+
+A rigid sphere of radius R comes down at ``xy`` onto the inflated membrane and is pressed to
+depths d_k past first contact. The measured data are the reference frame (the untouched sensor)
+and the frames of the press; their parameters θ = (x, y, d, R) of the target and the nuisances
+η of the sensor:
+
+- mechanical, by the implicit function theorem: at an equilibrium g(u; θ) = 0, so
+  du/dθ = −H⁻¹ ∂g/∂θ with H the exact Hessian (one factorisation per frame, one back-solve per
+  parameter: :meth:`~jointsim.mechanics.dome.MembraneModel.equilibrium_derivative`), for the
+  sphere's centre (c_x, c_y, c_z), its radius and the reservoir head (ln p). The voltages depend
+  on u alone (membrane → inner surface → chamber **morph** → forward), so ∂V/∂θ is the central
+  difference of V along du/dθ, the membrane moved by ``probe`` at most: the morph keeps the
+  tetrahedra, so the difference carries no mesh noise.
+- depth past first contact: the centre's height is z = z_c(x, y, R, p) − d, with z_c the height
+  at which the sphere touches the untouched membrane. On the smooth outer surface z = f(x, y)
+  touched at s, ∂z_c/∂x = f_x(s), ∂z_c/∂y = f_y(s), ∂z_c/∂R = √(1 + |∇f|²) and
+  ∂z_c/∂ln p = (∂u(s)/∂ln p · n)/n_z (the envelope theorem); f is a quadratic fitted to the outer
+  surface's nodes about s, not the faceted surface, whose touching node jumps as the sphere
+  moves sideways. Hence ∂V/∂x|_d = ∂V/∂c_x + ∂V/∂c_z f_x, and so on.
+- the membrane's modulus (ln μ): with every modulus scaled by s and the contact penalty with
+  it (its default, 100·3μ/h), the energy is s × that of the unscaled membrane under p/s, so
+  ∂V/∂ln μ = −∂V/∂ln p exactly for a membrane moulded as a cap (tests/test_design.py checks it
+  against a membrane built with scaled moduli). A membrane moulded flat is inflated to the dome's
+  height whatever its modulus, so there neither the modulus nor the head (the inflation sets
+  it) changes a depth-controlled press: both columns are zero.
+- electrical, by the adjoint on the solved lead fields (:mod:`jointsim.eit.parameters`):
+  the saline's conductivity (ln σ), each electrode's contact impedance (ln z_l, the ground's
+  included) and its centre in the base plane (x_l, y_l).
+
+A frame's noise is the instrument's: white, ``noise_std`` per channel per frame
+(:attr:`~jointsim.instrument.Readout.noise_std`, the scene's SNR re the mean standing |V|).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..eit.parameters import conductivity_sensitivity, contact_impedance_sensitivity, electrode_position_sensitivity, moved_discs
+from ..instrument import Instrument
+from ..mechanics.dome import MembraneModel
+
+__all__ = ["TARGET", "PressSensitivity", "parameter_names", "press_sensitivity", "electrode_moves", "surface_slope"]
+
+TARGET = ("x", "y", "depth", "radius")  # the target's parameters, m
+
+
+def parameter_names(n_electrodes: int) -> tuple[str, ...]:
+    """The parameters' names, in the Jacobians' column order: the target's (:data:`TARGET`),
+    then ln_pressure, ln_modulus, ln_conductivity, ln_z0…, then x0, y0, x1, … of the electrodes
+    (in the layout's order, the ground included)."""
+    n = n_electrodes
+    return (TARGET + ("ln_pressure", "ln_modulus", "ln_conductivity") + tuple(f"ln_z{l}" for l in range(n))
+            + tuple(f"{a}{l}" for l in range(n) for a in "xy"))
+
+
+@dataclass(frozen=True, eq=False)
+class PressSensitivity:
+    """The derivatives of one press (target ``radius`` m at centre ``xy`` (2,) m, pressed to
+    ``depths`` (K,) m): the frames' clean ``voltages`` (K, n_meas) V and the reference's
+    ``v_ref`` (n_meas,); ``jacobian`` (K, n_meas, P) ∂V_k/∂p and ``jacobian_ref`` (n_meas, P)
+    in :func:`parameter_names` order (per m for lengths, per unit of ln for the others); the
+    contact's centre of pressure ``contact`` (K, 3) m and its in-plane derivative
+    ``contact_jacobian`` (K, 2, 4) with respect to :data:`TARGET`; ``force`` (K,) N (the
+    normal force); ``noise_std`` V of one frame; ``names`` the parameters."""
+
+    xy: np.ndarray
+    radius: float
+    depths: np.ndarray
+    voltages: np.ndarray
+    v_ref: np.ndarray
+    jacobian: np.ndarray
+    jacobian_ref: np.ndarray
+    contact: np.ndarray
+    contact_jacobian: np.ndarray
+    force: np.ndarray
+    noise_std: float
+    names: tuple[str, ...]
+
+
+def electrode_moves(inst: Instrument, step: float) -> list:
+    """The instrument's electrode discs moved by ±``step`` (:func:`~jointsim.eit.parameters.moved_discs`),
+    clipped once on the reference chamber's base (which no morph moves)."""
+    layout = inst.reference.layout
+    return moved_discs(inst.reference.mesh, layout.centres, layout.radii, step, inst.readout.forward.order == 2)
+
+
+def _electrical(inst: Instrument, chamber, moves: list, step: float) -> np.ndarray:
+    """∂V/∂(ln σ, ln z…, x0, y0, …) (n_meas, 1 + n_el + 2 n_el) of ``chamber`` (a morph)."""
+    ro = inst.readout
+    fields = ro.fields(chamber, True)
+    dz = contact_impedance_sensitivity(fields, ro.protocol)
+    dsigma = conductivity_sensitivity(fields, ro.protocol, dz)
+    dc = electrode_position_sensitivity(fields, ro.protocol, moves, step)
+    return np.column_stack([dsigma, dz.T, dc.reshape(-1, ro.n_meas).T])
+
+
+# the outer surface's nodes fitted by a quadratic about the touching node: within this radius
+# (m) of it, at least FIT_NODES of them (a 64-rim membrane has ~2 mm edges: ~20 nodes in 3 mm)
+FIT_RADIUS = 3e-3
+FIT_NODES = 12
+
+
+def surface_slope(points: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """∇f (2,) at ``at`` (2,) of the quadratic z = f(x, y) fitted (least squares) to ``points``
+    (k, 3) around it: the smooth surface's slope where the faceted one has none."""
+    d = points[:, :2] - at
+    A = np.column_stack([np.ones(len(d)), d, d[:, 0] ** 2, d[:, 0] * d[:, 1], d[:, 1] ** 2])
+    coef = np.linalg.lstsq(A, points[:, 2], rcond=None)[0]
+    return coef[1:3]
+
+
+def _touch(model: MembraneModel, xy: np.ndarray) -> tuple[int, np.ndarray]:
+    """(index into the contact's nodes of the node the sphere coming down at ``xy`` touches,
+    ∇f (2,) of the outer surface there)."""
+    c = model.contact
+    x = c.X[c.nodes] + model.u[c.nodes]
+    R = c.radius
+    d2 = ((x[:, :2] - xy) ** 2).sum(axis=1)
+    near = d2 < R * R
+    if not near.any():
+        model.first_contact_height(xy)  # raises UnreachablePose with its message
+    height = np.where(near, x[:, 2] + np.sqrt(np.maximum(R * R - d2, 0.0)), -np.inf)
+    n = int(np.argmax(height))
+    dist = np.linalg.norm(x[:, :2] - x[n, :2], axis=1)
+    radius = max(FIT_RADIUS, float(np.sort(dist)[min(FIT_NODES, len(dist) - 1)]))
+    return n, surface_slope(x[dist <= radius], x[n, :2])
+
+
+def press_sensitivity(inst: Instrument, model: MembraneModel, xy: np.ndarray, depths: np.ndarray, *,
+                      moves: list | None = None, electrode_step: float = 1e-5, probe: float = 10e-6,
+                      step_max: float = 0.5e-3) -> PressSensitivity:
+    """The derivatives of the press of ``model``'s target (its radius) at ``xy`` (2,) m through
+    ``depths`` (K,) m, increasing, past first contact, measured by ``inst`` (the instrument of
+    the same scene, nominal readout). ``model`` must be untouched (as built, or reset to its
+    untouched state); it is left so. ``moves``: :func:`electrode_moves` at ``electrode_step``
+    (computed here when not given); ``probe``: the largest membrane displacement m of a
+    central difference along du/dθ; ``step_max``: the press's load steps, m. Raises what the
+    mechanics raise for a press they cannot take
+    (:class:`~jointsim.mechanics.dome.UnreachablePose`, NewtonError)."""
+    xy = np.asarray(xy, float)
+    depths = np.asarray(depths, float)
+    if moves is None:
+        moves = electrode_moves(inst, electrode_step)
+    ro = inst.readout
+    n_el = len(inst.reference.layout.radii)
+    names = parameter_names(n_el)
+    P, K, M = len(names), len(depths), ro.n_meas
+    cap = inst.scene.membrane.moulding == "cap"
+    untouched = model.get_state()
+    R = model.contact.radius
+    contact = model.contact
+
+    def voltages(u: np.ndarray) -> np.ndarray:
+        chamber, _ = inst.morpher.morph(inst.dome(u))
+        return ro.voltages(chamber, True)
+
+    def along(u: np.ndarray, du: np.ndarray) -> np.ndarray:
+        """∂V/∂θ for du/dθ: the central difference of V along du."""
+        eps = probe / max(float(np.abs(du).max()), 1e-300)
+        return (voltages(u + eps * du) - voltages(u - eps * du)) / (2 * eps)
+
+    def head_load(u: np.ndarray) -> np.ndarray:
+        # E_p = −p V(u): ∂g/∂ln p = p ∂g/∂p = −p ∇V
+        return -model.pressure.pressure * model.pressure.volume_gradient(u).ravel()
+
+    rtol = model.force_rtol
+    model.force_rtol = 0.0
+    J = np.zeros((K, M, P))
+    J_ref = np.zeros((M, P))
+    try:
+        # the untouched sensor: its head derivative, where the sphere touches, and the surface there
+        node, slope = _touch(model, xy)
+        nz = 1.0 / math.sqrt(1.0 + slope @ slope)
+        normal = np.array([-slope[0], -slope[1], 1.0]) * nz
+        dzc = {"x": slope[0], "y": slope[1], "radius": 1.0 / nz, "ln_pressure": 0.0}
+        if cap:
+            du0 = model.equilibrium_derivative(head_load(model.u)[:, None])[..., 0]
+            J_ref[:, 4] = along(model.u, du0)
+            dzc["ln_pressure"] = float(du0[contact.nodes[node]] @ normal) / nz
+            model.set_state(untouched)
+        J_ref[:, 6:] = _electrical(inst, inst.reference, moves, electrode_step)
+        z0 = model.first_contact_height(xy)
+        V = np.zeros((K, M))
+        cop = np.zeros((K, 3))
+        cj = np.zeros((K, 2, len(TARGET)))
+        force = np.zeros(K)
+        done = 0.0
+        for k, d in enumerate(depths):
+            n = max(1, math.ceil((d - done) / step_max - 1e-9))
+            for s in range(1, n + 1):
+                st = model.press(np.array([xy[0], xy[1], z0 - (done + (d - done) * s / n)]))
+            done = d
+            u = model.u.copy()
+            chamber, _ = inst.morpher.morph(inst.dome(u))
+            V[k] = ro.voltages(chamber, True)
+            J[k, :, 6:] = _electrical(inst, chamber, moves, electrode_step)
+            cop[k], force[k] = st.contact_centre, -st.force[2]
+            # the equilibrium's derivatives: the sphere's centre and radius (at fixed z), the head
+            dg = np.column_stack([contact.parameter_gradients(u), head_load(u)])
+            du = model.equilibrium_derivative(dg)
+            dv = [along(u, du[..., j]) for j in range(5)]  # c_x, c_y, c_z, R, ln p
+            # the contact's centre of pressure moves with u and with the sphere (centre, radius)
+            dcop = [_cop_along(contact, u, du[..., j], j) for j in range(4)]
+            # z = z_c − d: at fixed depth the centre follows the first contact
+            J[k, :, 0] = dv[0] + dzc["x"] * dv[2]
+            J[k, :, 1] = dv[1] + dzc["y"] * dv[2]
+            J[k, :, 2] = -dv[2]
+            J[k, :, 3] = dv[3] + dzc["radius"] * dv[2]
+            if cap:
+                J[k, :, 4] = dv[4] + dzc["ln_pressure"] * dv[2]
+            cj[k, :, 0] = dcop[0] + dzc["x"] * dcop[2]
+            cj[k, :, 1] = dcop[1] + dzc["y"] * dcop[2]
+            cj[k, :, 2] = -dcop[2]
+            cj[k, :, 3] = dcop[3] + dzc["radius"] * dcop[2]
+        if cap:  # the moduli scaled by s act as the head divided by s (module docstring)
+            J[:, :, 5] = -J[:, :, 4]
+            J_ref[:, 5] = -J_ref[:, 4]
+    finally:
+        model.force_rtol = rtol
+        model.set_state(untouched)
+    return PressSensitivity(xy, R, depths, V, ro.v_ref, J, J_ref, cop, cj, force, ro.noise_std, names)
+
+
+def _cop_along(contact, u: np.ndarray, du: np.ndarray, j: int, probe: float = 1e-6) -> np.ndarray:
+    """∂(centre of pressure xy)/∂θ_j for θ = (c_x, c_y, c_z, R): u moved along ``du`` and the
+    sphere with it, by central differences."""
+    centre, radius = contact.centre.copy(), contact.radius
+    eps = probe / max(float(np.abs(du).max()), 1.0)
+    out = []
+    try:
+        for sgn in (1, -1):
+            dc = np.zeros(4)
+            dc[j] = sgn * eps
+            contact.centre, contact.radius = centre + dc[:3], radius + dc[3]
+            out.append(contact.centre_of_pressure(u + sgn * eps * du)[:2])
+    finally:
+        contact.centre, contact.radius = centre, radius
+    return (out[0] - out[1]) / (2 * eps)
