@@ -358,7 +358,7 @@ def test_a_worker_that_dies_ends_the_run_with_one_clear_error():
     ChildProcessError that says nothing stored is lost and to rerun, not a BrokenProcessPool
     traceback (the command line reports an OSError in one line). Run in its own interpreter, so
     that the pool's dying worker cannot touch the test process."""
-    code = "import os\nfrom jointsim.dataset.runner import _run_local\n_run_local([(3,)], 1, lambda r: None, task=os._exit)\n"
+    code = "import os\nfrom jointsim._cores import run_local\nrun_local([(3,)], 1, lambda r: None, task=os._exit)\n"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert r.returncode == 1, r.stderr[-2000:]
     assert "ChildProcessError: a worker process died" in r.stderr and "run the same command again to resume" in r.stderr

@@ -35,25 +35,19 @@ Workers
 
 from __future__ import annotations
 
-import concurrent.futures as cf
-import ctypes
 import hashlib
 import json
-import multiprocessing
 import os
-import signal
-import sys
 import tempfile
 import threading
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from .._cores import available_cores
+from .._cores import THREAD_VARIABLES, available_cores, run_local
 from ..geometry import electrode_layout
 from ..io.records import open_records
 from ..io.store import RecordStore, attach, exclusive, open_store
@@ -67,7 +61,6 @@ from .generate import DatasetSetup, dataset_params, dataset_schema, group_indice
 __all__ = ["DatasetRun", "generate_dataset", "default_workers", "THREAD_VARIABLES"]
 
 MAX_SEED = 2**63 - 1  # as [noise] seed: the store records it as a signed 64-bit integer
-THREAD_VARIABLES = ("MKL_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 CHAMBER_FILE = "chamber.npz"
 SCHEDULER_TIMEOUT_S = 15.0
 
@@ -170,57 +163,6 @@ def _run_group(path: str, scene: Scene, seed: int, group: int, n_samples: int) -
             store.put(i, rec)
         store.flush()
         return group, len(idx), rejected, time.perf_counter() - t0
-
-
-@contextmanager
-def _single_threaded_children() -> Iterator[None]:
-    """Processes started inside the block run their numerical libraries on one thread."""
-    old = {k: os.environ.get(k) for k in THREAD_VARIABLES}
-    os.environ.update({k: "1" for k in THREAD_VARIABLES})
-    try:
-        yield
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
-def _die_with(parent: int) -> None:
-    """A local worker's initializer: the kernel kills this process when its parent dies (Linux's
-    PR_SET_PDEATHSIG), so a driver killed with SIGKILL leaves no worker writing on; where that
-    is not available, a worker outlives a killed driver by the group it is computing at most
-    (the pool's own management then ends it)."""
-    if sys.platform.startswith("linux"):
-        try:
-            ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1: PR_SET_PDEATHSIG
-        except (OSError, AttributeError):
-            pass
-    if os.getppid() != parent:  # the parent died before the line above ran
-        os._exit(1)
-
-
-def _run_local(tasks: Sequence[tuple], workers: int, tick: Callable[[tuple], None], task: Callable = _run_group) -> None:
-    ctx = multiprocessing.get_context("spawn")
-    with _single_threaded_children():
-        pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_die_with, initargs=(os.getpid(),))
-        futures: list[cf.Future] = []
-        try:
-            futures = [pool.submit(task, *t) for t in tasks]
-            for f in cf.as_completed(futures):
-                tick(f.result())
-        except cf.BrokenExecutor:  # a worker process died (BrokenProcessPool)
-            for f in futures:
-                f.cancel()
-            raise ChildProcessError("a worker process died (killed, or out of memory) while computing a press; nothing "
-                                    "stored is lost: run the same command again to resume") from None
-        except BaseException:
-            for f in futures:
-                f.cancel()
-            raise
-        finally:
-            pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _run_dask(tasks: Sequence[tuple], scheduler: Any, tick: Callable[[tuple], None]) -> None:
@@ -342,7 +284,7 @@ def generate_dataset(
             if scheduler is not None:
                 _run_dask(tasks, scheduler, tick)
             else:
-                _run_local(tasks, min(workers, len(tasks)), tick)
+                run_local(tasks, min(workers, len(tasks)), tick, _run_group)
         store.finalize(compression="gzip")
         rec = open_records(final, fields=["group"], verify=False)
         return DatasetRun(final, n_samples, rec.data_sha256, len(tasks), n_samples - len(missing), len(rejected),

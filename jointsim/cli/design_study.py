@@ -1,0 +1,106 @@
+"""What each sensor design can measure: Cramér–Rao bounds on a target's position, depth and size
+through the coupled model (membrane, chamber, CEM), over a grid of presses, for one or more
+scenes side by side. Each design's derivatives are stored (resumable) in OUT/<scene>/
+sensitivities.h5; its bounds table and maps beside them; OUT/summary.md compares the designs."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+from .._cores import available_cores
+from ..scene import SNR_RANGE_DB
+from .common import DEFAULT_SCENE
+
+OUTPUT = "folder"
+HELP = "what each design can measure: Cramer-Rao bounds of position, depth and size, designs side by side"
+
+
+def _floats(flag: str, text: str, lo: float, hi: float) -> tuple[float, ...]:
+    try:
+        vals = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        vals = ()
+    if not vals or any(not lo < v <= hi for v in vals):
+        raise ValueError(f"{flag} = {text!r}: comma-separated numbers in ({lo:g}, {hi:g}]")
+    return vals
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scenes", nargs="*", default=[str(DEFAULT_SCENE)], metavar="SCENE",
+                   help="scene TOML files, one per design (default: the paper's sensor)")
+    p.add_argument("--mesh", dest="mesh_preset", help="override every scene's mesh preset")
+    p.add_argument("--out", type=Path, default=Path("out/design_study"), help="output folder (default out/design_study)")
+    p.add_argument("--diameters-mm", default="8,15,30", help="target sphere diameters (default 8,15,30: the paper's)")
+    p.add_argument("--depths-mm", default="1,2,3", help="depths past first contact, increasing (default 1,2,3)")
+    p.add_argument("--spacing-mm", type=float, default=3.0, help="spacing of the polar grid of target centres (default 3)")
+    p.add_argument("--r-max-mm", type=float, help="grid radius (default: the outermost electrode's centre)")
+    p.add_argument("--hold-frames", type=int, default=1, help="frames averaged per press (default 1)")
+    p.add_argument("--snr-db", default="", help="further SNRs to tabulate, comma-separated (the scene's is always)")
+    p.add_argument("--workers", type=int, help="local worker processes (default: one per core)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..design.report import GOALS, required_snr, write_comparison, write_design
+    from ..design.study import Plan, plan_presses, run_design
+    from ..scene import MESH_PRESETS, load_scene, scene_toml
+
+    if args.mesh_preset is not None and args.mesh_preset not in MESH_PRESETS:
+        raise ValueError(f"--mesh = {args.mesh_preset!r}: one of {sorted(MESH_PRESETS)}")
+    diameters = _floats("--diameters-mm", args.diameters_mm, 0.0, 200.0)
+    depths = _floats("--depths-mm", args.depths_mm, 0.0, 100.0)
+    if list(depths) != sorted(set(depths)):
+        raise ValueError(f"--depths-mm = {args.depths_mm!r}: increasing")
+    if not args.spacing_mm > 0:
+        raise ValueError(f"--spacing-mm = {args.spacing_mm:g}: must be > 0")
+    if args.hold_frames < 1:
+        raise ValueError(f"--hold-frames = {args.hold_frames}: must be >= 1")
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers = {args.workers}: must be >= 1")
+    lo, hi = SNR_RANGE_DB
+    snrs = _floats("--snr-db", args.snr_db, lo - 1e-9, hi) if args.snr_db.strip() else ()
+    plan = Plan(tuple(d * 1e-3 for d in diameters), tuple(d * 1e-3 for d in depths), args.spacing_mm * 1e-3,
+                None if args.r_max_mm is None else args.r_max_mm * 1e-3, hold_frames=args.hold_frames)
+    scenes = []
+    for path in args.scenes:
+        scene = load_scene(path)
+        if args.mesh_preset:
+            scene = scene.with_mesh_preset(args.mesh_preset)
+        if depths[-1] * 1e-3 >= 0.9 * scene.chamber.dome_height:
+            raise ValueError(f"--depths-mm: {depths[-1]:g} mm is past 0.9 x the dome height of {path}")
+        scenes.append((path, scene))
+    names = [s.name for _, s in scenes]
+    if len(set(names)) != len(names):
+        raise ValueError(f"scenes: two designs share a name ({names}); give each scene its own name")
+    command = "jointsim design-study " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["design-study"] else "jointsim design-study"
+    rows, needed, timings = [], {}, {}
+    for path, scene in scenes:
+        n = len(plan_presses(scene, plan))
+        print(f"jointsim design-study: {scene.name} (mesh {scene.mesh.preset}), {n} presses x {len(depths)} depths")
+        todo = [0]
+
+        def started(done: int, left: int, bar=None) -> None:
+            todo[0] = left
+        t0 = time.perf_counter()
+        with tqdm(total=n, unit="press", desc=f"design study {scene.name}", disable=None) as bar:
+            h5 = run_design(scene, plan, args.out / scene.name / "sensitivities.h5", workers=args.workers,
+                            scene_toml=scene_toml(path), progress=bar.update,
+                            on_start=lambda done, left: (bar.update(done), started(done, left)))
+        workers = min(args.workers or available_cores(), max(todo[0], 1))
+        timings[scene.name] = (time.perf_counter() - t0, todo[0], workers)
+        written, summaries = write_design(args.out / scene.name, scene, h5, snrs)
+        what = ["all"] + [f"{d:g} mm" for d in diameters] + ["all"] * (len(summaries) - 1 - len(diameters))
+        rows += list(zip(summaries, what))
+        needed[scene.name] = {q: required_snr(h5, scene, q, g) for q, g in GOALS.items()}
+        s = summaries[0]
+        print(f"  at {s.snr_db:g} dB, efficient median error (nuisances marginalised): position "
+              f"{s.median['position_marginal'] * 1e3:.3g} mm, depth {s.median['depth_marginal'] * 1e3:.3g} mm, "
+              f"diameter {s.median['diameter_marginal'] * 1e3:.3g} mm ({s.reached}/{s.presses} reached)")
+    written = write_comparison(args.out, rows, needed, command, timings)
+    print(f"  wrote {written[0]}")
+    return 0

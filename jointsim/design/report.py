@@ -1,0 +1,182 @@
+"""The design study's outputs: per design its bounds table (CSV) and maps (PNG), and the table
+that sets the designs side by side against the goals (Markdown, CSV)."""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..geometry import electrode_layout
+from ..scene import Scene
+from .study import DesignBounds, design_bounds
+
+__all__ = ["GOALS", "Summary", "summarise", "required_snr", "write_design", "write_comparison"]
+
+# the calibration goals at 74.2 dB (jointsim.calibration.build.GOALS), median |error| in m
+GOALS = {"position": 0.5e-3, "depth": 0.5e-3, "diameter": 1.0e-3}
+QUANTITIES = ("position", "depth", "diameter")
+
+
+@dataclass(frozen=True)
+class Summary:
+    """One design at one SNR: per quantity and bound kind, the median over the reached presses
+    and depths of the efficient estimator's median error, and the 95th percentile of the RMS
+    bound, m; ``reached`` of ``presses`` (press × depth) the mechanics could take."""
+
+    design: str
+    snr_db: float
+    median: dict[str, float]
+    p95: dict[str, float]
+    reached: int
+    presses: int
+
+
+def summarise(name: str, b: DesignBounds, diameter: float | None = None) -> Summary:
+    """The :class:`Summary` of ``b`` (over one ``diameter`` m only, where given)."""
+    c = b.columns
+    sel = np.isfinite(c["position_rms_marginal"])
+    if diameter is not None:
+        sel &= np.isclose(c["diameter"], diameter)
+    total = int(np.isclose(c["diameter"], diameter).sum()) if diameter is not None else len(b)
+    med, p95 = {}, {}
+    for kind in ("known", "marginal"):
+        for q in QUANTITIES:
+            m, r = c[f"{q}_median_{kind}"][sel], c[f"{q}_rms_{kind}"][sel]
+            med[f"{q}_{kind}"] = float(np.median(m)) if m.size else math.nan
+            p95[f"{q}_{kind}"] = float(np.percentile(r, 95)) if r.size else math.nan
+    return Summary(name, b.snr_db, med, p95, int(sel.sum()), total)
+
+
+def required_snr(path: Path, scene: Scene, quantity: str, goal: float, kind: str = "marginal",
+                 snrs: np.ndarray = np.arange(40.0, 142.0, 2.0)) -> float:
+    """The lowest SNR dB of ``snrs`` at which the efficient estimator's median error of
+    ``quantity`` (median over the presses) is within ``goal`` m; inf when none is."""
+    for snr in snrs:
+        s = summarise("", design_bounds(path, scene, snr_db=float(snr)))
+        if s.median[f"{quantity}_{kind}"] <= goal:
+            return float(snr)
+    return math.inf
+
+
+def _write_csv(path: Path, columns: dict[str, np.ndarray], mm: bool = True) -> Path:
+    keys = list(columns)
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow([k + ("_mm" if mm and k not in ("snr_db",) else "") for k in keys])
+        for row in zip(*(columns[k] for k in keys)):
+            w.writerow([f"{v * 1e3:.6g}" if mm else f"{v:.6g}" for v in row])
+    return path
+
+
+def _map_figure(path: Path, scene: Scene, b: DesignBounds, column: str, title: str) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+    from matplotlib.patches import Circle
+
+    c = b.columns
+    diameters = np.unique(c["diameter"])
+    depths = np.unique(c["depth"])
+    depth = depths[len(depths) // 2]
+    layout = electrode_layout(scene)
+    vals = c[column][np.isfinite(c[column])] * 1e3
+    norm = LogNorm(vmin=max(vals.min(), 1e-4), vmax=max(vals.max(), 1e-3)) if vals.size else None
+    fig, axes = plt.subplots(1, len(diameters), figsize=(4.0 * len(diameters) + 1.0, 4.0), squeeze=False)
+    sc = None
+    base = scene.chamber.base_radius * 1e3
+    for ax, d in zip(axes[0], diameters):
+        sel = np.isclose(c["diameter"], d) & np.isclose(c["depth"], depth)
+        ok = sel & np.isfinite(c[column])
+        ax.add_patch(Circle((0, 0), base, fill=False, color="0.6"))
+        for (x, y, _), r in zip(layout.centres, layout.radii):
+            ax.add_patch(Circle((x * 1e3, y * 1e3), r * 1e3, fill=False, color="0.3", zorder=1))
+        sc = ax.scatter(c["contact_x"][ok] * 1e3, c["contact_y"][ok] * 1e3, c=c[column][ok] * 1e3, norm=norm, cmap="viridis", s=40, zorder=2)
+        miss = sel & ~np.isfinite(c[column])
+        ax.plot(c["x"][miss] * 1e3, c["y"][miss] * 1e3, "x", color="r", ms=4, label="not reached (target centre)")
+        ax.set_aspect("equal")
+        ax.set_xlim(-base * 1.05, base * 1.05)
+        ax.set_ylim(-base * 1.05, base * 1.05)
+        ax.set_xlabel("contact x (mm)")
+        ax.set_ylabel("contact y (mm)")
+        ax.set_title(f"{d * 1e3:g} mm sphere, {depth * 1e3:g} mm deep")
+        if miss.any():
+            ax.legend(loc="lower left", fontsize=7)
+    if sc is not None:
+        fig.colorbar(sc, ax=axes[0].tolist(), label="mm")
+    fig.suptitle(f"{scene.name}: {title} at {b.snr_db:g} dB", fontsize=10)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_design(out: Path, scene: Scene, path: Path, snrs: tuple[float, ...] = ()) -> tuple[list[Path], list[Summary]]:
+    """Write ``out``/bounds.csv and the maps of the study at ``path``; its summaries at the
+    scene's SNR and at ``snrs``."""
+    out.mkdir(parents=True, exist_ok=True)
+    b = design_bounds(path, scene)
+    written = [_write_csv(out / "bounds.csv", b.columns)]
+    written.append(_map_figure(out / "position_bound.png", scene, b, "position_median_marginal",
+                               "contact position: an efficient estimator's median error"))
+    written.append(_map_figure(out / "diameter_bound.png", scene, b, "diameter_median_marginal",
+                               "diameter: an efficient estimator's median error"))
+    summaries = [summarise(scene.name, b)]
+    summaries += [summarise(scene.name, b, d) for d in np.unique(b.columns["diameter"])]
+    for snr in snrs:
+        if not math.isclose(snr, scene.noise.snr_db):
+            summaries.append(summarise(scene.name, design_bounds(path, scene, snr_db=snr)))
+    return written, summaries
+
+
+def _mm(v: float) -> str:
+    return "inf" if not math.isfinite(v) else f"{v * 1e3:.3g}"
+
+
+def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[str, dict[str, float]], command: str,
+                     timings: dict[str, tuple[float, int, int]] | None = None) -> list[Path]:
+    """``out``/summary.md and summary.csv: the designs side by side (``rows``: a summary and
+    what it covers), the SNR each needs to meet each goal (``needed``[design][quantity]), and
+    what each design's run cost (``timings``[design]: wall s, presses computed, workers)."""
+    lines = ["# Design study: what each design can measure", "", f"Command: `{command}`", "",
+             "Cramér–Rao bounds through the coupled model (jointsim.design): an unbiased estimator's error cannot be "
+             "smaller. *median*: over the presses (target centres × depths) of an efficient estimator's median |error|; "
+             "*P95*: the 95th percentile of the RMS bound. *known*: the sensor's nuisances known exactly; *marginal*: "
+             "marginalised over the scene's [dataset] randomisation as a prior. Position is the contact point's, "
+             "size the sphere's diameter. All in mm.", "",
+             "| design | SNR dB | presses | reached | position median (known / marg.) | position P95 marg. | depth median (known / marg.) "
+             "| depth P95 marg. | diameter median (known / marg.) | diameter P95 marg. |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    csv_rows = []
+    for s, what in rows:
+        lines.append(f"| {s.design} ({what}) | {s.snr_db:g} | {s.presses} | {s.reached} | "
+                     f"{_mm(s.median['position_known'])} / {_mm(s.median['position_marginal'])} | {_mm(s.p95['position_marginal'])} | "
+                     f"{_mm(s.median['depth_known'])} / {_mm(s.median['depth_marginal'])} | {_mm(s.p95['depth_marginal'])} | "
+                     f"{_mm(s.median['diameter_known'])} / {_mm(s.median['diameter_marginal'])} | {_mm(s.p95['diameter_marginal'])} |")
+        csv_rows.append({"design": s.design, "covers": what, "snr_db": s.snr_db, "presses": s.presses, "reached": s.reached,
+                         **{f"median_{k}_mm": v * 1e3 for k, v in s.median.items()},
+                         **{f"p95_{k}_mm": v * 1e3 for k, v in s.p95.items()}})
+    lines += ["", "## The SNR each design needs for the goals (an efficient estimator, nuisances marginalised)", "",
+              "Goals (jointsim calibrate's, medians): " + ", ".join(f"{q} {g * 1e3:g} mm" for q, g in GOALS.items()) + ".", "",
+              "| design | " + " | ".join(QUANTITIES) + " |", "|---|" + "---|" * len(QUANTITIES)]
+    for design, req in needed.items():
+        lines.append(f"| {design} | " + " | ".join("never (≤ 140 dB)" if not math.isfinite(req[q]) else f"{req[q]:g} dB"
+                                                    for q in QUANTITIES) + " |")
+    if timings:
+        lines += ["", "## Cost", "", "| design | presses computed | workers | wall s | s per press and worker |", "|---|---|---|---|---|"]
+        for design, (wall, n, w) in timings.items():
+            lines.append(f"| {design} | {n} | {w} | {wall:.0f} | {wall * w / n:.1f} |" if n else f"| {design} | 0 (stored) | {w} | {wall:.0f} | |")
+    out.mkdir(parents=True, exist_ok=True)
+    md = out / "summary.md"
+    md.write_text("\n".join(lines) + "\n")
+    path = out / "summary.csv"
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(csv_rows[0]))
+        w.writeheader()
+        for r in csv_rows:
+            w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    return [md, path]

@@ -1,0 +1,289 @@
+"""The design study: for each sensor design (a scene), the Cramér–Rao bounds of a target's
+position, depth and size over a grid of presses, and the tables that compare designs.
+
+A design's presses are spheres of the plan's diameters coming down at the target centres of a
+polar grid out to ``r_max`` (default: the outermost electrode's centre), each pressed through
+the plan's depths past first contact. Each press's derivatives (:mod:`.sensitivity`) are
+reduced to its information matrices (JᵀJ per depth and of the reference, at unit noise) and
+stored, one record per press, in a resumable store (:mod:`jointsim.io.store`), so the bounds
+at any SNR, frame count or prior are recomputed from the file without the simulator. A press
+the mechanics cannot take (a large sphere far out) is stored as not ``reached``.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from .._cores import available_cores, run_local
+from ..geometry import electrode_layout
+from ..instrument import Instrument
+from ..io.records import open_records
+from ..io.schema import Field, Schema
+from ..io.store import attach, exclusive, open_store
+from ..mechanics.build import membrane_from_scene
+from ..mechanics.dome import UnreachablePose
+from ..mechanics.newton import NewtonError
+from ..mesh.morph import MeshInversionError
+from ..scene import Scene
+from .bounds import Bounds, fisher, median_error, nuisance_prior, press_bounds
+from .sensitivity import TARGET, electrode_moves, parameter_names, press_sensitivity
+
+__all__ = ["Plan", "press_grid", "plan_presses", "design_schema", "run_design", "DesignBounds", "design_bounds"]
+
+SCHEMA_NAME, SCHEMA_VERSION = "design_sensitivity", 1
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The presses of a design study: sphere ``diameters`` m, ``depths`` m past first contact,
+    target centres on a polar grid of ``spacing`` m out to ``r_max`` m (None: the outermost
+    electrode's centre); the noise model: ``reference_frames`` averaged into the reference,
+    ``hold_frames`` into a press's frame."""
+
+    diameters: tuple[float, ...] = (8e-3, 15e-3, 30e-3)
+    depths: tuple[float, ...] = (1e-3, 2e-3, 3e-3)
+    spacing: float = 3e-3
+    r_max: float | None = None
+    reference_frames: int = 50
+    hold_frames: int = 1
+
+    def __post_init__(self) -> None:
+        if not self.diameters or any(not d > 0 for d in self.diameters):
+            raise ValueError(f"diameters = {self.diameters}: one or more, each > 0 m")
+        if not self.depths or any(not d > 0 for d in self.depths) or list(self.depths) != sorted(set(self.depths)):
+            raise ValueError(f"depths = {self.depths}: one or more, increasing, each > 0 m")
+        if not self.spacing > 0:
+            raise ValueError(f"spacing = {self.spacing}: must be > 0 m")
+        if self.reference_frames < 1 or self.hold_frames < 1:
+            raise ValueError("reference_frames, hold_frames: must be >= 1")
+
+    def outer_radius(self, scene: Scene) -> float:
+        if self.r_max is not None:
+            return self.r_max
+        return float(np.hypot(*electrode_layout(scene).centres[:, :2].T).max())
+
+
+def press_grid(r_max: float, spacing: float) -> np.ndarray:
+    """Target centres (n, 2) m: the axis and rings i·``spacing`` ≤ ``r_max``, each with
+    round(2π r / spacing) points (about ``spacing`` apart), alternate rings turned by half a pitch."""
+    pts = [np.zeros((1, 2))]
+    for i in range(1, int(math.floor(r_max / spacing + 1e-9)) + 1):
+        r = i * spacing
+        n = max(6, round(2 * math.pi * r / spacing))
+        a = 2 * math.pi * (np.arange(n) + 0.5 * (i % 2)) / n
+        pts.append(r * np.column_stack([np.cos(a), np.sin(a)]))
+    return np.vstack(pts)
+
+
+def plan_presses(scene: Scene, plan: Plan) -> list[tuple[float, np.ndarray]]:
+    """The study's presses in record order: (diameter m, centre xy (2,) m), diameter-major."""
+    xy = press_grid(plan.outer_radius(scene), plan.spacing)
+    return [(float(d), p) for d in plan.diameters for p in xy]
+
+
+def design_schema(n_meas: int, n_params: int, n_depths: int) -> Schema:
+    K, P = n_depths, n_params
+    t = len(TARGET)
+    return Schema((
+        Field("diameter", (), "float64", "m", "the sphere's diameter"),
+        Field("xy", (2,), "float64", "m", "the target's centre in the plane"),
+        Field("reached", (), "int8", "", "1: pressed through every depth; 0: the mechanics could not take it (the rest NaN)"),
+        Field("depths", (K,), "float64", "m", "past first contact"),
+        Field("contact", (K, 3), "float64", "m", "the contact's centre of pressure"),
+        Field("contact_jacobian", (K, 2, t), "float64", "m/m", "d(contact xy)/d(x, y, depth, radius)"),
+        Field("force", (K,), "float64", "N", "normal contact force"),
+        Field("noise_std", (), "float64", "V", "one frame's noise per channel (the scene's SNR)"),
+        Field("voltages", (K, n_meas), "float64", "V", "the press's clean voltages"),
+        Field("target_jacobian", (K, n_meas, t), "float64", "V/m", "dV/d(x, y, depth, radius)"),
+        Field("info", (K, P, P), "float64", "V²/unit²", "JᵀJ of each depth's frame (Fisher information × σ²)"),
+        Field("info_ref", (P, P), "float64", "V²/unit²", "JᵀJ of the reference frame"),
+        Field("seconds", (), "float64", "s", "wall time of the press", volatile=True),
+    ), name=SCHEMA_NAME, version=SCHEMA_VERSION)
+
+
+def _nan_record(schema: Schema, diameter: float, xy: np.ndarray, seconds: float) -> dict[str, Any]:
+    rec = {f.name: np.full(f.shape, np.nan) for f in schema.fields}
+    rec.update(diameter=diameter, xy=xy, reached=0, seconds=seconds)
+    return rec
+
+
+# --------------------------------------------------------------------------------------------
+# Worker side
+
+_WORKER: dict[str, Any] = {}
+_LOCK = threading.Lock()
+
+
+def _setup(scene: Scene) -> tuple[Instrument, list]:
+    key = scene.digest()
+    if _WORKER.get("key") != key:
+        if "inst" in _WORKER:
+            _WORKER.pop("inst").free()
+        inst = Instrument.build(scene, imaging=False)
+        _WORKER.clear()
+        _WORKER.update(key=key, inst=inst, moves=electrode_moves(inst, 1e-5), models={})
+    return _WORKER["inst"], _WORKER["moves"]
+
+
+def _model(scene: Scene, inst: Instrument, radius: float):
+    models = _WORKER["models"]
+    if radius not in models:
+        models.clear()  # one diameter at a time: the presses come diameter-major
+        rigid = replace(scene, target=replace(scene.target, kind="rigid"))
+        models[radius] = membrane_from_scene(rigid, target_radius=radius, inflate_from=inst.inflated_u)
+    return models[radius]
+
+
+def _run_press(path: str, scene: Scene, plan: Plan, index: int, diameter: float, xy: np.ndarray) -> tuple[int, bool, str]:
+    """Compute and store press ``index``; (index, reached, why not)."""
+    with _LOCK:
+        t0 = time.perf_counter()
+        inst, moves = _setup(scene)
+        model = _model(scene, inst, diameter / 2)
+        store = attach(path)
+        why = ""
+        try:
+            ps = press_sensitivity(inst, model, xy, np.asarray(plan.depths), moves=moves)
+            J = ps.jacobian
+            rec = {"diameter": diameter, "xy": xy, "reached": 1, "depths": ps.depths, "contact": ps.contact,
+                   "contact_jacobian": ps.contact_jacobian, "force": ps.force, "noise_std": ps.noise_std,
+                   "voltages": ps.voltages, "target_jacobian": J[:, :, : len(TARGET)],
+                   "info": np.einsum("kmp,kmq->kpq", J, J), "info_ref": ps.jacobian_ref.T @ ps.jacobian_ref,
+                   "seconds": time.perf_counter() - t0}
+        except (UnreachablePose, NewtonError, MeshInversionError) as e:
+            why = f"{type(e).__name__}: {e}"
+            # the model may stand anywhere after a failed press: start the next one afresh
+            _WORKER["models"].clear()
+            rec = _nan_record(store.schema, diameter, xy, time.perf_counter() - t0)
+        store.put(index, rec)
+        store.flush()
+        return index, bool(rec["reached"]), why
+
+
+# --------------------------------------------------------------------------------------------
+# The driver
+
+
+def run_design(scene: Scene, plan: Plan, out: str | Path, *, workers: int | None = None, scene_toml: str | None = None,
+               progress: Callable[[int], None] | None = None, on_start: Callable[[int, int], None] | None = None) -> Path:
+    """Compute (or resume, or find finished) the sensitivities of ``scene`` over ``plan``'s
+    presses into ``out`` (.h5); the file's path. ``workers``: local processes (default: one per core)."""
+    presses = plan_presses(scene, plan)
+    n = len(presses)
+    inst_meas = _n_meas(scene)
+    names = parameter_names(len(electrode_layout(scene).radii))
+    schema = design_schema(inst_meas, len(names), len(plan.depths))
+    params = {"plan": {k: list(v) if isinstance(v, tuple) else v for k, v in plan.__dict__.items()},
+              "parameters": list(names), "scene_digest": scene.digest()}
+    final = Path(out)
+    final = final if final.suffix in (".h5", ".hdf5") else final.with_suffix(".h5")
+    with exclusive(final):
+        if final.exists():
+            rec = open_records(final, fields=["reached"], verify=True)
+            if rec.provenance["params"] != params or len(rec) != n:
+                raise ValueError(f"{final} holds a design study with other settings; remove it or write to another path")
+            return final
+        store = open_store(final, schema, scene_toml=scene_toml or f'name = "{scene.name}"\n', seed=None, n_records=n,
+                           params=params)
+        missing = store.missing()
+        if on_start is not None:
+            on_start(n - len(missing), len(missing))
+        tasks = [(str(final), scene, plan, int(i), presses[i][0], presses[i][1]) for i in missing]
+        if tasks:
+            w = min(available_cores() if workers is None else workers, len(tasks))
+            tick = (lambda r: progress(1)) if progress is not None else (lambda r: None)
+            if w == 1:
+                for t in tasks:
+                    tick(_run_press(*t))
+            else:
+                run_local(tasks, w, tick, _run_press)
+        store.finalize(compression="gzip")
+    return final
+
+
+def _n_meas(scene: Scene) -> int:
+    from ..eit.protocol import scene_protocol
+
+    return scene_protocol(scene).n_meas
+
+
+# --------------------------------------------------------------------------------------------
+# Bounds from a finished study
+
+
+@dataclass(frozen=True)
+class DesignBounds:
+    """The bounds of every press and depth of a study, as a table: one row per (press, depth)
+    with ``diameter``, ``x``, ``y`` (the target's centre), ``contact_x``, ``contact_y``,
+    ``contact_r``, ``depth`` (m) and, per bound kind (known, marginal), the RMS and the
+    efficient estimator's median error m of ``position`` (the contact point), ``depth``,
+    ``diameter``; NaN where the press was not reached."""
+
+    columns: dict[str, np.ndarray]
+    snr_db: float
+
+    def __len__(self) -> int:
+        return len(self.columns["depth"])
+
+
+def design_bounds(path: str | Path, scene: Scene, *, snr_db: float | None = None, reference_frames: int | None = None,
+                  hold_frames: int | None = None) -> DesignBounds:
+    """The :class:`DesignBounds` of the finished study at ``path`` for ``scene``'s nuisance
+    priors, at ``snr_db`` (default the scene's: the stored noise is rescaled) and frame counts
+    (default the plan's)."""
+    rec = open_records(path)
+    prov = rec.provenance["params"]
+    names = tuple(prov["parameters"])
+    plan = prov["plan"]
+    R = plan["reference_frames"] if reference_frames is None else reference_frames
+    H = plan["hold_frames"] if hold_frames is None else hold_frames
+    snr = scene.noise.snr_db if snr_db is None else float(snr_db)
+    scale = 10 ** ((scene.noise.snr_db - snr) / 20)
+    prior = nuisance_prior(scene, names)
+    cols: dict[str, list] = {k: [] for k in ("diameter", "x", "y", "contact_x", "contact_y", "contact_r", "depth")}
+    for kind in ("known", "marginal"):
+        for q in ("position", "depth", "diameter"):
+            cols[f"{q}_rms_{kind}"] = []
+            cols[f"{q}_median_{kind}"] = []
+    for i in range(len(rec)):
+        reached = bool(rec["reached"][i])
+        for k in range(len(plan["depths"])):
+            cols["diameter"].append(rec["diameter"][i])
+            cols["x"].append(rec["xy"][i][0])
+            cols["y"].append(rec["xy"][i][1])
+            c = rec["contact"][i][k]
+            cols["contact_x"].append(c[0])
+            cols["contact_y"].append(c[1])
+            cols["contact_r"].append(math.hypot(c[0], c[1]))
+            cols["depth"].append(plan["depths"][k])
+            b = None
+            if reached:
+                sigma = rec["noise_std"][i] * scale
+                F = fisher(rec["info_ref"][i], rec["info"][i][k], sigma, reference_frames=R, hold_frames=H)
+                b = press_bounds(F, prior, rec["contact_jacobian"][i][k])
+            for kind in ("known", "marginal"):
+                _bound_columns(cols, b, kind)
+    return DesignBounds({k: np.asarray(v, float) for k, v in cols.items()}, snr)
+
+
+def _bound_columns(cols: dict[str, list], b: Bounds | None, kind: str) -> None:
+    if b is None:
+        for q in ("position", "depth", "diameter"):
+            cols[f"{q}_rms_{kind}"].append(math.nan)
+            cols[f"{q}_median_{kind}"].append(math.nan)
+        return
+    C, Cc = getattr(b, kind), getattr(b, f"contact_{kind}")
+    rms = b.rms(kind)
+    cols[f"position_rms_{kind}"].append(rms["contact"])
+    cols[f"position_median_{kind}"].append(median_error(Cc))
+    cols[f"depth_rms_{kind}"].append(rms["depth"])
+    cols[f"depth_median_{kind}"].append(median_error(C[2:3, 2:3]))
+    cols[f"diameter_rms_{kind}"].append(rms["diameter"])
+    cols[f"diameter_median_{kind}"].append(2 * median_error(C[3:4, 3:4]))
