@@ -118,7 +118,10 @@ def press_bounds(F: np.ndarray, prior_std: np.ndarray, contact_jacobian: np.ndar
     known = _inverse(F[:t, :t])
     marginal = _inverse(F[np.ix_(keep, keep)] + np.diag(prior))[:t, :t]
     G = np.asarray(contact_jacobian, float)
-    return Bounds(known, marginal, G @ known @ G.T, G @ marginal @ G.T)
+
+    def through(C: np.ndarray) -> np.ndarray:  # an unbounded parameter leaves the contact unbounded
+        return G @ C @ G.T if np.isfinite(C).all() else np.full((2, 2), np.inf)
+    return Bounds(known, marginal, through(known), through(marginal))
 
 
 _NORMALS = np.random.default_rng(12345).standard_normal((2, 20001))  # fixed: the median below is deterministic

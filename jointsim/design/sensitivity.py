@@ -16,7 +16,7 @@ and the frames of the press; their parameters θ = (x, y, d, R) of the target an
 - depth past first contact: the centre's height is z = z_c(x, y, R, p) − d, with z_c the height
   at which the sphere touches the untouched membrane. On the smooth outer surface z = f(x, y)
   touched at s, ∂z_c/∂x = f_x(s), ∂z_c/∂y = f_y(s), ∂z_c/∂R = √(1 + |∇f|²) and
-  ∂z_c/∂ln p = (∂u(s)/∂ln p · n)/n_z (the envelope theorem); f is a quadratic fitted to the outer
+  ∂z_c/∂ln p = (∂u(s)/∂ln p · n)/n_z (the envelope theorem); f is a cubic fitted to the outer
   surface's nodes about s, not the faceted surface, whose touching node jumps as the sphere
   moves sideways. Hence ∂V/∂x|_d = ∂V/∂c_x + ∂V/∂c_z f_x, and so on.
 - the membrane's modulus (ln μ): with every modulus scaled by s and the contact penalty with
@@ -99,17 +99,20 @@ def _electrical(inst: Instrument, chamber, moves: list, step: float) -> np.ndarr
     return np.column_stack([dsigma, dz.T, dc.reshape(-1, ro.n_meas).T])
 
 
-# the outer surface's nodes fitted by a quadratic about the touching node: within this radius
-# (m) of it, at least FIT_NODES of them (a 64-rim membrane has ~2 mm edges: ~20 nodes in 3 mm)
+# the outer surface's nodes fitted by a cubic about the touching node: within this radius (m)
+# of it, at least FIT_NODES of them (a 64-rim membrane's P2 surface has nodes ~1 mm apart: ~30
+# within 3 mm). A quadratic erred by 1 % of the slope 7 mm off the axis of a 25 mm sphere, the
+# cubic by 0.03 % (tests/test_design.py)
 FIT_RADIUS = 3e-3
-FIT_NODES = 12
+FIT_NODES = 20
 
 
 def surface_slope(points: np.ndarray, at: np.ndarray) -> np.ndarray:
-    """∇f (2,) at ``at`` (2,) of the quadratic z = f(x, y) fitted (least squares) to ``points``
-    (k, 3) around it: the smooth surface's slope where the faceted one has none."""
+    """∇f (2,) at ``at`` (2,) of the cubic z = f(x, y) fitted (least squares) to ``points``
+    (k ≥ 10, 3) around it: the smooth surface's slope where the faceted one has none."""
     d = points[:, :2] - at
-    A = np.column_stack([np.ones(len(d)), d, d[:, 0] ** 2, d[:, 0] * d[:, 1], d[:, 1] ** 2])
+    x, y = d[:, 0], d[:, 1]
+    A = np.column_stack([np.ones(len(d)), x, y, x * x, x * y, y * y, x**3, x * x * y, x * y * y, y**3])
     coef = np.linalg.lstsq(A, points[:, 2], rcond=None)[0]
     return coef[1:3]
 
