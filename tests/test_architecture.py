@@ -21,7 +21,7 @@ LAYERS: list[set[str]] = [
     {"eit", "mechanics", "reconstruction"},  # the physics and the inverse
     {"metrics", "io"},
     {"instrument"},  # the sensor's measurement chain and the one frame step
-    {"palpation", "studies", "dataset"},  # the jobs: each measures through the instrument, none through another
+    {"palpation", "studies", "dataset", "design"},  # the jobs: each measures through the instrument, none through another
     {"calibration"},
     {"cli"},
     {"__main__"},
