@@ -208,6 +208,27 @@ def test_design_study_command_end_to_end(tmp_path, capsys):
     assert len(rows) == 2 and rows[0].startswith("diameter_mm,x_mm")
     capsys.readouterr()
     assert main(args) == 0
-    assert "0 (stored)" in (out / "summary.md").read_text()
+    assert "| 0, 1, " in (out / "summary.md").read_text()  # nothing computed the second time
     assert main(["design-study", "--depths-mm", "2,1", "--out", str(tmp_path / "x")]) == 2
     assert "--depths-mm = '2,1': increasing" in capsys.readouterr().err
+
+
+def test_the_calibration_goals_are_read_in_either_csv_form(tmp_path):
+    """goals.csv quotes a goal holding a comma now (calibration.report.write_csv); files written
+    before did not, and are read too."""
+    from jointsim.calibration.report import write_csv
+    from jointsim.design.report import estimator_rows
+
+    cols = {"goal": ["CoM xy, r <= 15 mm", "depth", "size (diameter 8-30 mm)"], "route": ["direct (mlp)"] * 3,
+            "statistic": ["median"] * 3, "limit": [0.5, 0.5, 1.0], "value": [0.316, 0.045, 4.87], "unit": ["mm"] * 3}
+    new = write_csv(tmp_path / "goals.csv", cols)
+    assert '"CoM xy, r <= 15 mm"' in new.read_text()
+    old = tmp_path / "old.csv"
+    old.write_text("goal,route,statistic,limit,value,unit\nCoM xy, r <= 15 mm,direct (mlp),median,0.5,0.316,mm\n"
+                   "depth,direct (mlp),median,0.5,0.045,mm\nsize (diameter 8-30 mm),direct (mlp),median,1,4.87,mm\n")
+    want = {"direct (mlp)": {"position": 0.316e-3, "depth": 0.045e-3, "diameter": 4.87e-3}}
+    for f in (new, old):
+        got = estimator_rows(f)
+        assert got.keys() == want.keys()
+        for q, v in want["direct (mlp)"].items():
+            assert got["direct (mlp)"][q] == pytest.approx(v)

@@ -9,6 +9,9 @@ the goals with whether each is met. Matplotlib is imported here only.
 
 from __future__ import annotations
 
+import csv
+import io
+
 import json
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -67,9 +70,12 @@ def write_csv(path: Path, columns: Mapping[str, Sequence[Any]]) -> Path:
     def fmt(v: Any) -> str:
         return f"{v:.6g}" if isinstance(v, (float, np.floating)) else str(v)
 
-    lines = [",".join(names)] + [",".join(fmt(c[i]) for c in cols) for i in range(n)]
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")  # quotes a field with a comma ("CoM xy, r <= 15 mm")
+    w.writerow(names)
+    w.writerows([fmt(c[i]) for c in cols] for i in range(n))
     with atomic_path(path) as tmp:
-        tmp.write_text("\n".join(lines) + "\n")
+        tmp.write_text(buf.getvalue())
     return path
 
 

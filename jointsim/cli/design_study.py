@@ -43,11 +43,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hold-frames", type=int, default=1, help="frames averaged per press (default 1)")
     p.add_argument("--snr-db", default="", help="further SNRs to tabulate, comma-separated (the scene's is always)")
     p.add_argument("--workers", type=int, help="local worker processes (default: one per core)")
+    p.add_argument("--estimators", type=Path, metavar="GOALS_CSV",
+                   help="a calibration's goals.csv (jointsim calibrate) to set its estimators beside the first design's bound")
 
 
 def run(args: argparse.Namespace) -> int:
     from ..design.report import GOALS, required_snr, write_comparison, write_design
     from ..design.study import Plan, plan_presses, run_design
+    from ..io.records import open_records
     from ..scene import MESH_PRESETS, load_scene, scene_toml
 
     if args.mesh_preset is not None and args.mesh_preset not in MESH_PRESETS:
@@ -62,6 +65,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--hold-frames = {args.hold_frames}: must be >= 1")
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers = {args.workers}: must be >= 1")
+    if args.estimators is not None and not args.estimators.is_file():
+        raise ValueError(f"--estimators = {args.estimators}: no such file (a goals.csv written by jointsim calibrate)")
     lo, hi = SNR_RANGE_DB
     snrs = _floats("--snr-db", args.snr_db, lo - 1e-9, hi) if args.snr_db.strip() else ()
     plan = Plan(tuple(d * 1e-3 for d in diameters), tuple(d * 1e-3 for d in depths), args.spacing_mm * 1e-3,
@@ -92,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
                             scene_toml=scene_toml(path), progress=bar.update,
                             on_start=lambda done, left: (bar.update(done), started(done, left)))
         workers = min(args.workers or available_cores(), max(todo[0], 1))
-        timings[scene.name] = (time.perf_counter() - t0, todo[0], workers)
+        wall = time.perf_counter() - t0
+        timings[scene.name] = (open_records(h5, fields=["seconds"], verify=False)["seconds"], wall, todo[0], workers)
         written, summaries = write_design(args.out / scene.name, scene, h5, snrs)
         what = ["all"] + [f"{d:g} mm" for d in diameters] + ["all"] * (len(summaries) - 1 - len(diameters))
         rows += list(zip(summaries, what))
@@ -101,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"  at {s.snr_db:g} dB, efficient median error (nuisances marginalised): position "
               f"{s.median['position_marginal'] * 1e3:.3g} mm, depth {s.median['depth_marginal'] * 1e3:.3g} mm, "
               f"diameter {s.median['diameter_marginal'] * 1e3:.3g} mm ({s.reached}/{s.presses} reached)")
-    written = write_comparison(args.out, rows, needed, command, timings)
+    est = None if args.estimators is None else (scenes[0][1].name, args.estimators)
+    written = write_comparison(args.out, rows, needed, command, timings, est)
     print(f"  wrote {written[0]}")
     return 0

@@ -44,7 +44,7 @@ from ..eit.parameters import conductivity_sensitivity, contact_impedance_sensiti
 from ..instrument import Instrument
 from ..mechanics.dome import MembraneModel
 
-__all__ = ["TARGET", "PressSensitivity", "parameter_names", "press_sensitivity", "electrode_moves", "surface_slope"]
+__all__ = ["TARGET", "PressSensitivity", "parameter_names", "press_sensitivity", "electrode_moves", "surface_slope", "touch"]
 
 TARGET = ("x", "y", "depth", "radius")  # the target's parameters, m
 
@@ -117,7 +117,7 @@ def surface_slope(points: np.ndarray, at: np.ndarray) -> np.ndarray:
     return coef[1:3]
 
 
-def _touch(model: MembraneModel, xy: np.ndarray) -> tuple[int, np.ndarray]:
+def touch(model: MembraneModel, xy: np.ndarray) -> tuple[int, np.ndarray]:
     """(index into the contact's nodes of the node the sphere coming down at ``xy`` touches,
     ∇f (2,) of the outer surface there)."""
     c = model.contact
@@ -177,7 +177,7 @@ def press_sensitivity(inst: Instrument, model: MembraneModel, xy: np.ndarray, de
     J_ref = np.zeros((M, P))
     try:
         # the untouched sensor: its head derivative, where the sphere touches, and the surface there
-        node, slope = _touch(model, xy)
+        node, slope = touch(model, xy)
         nz = 1.0 / math.sqrt(1.0 + slope @ slope)
         normal = np.array([-slope[0], -slope[1], 1.0]) * nz
         dzc = {"x": slope[0], "y": slope[1], "radius": 1.0 / nz, "ln_pressure": 0.0}
