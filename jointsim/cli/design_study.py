@@ -98,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
                             on_start=lambda done, left: (bar.update(done), started(done, left)))
         workers = min(args.workers or available_cores(), max(todo[0], 1))
         wall = time.perf_counter() - t0
-        timings[scene.name] = (open_records(h5, fields=["seconds"], verify=False)["seconds"], wall, todo[0], workers)
+        rec = open_records(h5, fields=["seconds"], verify=False)
+        timings[scene.name] = (rec["seconds"], wall, todo[0], workers, rec.data_sha256)
         written, summaries = write_design(args.out / scene.name, scene, h5, snrs)
         what = ["all"] + [f"{d:g} mm" for d in diameters] + ["all"] * (len(summaries) - 1 - len(diameters))
         rows += list(zip(summaries, what))

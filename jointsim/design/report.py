@@ -157,12 +157,12 @@ def estimator_rows(goals_csv: Path) -> dict[str, dict[str, float]]:
 
 
 def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[str, dict[str, float]], command: str,
-                     timings: dict[str, tuple[np.ndarray, float, int, int]] | None = None,
+                     timings: dict[str, tuple[np.ndarray, float, int, int, str]] | None = None,
                      estimators: tuple[str, Path] | None = None) -> list[Path]:
     """``out``/summary.md and summary.csv: the designs side by side (``rows``: a summary and
     what it covers), the SNR each needs to meet each goal (``needed``[design][quantity]), what
     each design cost (``timings``[design]: the stored press times s, and this run's wall s,
-    presses computed and workers), and a calibration's estimators beside the first design's
+    presses computed and workers, and the store's data digest), and a calibration's estimators beside the first design's
     bound (``estimators``: the design's name and the calibration's goals.csv)."""
     lines = ["# Design study: what each design can measure", "", f"Command: `{command}`", "",
              "Cramér–Rao bounds through the coupled model (jointsim.design): an unbiased estimator's error cannot be "
@@ -209,9 +209,10 @@ def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[st
         lines += ["", "## Cost", "",
                   "Press times are stored with each press (one worker, single-threaded, derivatives of every depth); "
                   "the wall time is this command's, which computed only what was not stored.", "",
-                  "| design | presses | mean s per press | sum s | this run: computed, workers, wall s |", "|---|---|---|---|---|"]
-        for design, (stored, wall, n, w) in timings.items():
-            lines.append(f"| {design} | {len(stored)} | {np.mean(stored):.1f} | {np.sum(stored):.0f} | {n}, {w}, {wall:.0f} |")
+                  "| design | presses | mean s per press | sum s | this run: computed, workers, wall s | sensitivities.h5 data SHA-256 |",
+                  "|---|---|---|---|---|---|"]
+        for design, (stored, wall, n, w, sha) in timings.items():
+            lines.append(f"| {design} | {len(stored)} | {np.mean(stored):.1f} | {np.sum(stored):.0f} | {n}, {w}, {wall:.0f} | `{sha[:16]}…` |")
     out.mkdir(parents=True, exist_ok=True)
     md = out / "summary.md"
     md.write_text("\n".join(lines) + "\n")
