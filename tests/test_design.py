@@ -180,6 +180,13 @@ def test_a_nuisance_that_mimics_the_target_needs_its_prior():
     tight = press_bounds(F, np.array([1e-9]), np.eye(2, 4))
     np.testing.assert_allclose(tight.marginal, tight.known, rtol=1e-6)
     assert isinstance(tight, Bounds)
+    # two nuisances that act only together (the head and the modulus): at any SNR their priors
+    # keep the bound finite, even where they are 1e-20 of the data's information
+    K = rng.normal(size=(30, 5))
+    K = np.column_stack([K, -K[:, 4]])
+    for scale in (1.0, 1e20):
+        b = press_bounds(scale * K.T @ K, np.array([0.2, 0.4]), np.eye(2, 4))
+        assert np.isfinite(b.marginal).all() and np.all(np.diag(b.marginal) >= np.diag(b.known) * (1 - 1e-6))
 
 
 def test_the_priors_are_the_scene_randomisation(coarse):
