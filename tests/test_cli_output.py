@@ -18,7 +18,8 @@ def _bad_outputs(tmp_path, kind):
 
 
 def test_every_command_that_writes_says_what_its_output_is():
-    assert set(WRITERS) == {"calibrate", "dataset", "forward", "indent", "palpate", "protocol-study", "stiffness-study"}
+    assert set(WRITERS) == {"calibrate", "dataset", "design-study", "forward", "indent", "palpate", "protocol-study",
+                            "stiffness-study"}
 
 
 @pytest.mark.parametrize("command", WRITERS)
