@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     if len(set(names)) != len(names):
         raise ValueError(f"scenes: two designs share a name ({names}); give each scene its own name")
     command = "jointsim design-study " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["design-study"] else "jointsim design-study"
-    rows, needed, timings = [], {}, {}
+    rows, needed, timings, where = [], {}, {}, {}
     for path, scene in scenes:
         n = len(plan_presses(scene, plan))
         print(f"jointsim design-study: {scene.name} (mesh {scene.mesh.preset}), {n} presses x {len(depths)} depths")
@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
         wall = time.perf_counter() - t0
         rec = open_records(h5, fields=["seconds"], verify=False)
         timings[scene.name] = (rec["seconds"], wall, todo[0], workers, rec.data_sha256)
-        written, summaries = write_design(args.out / scene.name, scene, h5, snrs)
+        written, summaries, where[scene.name] = write_design(args.out / scene.name, scene, h5, snrs)
         what = ["all"] + [f"{d:g} mm" for d in diameters] + ["all"] * (len(summaries) - 1 - len(diameters))
         rows += list(zip(summaries, what))
         needed[scene.name] = {q: required_snr(h5, scene, q, g) for q, g in GOALS.items()}
@@ -109,6 +109,6 @@ def run(args: argparse.Namespace) -> int:
               f"{s.median['position_marginal'] * 1e3:.3g} mm, depth {s.median['depth_marginal'] * 1e3:.3g} mm, "
               f"diameter {s.median['diameter_marginal'] * 1e3:.3g} mm ({s.reached}/{s.presses} reached)")
     est = None if args.estimators is None else (scenes[0][1].name, args.estimators)
-    written = write_comparison(args.out, rows, needed, command, timings, est)
+    written = write_comparison(args.out, rows, needed, command, timings, est, where)
     print(f"  wrote {written[0]}")
     return 0

@@ -14,7 +14,8 @@ from ..geometry import electrode_layout
 from ..scene import Scene
 from .study import DesignBounds, design_bounds
 
-__all__ = ["GOALS", "Summary", "summarise", "required_snr", "write_design", "write_comparison", "estimator_rows"]
+__all__ = ["GOALS", "BANDS", "Summary", "summarise", "required_snr", "write_design", "write_comparison", "estimator_rows",
+           "by_contact_radius"]
 
 # the calibration goals at 74.2 dB (jointsim.calibration.build.GOALS), median |error| in m
 GOALS = {"position": 0.5e-3, "depth": 0.5e-3, "diameter": 1.0e-3}
@@ -91,41 +92,44 @@ def _map_figure(path: Path, scene: Scene, b: DesignBounds, column: str, title: s
     c = b.columns
     diameters = np.unique(c["diameter"])
     depths = np.unique(c["depth"])
-    depth = depths[len(depths) // 2]
     layout = electrode_layout(scene)
     vals = c[column][np.isfinite(c[column])] * 1e3
     norm = LogNorm(vmin=max(vals.min(), 1e-4), vmax=max(vals.max(), 1e-3)) if vals.size else None
-    fig, axes = plt.subplots(1, len(diameters), figsize=(4.0 * len(diameters) + 1.0, 4.0), squeeze=False)
+    fig, axes = plt.subplots(len(depths), len(diameters), figsize=(3.4 * len(diameters) + 1.2, 3.3 * len(depths)),
+                             squeeze=False, layout="constrained")
     sc = None
     base = scene.chamber.base_radius * 1e3
-    for ax, d in zip(axes[0], diameters):
-        sel = np.isclose(c["diameter"], d) & np.isclose(c["depth"], depth)
-        ok = sel & np.isfinite(c[column])
-        ax.add_patch(Circle((0, 0), base, fill=False, color="0.6"))
-        for (x, y, _), r in zip(layout.centres, layout.radii):
-            ax.add_patch(Circle((x * 1e3, y * 1e3), r * 1e3, fill=False, color="0.3", zorder=1))
-        sc = ax.scatter(c["contact_x"][ok] * 1e3, c["contact_y"][ok] * 1e3, c=c[column][ok] * 1e3, norm=norm, cmap="viridis", s=40, zorder=2)
-        miss = sel & ~np.isfinite(c[column])
-        ax.plot(c["x"][miss] * 1e3, c["y"][miss] * 1e3, "x", color="r", ms=4, label="not reached (target centre)")
-        ax.set_aspect("equal")
-        ax.set_xlim(-base * 1.05, base * 1.05)
-        ax.set_ylim(-base * 1.05, base * 1.05)
-        ax.set_xlabel("contact x (mm)")
-        ax.set_ylabel("contact y (mm)")
-        ax.set_title(f"{d * 1e3:g} mm sphere, {depth * 1e3:g} mm deep")
-        if miss.any():
-            ax.legend(loc="lower left", fontsize=7)
+    for row, depth in zip(axes, depths):
+        for ax, d in zip(row, diameters):
+            sel = np.isclose(c["diameter"], d) & np.isclose(c["depth"], depth)
+            ok = sel & np.isfinite(c[column])
+            ax.add_patch(Circle((0, 0), base, fill=False, color="0.6"))
+            for (x, y, _), r in zip(layout.centres, layout.radii):
+                ax.add_patch(Circle((x * 1e3, y * 1e3), r * 1e3, fill=False, color="0.3", zorder=1))
+            sc = ax.scatter(c["contact_x"][ok] * 1e3, c["contact_y"][ok] * 1e3, c=c[column][ok] * 1e3, norm=norm,
+                            cmap="viridis", s=18, zorder=2)
+            miss = sel & ~np.isfinite(c[column])
+            ax.plot(c["x"][miss] * 1e3, c["y"][miss] * 1e3, "x", color="r", ms=4, label="not reached (target centre)")
+            ax.set_aspect("equal")
+            ax.set_xlim(-base * 1.05, base * 1.05)
+            ax.set_ylim(-base * 1.05, base * 1.05)
+            ax.set_xlabel("contact x (mm)", fontsize=8)
+            ax.set_ylabel("contact y (mm)", fontsize=8)
+            ax.tick_params(labelsize=7)
+            ax.set_title(f"{d * 1e3:g} mm sphere, {depth * 1e3:g} mm deep", fontsize=9)
+            if miss.any():
+                ax.legend(loc="lower left", fontsize=6)
     if sc is not None:
-        fig.colorbar(sc, ax=axes[0].tolist(), label="mm")
-    fig.suptitle(f"{scene.name}: {title} at {b.snr_db:g} dB", fontsize=10)
+        fig.colorbar(sc, ax=axes.ravel().tolist(), label="mm", shrink=0.6)
+    fig.suptitle(f"{scene.name}\n{title} at {b.snr_db:g} dB", fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
 
 
-def write_design(out: Path, scene: Scene, path: Path, snrs: tuple[float, ...] = ()) -> tuple[list[Path], list[Summary]]:
+def write_design(out: Path, scene: Scene, path: Path, snrs: tuple[float, ...] = ()) -> tuple[list[Path], list[Summary], DesignBounds]:
     """Write ``out``/bounds.csv and the maps of the study at ``path``; its summaries at the
-    scene's SNR and at ``snrs``."""
+    scene's SNR and at ``snrs``, and its bounds at the scene's SNR."""
     out.mkdir(parents=True, exist_ok=True)
     b = design_bounds(path, scene)
     written = [_write_csv(out / "bounds.csv", b.columns)]
@@ -138,7 +142,7 @@ def write_design(out: Path, scene: Scene, path: Path, snrs: tuple[float, ...] = 
     for snr in snrs:
         if not math.isclose(snr, scene.noise.snr_db):
             summaries.append(summarise(scene.name, design_bounds(path, scene, snr_db=snr)))
-    return written, summaries
+    return written, summaries, b
 
 
 def _mm(v: float) -> str:
@@ -164,9 +168,24 @@ def estimator_rows(goals_csv: Path) -> dict[str, dict[str, float]]:
     return out
 
 
+BANDS = (0.0, 5e-3, 10e-3, 15e-3, 20e-3)  # m: contact radius bands of the "where" table
+
+
+def by_contact_radius(b: DesignBounds, column: str = "position_median_marginal") -> list[float]:
+    """The median of ``column`` over the presses whose contact point lies in each band of
+    :data:`BANDS` (NaN for an empty band): where over the surface a design loses accuracy."""
+    c = b.columns
+    out = []
+    for lo, hi in zip(BANDS[:-1], BANDS[1:]):
+        v = c[column][(c["contact_r"] >= lo) & (c["contact_r"] < hi) & np.isfinite(c[column])]
+        out.append(float(np.median(v)) if v.size else math.nan)
+    return out
+
+
 def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[str, dict[str, float]], command: str,
                      timings: dict[str, tuple[np.ndarray, float, int, int, str]] | None = None,
-                     estimators: tuple[str, Path] | None = None) -> list[Path]:
+                     estimators: tuple[str, Path] | None = None,
+                     where: dict[str, DesignBounds] | None = None) -> list[Path]:
     """``out``/summary.md and summary.csv: the designs side by side (``rows``: a summary and
     what it covers), the SNR each needs to meet each goal (``needed``[design][quantity]), what
     each design cost (``timings``[design]: the stored press times s, and this run's wall s,
@@ -196,6 +215,16 @@ def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[st
     for design, req in needed.items():
         lines.append(f"| {design} | " + " | ".join("not below 200 dB" if not math.isfinite(req[q]) else f"{req[q]:.1f} dB"
                                                     for q in QUANTITIES) + " |")
+    if where:
+        bands = [f"{lo * 1e3:g}–{hi * 1e3:g} mm" for lo, hi in zip(BANDS[:-1], BANDS[1:])]
+        lines += ["", "## Where over the surface (contact point's distance from the axis)", "",
+                  "Median over presses, depths and sizes of an efficient estimator's median error, nuisances "
+                  "marginalised, at each design's SNR; position / diameter, mm.", "",
+                  "| design | " + " | ".join(bands) + " |", "|---|" + "---|" * len(bands)]
+        for design, b in where.items():
+            pos, dia = by_contact_radius(b), by_contact_radius(b, "diameter_median_marginal")
+            lines.append(f"| {design} | " + " | ".join("–" if math.isnan(p) else f"{_mm(p)} / {_mm(d)}"
+                                                      for p, d in zip(pos, dia)) + " |")
     if estimators is not None:
         design, goals = estimators
         base = next(s for s, what in rows if s.design == design and what == "all")
