@@ -216,6 +216,14 @@ def test_design_study_command_end_to_end(tmp_path, capsys):
     capsys.readouterr()
     assert main(args) == 0
     assert "| 0, 1, " in (out / "summary.md").read_text()  # nothing computed the second time
+    # averaging 4 frames per press: the same store serves, the bounds halve (nuisances known, and
+    # the reference already averaged over 50 frames does not bound them)
+    before = (out / "paper_sensor" / "bounds.csv").read_text().splitlines()[1].split(",")
+    assert main(args + ["--hold-frames", "4"]) == 0
+    after = (out / "paper_sensor" / "bounds.csv").read_text().splitlines()[1].split(",")
+    assert "| 0, 1, " in (out / "summary.md").read_text()
+    col = rows[0].split(",").index("position_rms_known_mm")
+    assert float(after[col]) == pytest.approx(float(before[col]) / 2, rel=2e-5)  # the CSV keeps 6 digits
     assert main(["design-study", "--depths-mm", "2,1", "--out", str(tmp_path / "x")]) == 2
     assert "--depths-mm = '2,1': increasing" in capsys.readouterr().err
 

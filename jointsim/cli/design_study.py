@@ -100,10 +100,11 @@ def run(args: argparse.Namespace) -> int:
         wall = time.perf_counter() - t0
         rec = open_records(h5, fields=["seconds"], verify=False)
         timings[scene.name] = (rec["seconds"], wall, todo[0], workers, rec.data_sha256)
-        written, summaries, where[scene.name] = write_design(args.out / scene.name, scene, h5, snrs)
+        frames = {"reference_frames": plan.reference_frames, "hold_frames": plan.hold_frames}
+        written, summaries, where[scene.name] = write_design(args.out / scene.name, scene, h5, snrs, **frames)
         what = ["all"] + [f"{d:g} mm" for d in diameters] + ["all"] * (len(summaries) - 1 - len(diameters))
         rows += list(zip(summaries, what))
-        needed[scene.name] = {q: required_snr(h5, scene, q, g) for q, g in GOALS.items()}
+        needed[scene.name] = {q: required_snr(h5, scene, q, g, **frames) for q, g in GOALS.items()}
         s = summaries[0]
         print(f"  at {s.snr_db:g} dB, efficient median error (nuisances marginalised): position "
               f"{s.median['position_marginal'] * 1e3:.3g} mm, depth {s.median['depth_marginal'] * 1e3:.3g} mm, "

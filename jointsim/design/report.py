@@ -53,13 +53,13 @@ def summarise(name: str, b: DesignBounds, diameter: float | None = None) -> Summ
 
 
 def required_snr(path: Path, scene: Scene, quantity: str, goal: float, kind: str = "marginal",
-                 lo: float = 0.0, hi: float = 200.0, resolution: float = 0.5) -> float:
+                 lo: float = 0.0, hi: float = 200.0, resolution: float = 0.5, **frames: int) -> float:
     """The lowest SNR dB (to ``resolution``, within [``lo``, ``hi``]) at which the efficient
     estimator's median error of ``quantity`` (median over the presses) is within ``goal`` m,
     by bisection (the bounds fall as the SNR rises); ``lo`` where it is met there already, inf
-    where not even at ``hi``."""
+    where not even at ``hi``. ``frames``: reference_frames, hold_frames (:func:`design_bounds`)."""
     def met(snr: float) -> bool:
-        return summarise("", design_bounds(path, scene, snr_db=snr)).median[f"{quantity}_{kind}"] <= goal
+        return summarise("", design_bounds(path, scene, snr_db=snr, **frames)).median[f"{quantity}_{kind}"] <= goal
 
     if met(lo):
         return lo
@@ -127,11 +127,13 @@ def _map_figure(path: Path, scene: Scene, b: DesignBounds, column: str, title: s
     return path
 
 
-def write_design(out: Path, scene: Scene, path: Path, snrs: tuple[float, ...] = ()) -> tuple[list[Path], list[Summary], DesignBounds]:
+def write_design(out: Path, scene: Scene, path: Path, snrs: tuple[float, ...] = (),
+                 **frames: int) -> tuple[list[Path], list[Summary], DesignBounds]:
     """Write ``out``/bounds.csv and the maps of the study at ``path``; its summaries at the
-    scene's SNR and at ``snrs``, and its bounds at the scene's SNR."""
+    scene's SNR and at ``snrs``, and its bounds at the scene's SNR. ``frames``:
+    reference_frames, hold_frames (:func:`~.study.design_bounds`)."""
     out.mkdir(parents=True, exist_ok=True)
-    b = design_bounds(path, scene)
+    b = design_bounds(path, scene, **frames)
     written = [_write_csv(out / "bounds.csv", b.columns)]
     written.append(_map_figure(out / "position_bound.png", scene, b, "position_median_marginal",
                                "contact position: an efficient estimator's median error"))
@@ -141,7 +143,7 @@ def write_design(out: Path, scene: Scene, path: Path, snrs: tuple[float, ...] = 
     summaries += [summarise(scene.name, b, d) for d in np.unique(b.columns["diameter"])]
     for snr in snrs:
         if not math.isclose(snr, scene.noise.snr_db):
-            summaries.append(summarise(scene.name, design_bounds(path, scene, snr_db=snr)))
+            summaries.append(summarise(scene.name, design_bounds(path, scene, snr_db=snr, **frames)))
     return written, summaries, b
 
 

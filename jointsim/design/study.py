@@ -180,14 +180,19 @@ def run_design(scene: Scene, plan: Plan, out: str | Path, *, workers: int | None
     inst_meas = _n_meas(scene)
     names = parameter_names(len(electrode_layout(scene).radii))
     schema = design_schema(inst_meas, len(names), len(plan.depths))
-    params = {"plan": {k: list(v) if isinstance(v, tuple) else v for k, v in plan.__dict__.items()},
+    # what shapes the stored derivatives; not the frame counts, which the bounds take from the file
+    shape = ("diameters", "depths", "spacing", "r_max")
+    params = {"plan": {k: list(v) if isinstance(v, tuple) else v for k, v in plan.__dict__.items() if k in shape},
               "parameters": list(names), "scene_digest": scene.digest()}
     final = Path(out)
     final = final if final.suffix in (".h5", ".hdf5") else final.with_suffix(".h5")
     with exclusive(final):
         if final.exists():
             rec = open_records(final, fields=["reached"], verify=True)
-            if rec.provenance["params"] != params or len(rec) != n:
+            stored = dict(rec.provenance["params"])
+            # a store written when the frame counts were part of its plan is the same study
+            stored["plan"] = {k: v for k, v in stored.get("plan", {}).items() if k in shape}
+            if stored != params or len(rec) != n:
                 raise ValueError(f"{final} holds a design study with other settings; remove it or write to another path")
             return final
         store = open_store(final, schema, scene_toml=scene_toml or f'name = "{scene.name}"\n', seed=None, n_records=n,
@@ -233,17 +238,16 @@ class DesignBounds:
         return len(self.columns["depth"])
 
 
-def design_bounds(path: str | Path, scene: Scene, *, snr_db: float | None = None, reference_frames: int | None = None,
-                  hold_frames: int | None = None) -> DesignBounds:
+def design_bounds(path: str | Path, scene: Scene, *, snr_db: float | None = None, reference_frames: int = 50,
+                  hold_frames: int = 1) -> DesignBounds:
     """The :class:`DesignBounds` of the finished study at ``path`` for ``scene``'s nuisance
-    priors, at ``snr_db`` (default the scene's: the stored noise is rescaled) and frame counts
-    (default the plan's)."""
+    priors, at ``snr_db`` (default the scene's: the stored noise is rescaled), with the
+    reference averaged over ``reference_frames`` and a press over ``hold_frames`` frames."""
     rec = open_records(path)
     prov = rec.provenance["params"]
     names = tuple(prov["parameters"])
     plan = prov["plan"]
-    R = plan["reference_frames"] if reference_frames is None else reference_frames
-    H = plan["hold_frames"] if hold_frames is None else hold_frames
+    R, H = int(reference_frames), int(hold_frames)
     snr = scene.noise.snr_db if snr_db is None else float(snr_db)
     scale = 10 ** ((scene.noise.snr_db - snr) / 20)
     prior = nuisance_prior(scene, names)
