@@ -118,17 +118,11 @@ def surface_slope(points: np.ndarray, at: np.ndarray) -> np.ndarray:
 
 
 def touch(model: MembraneModel, xy: np.ndarray) -> tuple[int, np.ndarray]:
-    """(index into the contact's nodes of the node the sphere coming down at ``xy`` touches,
-    ∇f (2,) of the outer surface there)."""
+    """(index into the contact's nodes of the node the sphere coming down at ``xy`` touches
+    first, ∇f (2,) of the outer surface there)."""
     c = model.contact
+    n = model.first_contact(xy)[1]
     x = c.X[c.nodes] + model.u[c.nodes]
-    R = c.radius
-    d2 = ((x[:, :2] - xy) ** 2).sum(axis=1)
-    near = d2 < R * R
-    if not near.any():
-        model.first_contact_height(xy)  # raises UnreachablePose with its message
-    height = np.where(near, x[:, 2] + np.sqrt(np.maximum(R * R - d2, 0.0)), -np.inf)
-    n = int(np.argmax(height))
     dist = np.linalg.norm(x[:, :2] - x[n, :2], axis=1)
     radius = max(FIT_RADIUS, float(np.sort(dist)[min(FIT_NODES, len(dist) - 1)]))
     return n, surface_slope(x[dist <= radius], x[n, :2])
@@ -209,17 +203,10 @@ def press_sensitivity(inst: Instrument, model: MembraneModel, xy: np.ndarray, de
             dv = [along(u, du[..., j]) for j in range(5)]  # c_x, c_y, c_z, R, ln p
             # the contact's centre of pressure moves with u and with the sphere (centre, radius)
             dcop = [_cop_along(contact, u, du[..., j], j) for j in range(4)]
-            # z = z_c − d: at fixed depth the centre follows the first contact
-            J[k, :, 0] = dv[0] + dzc["x"] * dv[2]
-            J[k, :, 1] = dv[1] + dzc["y"] * dv[2]
-            J[k, :, 2] = -dv[2]
-            J[k, :, 3] = dv[3] + dzc["radius"] * dv[2]
+            J[k, :, :4] = np.column_stack(_at_fixed_depth(dv, dzc))
             if cap:
                 J[k, :, 4] = dv[4] + dzc["ln_pressure"] * dv[2]
-            cj[k, :, 0] = dcop[0] + dzc["x"] * dcop[2]
-            cj[k, :, 1] = dcop[1] + dzc["y"] * dcop[2]
-            cj[k, :, 2] = -dcop[2]
-            cj[k, :, 3] = dcop[3] + dzc["radius"] * dcop[2]
+            cj[k] = np.column_stack(_at_fixed_depth(dcop, dzc))
         if cap:  # the moduli scaled by s act as the head divided by s (module docstring)
             J[:, :, 5] = -J[:, :, 4]
             J_ref[:, 5] = -J_ref[:, 4]
@@ -227,6 +214,13 @@ def press_sensitivity(inst: Instrument, model: MembraneModel, xy: np.ndarray, de
         model.force_rtol = rtol
         model.set_state(untouched)
     return PressSensitivity(xy, R, depths, V, ro.v_ref, J, J_ref, cop, cj, force, ro.noise_std, names)
+
+
+def _at_fixed_depth(d: list, dzc: dict[str, float]) -> list:
+    """Derivatives with respect to (c_x, c_y, c_z, R) at a fixed centre height → with respect
+    to :data:`TARGET` (x, y, depth, radius) at a fixed depth: z = z_c − d, so the centre follows
+    the first contact (∂z_c/∂x, ∂z_c/∂y, ∂z_c/∂R in ``dzc``) and ∂/∂depth = −∂/∂c_z."""
+    return [d[0] + dzc["x"] * d[2], d[1] + dzc["y"] * d[2], -d[2], d[3] + dzc["radius"] * d[2]]
 
 
 def _cop_along(contact, u: np.ndarray, du: np.ndarray, j: int, probe: float = 1e-6) -> np.ndarray:

@@ -195,11 +195,11 @@ class MembraneModel:
         """Restore a :meth:`get_state` (:func:`~.checkpoint.restore_membrane`)."""
         restore_membrane(self, state)
 
-    def first_contact_height(self, xy: np.ndarray) -> float:
-        """Centre height of the target coming down at ``xy`` when it touches the outer surface
-        of the current (deformed) membrane, raised by ``TOUCH_CLEARANCE``·R: the touching node's
-        gap is R − |x − c| up to round-off, and a touch must give exactly zero force, not a
-        force of either sign from the last bits."""
+    def first_contact(self, xy: np.ndarray) -> tuple[float, int]:
+        """(centre height, node) of the target coming down at ``xy`` when it touches the outer
+        surface of the current (deformed) membrane: the height at which it touches, and the
+        index into the contact's nodes of the node it touches first. Raises UnreachablePose
+        where it misses the dome."""
         x = self.contact.X[self.contact.nodes] + self.u[self.contact.nodes]
         R = self.contact.radius
         d2 = ((x[:, :2] - np.asarray(xy)) ** 2).sum(axis=1)
@@ -208,7 +208,15 @@ class MembraneModel:
             reach = np.hypot(x[:, 0], x[:, 1]).max() + R  # from the axis, in any direction: the rim is a circle
             raise UnreachablePose(f"target at xy = {np.asarray(xy) * 1e3} mm misses the dome: a target of radius "
                                   f"{R * 1e3:.4g} mm must be within {reach * 1e3:.4g} mm of the axis")
-        return float((x[near, 2] + np.sqrt(R * R - d2[near])).max()) + TOUCH_CLEARANCE * R
+        height = x[near, 2] + np.sqrt(R * R - d2[near])
+        i = int(np.argmax(height))
+        return float(height[i]), int(np.flatnonzero(near)[i])
+
+    def first_contact_height(self, xy: np.ndarray) -> float:
+        """:meth:`first_contact`'s height raised by ``TOUCH_CLEARANCE``·R: the touching node's
+        gap is R − |x − c| up to round-off, and a touch must give exactly zero force, not a
+        force of either sign from the last bits."""
+        return self.first_contact(xy)[0] + TOUCH_CLEARANCE * self.contact.radius
 
     def press(self, centre: np.ndarray, substeps: int = 1) -> MembraneState:
         """Move the target centre to ``centre`` (3,) m in ``substeps`` straight-line steps (more
