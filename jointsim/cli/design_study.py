@@ -87,24 +87,23 @@ def run(args: argparse.Namespace) -> int:
     for path, scene in scenes:
         n = len(plan_presses(scene, plan))
         print(f"jointsim design-study: {scene.name} (mesh {scene.mesh.preset}), {n} presses x {len(depths)} depths")
-        todo = [0]
-
-        def started(done: int, left: int, bar=None) -> None:
-            todo[0] = left
+        todo = [0]  # presses this run computes (the rest were stored)
         t0 = time.perf_counter()
         with tqdm(total=n, unit="press", desc=f"design study {scene.name}", disable=None) as bar:
+            def started(done: int, left: int) -> None:
+                bar.update(done)
+                todo[0] = left
             h5 = run_design(scene, plan, args.out / scene.name / "sensitivities.h5", workers=args.workers,
-                            scene_toml=scene_toml(path), progress=bar.update,
-                            on_start=lambda done, left: (bar.update(done), started(done, left)))
+                            scene_toml=scene_toml(path), progress=bar.update, on_start=started)
         workers = min(args.workers or available_cores(), max(todo[0], 1))
         wall = time.perf_counter() - t0
-        rec = open_records(h5, fields=["seconds"], verify=False)
-        timings[scene.name] = (rec["seconds"], wall, todo[0], workers, rec.data_sha256)
+        study = open_records(h5)  # read once: every table and SNR below is computed from it
+        timings[scene.name] = (study["seconds"], wall, todo[0], workers, study.data_sha256)
         frames = {"reference_frames": plan.reference_frames, "hold_frames": plan.hold_frames}
-        written, summaries, where[scene.name] = write_design(args.out / scene.name, scene, h5, snrs, **frames)
+        written, summaries, where[scene.name] = write_design(args.out / scene.name, scene, study, snrs, **frames)
         what = ["all"] + [f"{d:g} mm" for d in diameters] + ["all"] * (len(summaries) - 1 - len(diameters))
         rows += list(zip(summaries, what))
-        needed[scene.name] = {q: required_snr(h5, scene, q, g, **frames) for q, g in GOALS.items()}
+        needed[scene.name] = required_snr(study, scene, GOALS, **frames)
         s = summaries[0]
         print(f"  at {s.snr_db:g} dB, efficient median error (nuisances marginalised): position "
               f"{s.median['position_marginal'] * 1e3:.3g} mm, depth {s.median['depth_marginal'] * 1e3:.3g} mm, "

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..geometry import electrode_layout
 from ..scene import Scene
+from ..io.records import Records
 from .study import DesignBounds, design_bounds
 
 __all__ = ["GOALS", "BANDS", "Summary", "summarise", "required_snr", "write_design", "write_comparison", "estimator_rows",
@@ -52,23 +53,34 @@ def summarise(name: str, b: DesignBounds, diameter: float | None = None) -> Summ
     return Summary(name, b.snr_db, med, p95, int(sel.sum()), total)
 
 
-def required_snr(path: Path, scene: Scene, quantity: str, goal: float, kind: str = "marginal",
-                 lo: float = 0.0, hi: float = 200.0, resolution: float = 0.5, **frames: int) -> float:
-    """The lowest SNR dB (to ``resolution``, within [``lo``, ``hi``]) at which the efficient
-    estimator's median error of ``quantity`` (median over the presses) is within ``goal`` m,
-    by bisection (the bounds fall as the SNR rises); ``lo`` where it is met there already, inf
-    where not even at ``hi``. ``frames``: reference_frames, hold_frames (:func:`design_bounds`)."""
-    def met(snr: float) -> bool:
-        return summarise("", design_bounds(path, scene, snr_db=snr, **frames)).median[f"{quantity}_{kind}"] <= goal
+def required_snr(study: Path | Records, scene: Scene, goals: dict[str, float], kind: str = "marginal",
+                 lo: float = 0.0, hi: float = 200.0, resolution: float = 0.5, **frames: int) -> dict[str, float]:
+    """For each quantity of ``goals`` (m), the lowest SNR dB (to ``resolution``, within [``lo``,
+    ``hi``]) at which the efficient estimator's median error (median over the presses) is
+    within its goal, by bisection (the bounds fall as the SNR rises); ``lo`` where it is met
+    there already, inf where not even at ``hi``. The quantities share the bounds of the SNRs
+    they both visit. ``frames``: reference_frames, hold_frames (:func:`design_bounds`)."""
+    medians: dict[float, dict[str, float]] = {}
 
-    if met(lo):
-        return lo
-    if not met(hi):
-        return math.inf
-    while hi - lo > resolution:
-        mid = 0.5 * (lo + hi)
-        lo, hi = (lo, mid) if met(mid) else (mid, hi)
-    return hi
+    def met(quantity: str, snr: float) -> bool:
+        if snr not in medians:
+            medians[snr] = summarise("", design_bounds(study, scene, snr_db=snr, **frames)).median
+        return medians[snr][f"{quantity}_{kind}"] <= goals[quantity]
+
+    out = {}
+    for q in goals:
+        a, b = lo, hi
+        if met(q, a):
+            out[q] = a
+            continue
+        if not met(q, b):
+            out[q] = math.inf
+            continue
+        while b - a > resolution:
+            mid = 0.5 * (a + b)
+            a, b = (a, mid) if met(q, mid) else (mid, b)
+        out[q] = b
+    return out
 
 
 def _write_csv(path: Path, columns: dict[str, np.ndarray], mm: bool = True) -> Path:
@@ -127,11 +139,11 @@ def _map_figure(path: Path, scene: Scene, b: DesignBounds, column: str, title: s
     return path
 
 
-def write_design(out: Path, scene: Scene, path: Path, snrs: tuple[float, ...] = (),
+def write_design(out: Path, scene: Scene, path: Path | Records, snrs: tuple[float, ...] = (),
                  **frames: int) -> tuple[list[Path], list[Summary], DesignBounds]:
-    """Write ``out``/bounds.csv and the maps of the study at ``path``; its summaries at the
-    scene's SNR and at ``snrs``, and its bounds at the scene's SNR. ``frames``:
-    reference_frames, hold_frames (:func:`~.study.design_bounds`)."""
+    """Write ``out``/bounds.csv and the maps of the study at ``path`` (or its records already
+    read); its summaries at the scene's SNR and at ``snrs``, and its bounds at the scene's SNR.
+    ``frames``: reference_frames, hold_frames (:func:`~.study.design_bounds`)."""
     out.mkdir(parents=True, exist_ok=True)
     b = design_bounds(path, scene, **frames)
     written = [_write_csv(out / "bounds.csv", b.columns)]

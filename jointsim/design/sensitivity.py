@@ -44,9 +44,14 @@ from ..eit.parameters import conductivity_sensitivity, contact_impedance_sensiti
 from ..instrument import Instrument
 from ..mechanics.dome import MembraneModel
 
-__all__ = ["TARGET", "PressSensitivity", "parameter_names", "press_sensitivity", "electrode_moves", "surface_slope", "touch"]
+__all__ = ["TARGET", "ELECTRODE_STEP", "PressSensitivity", "parameter_names", "press_sensitivity", "electrode_moves",
+           "surface_slope", "touch"]
 
 TARGET = ("x", "y", "depth", "radius")  # the target's parameters, m
+# m: an electrode's move either way for its position derivative (a difference of clipped moments,
+# no solve; tests/test_parameters.py); the moves made once (electrode_moves) must use the step
+# press_sensitivity divides by
+ELECTRODE_STEP = 1e-5
 
 
 def parameter_names(n_electrodes: int) -> tuple[str, ...]:
@@ -129,7 +134,7 @@ def touch(model: MembraneModel, xy: np.ndarray) -> tuple[int, np.ndarray]:
 
 
 def press_sensitivity(inst: Instrument, model: MembraneModel, xy: np.ndarray, depths: np.ndarray, *,
-                      moves: list | None = None, electrode_step: float = 1e-5, probe: float = 10e-6,
+                      moves: list | None = None, electrode_step: float = ELECTRODE_STEP, probe: float = 10e-6,
                       step_max: float = 0.5e-3) -> PressSensitivity:
     """The derivatives of the press of ``model``'s target (its radius) at ``xy`` (2,) m through
     ``depths`` (K,) m, increasing, past first contact, measured by ``inst`` (the instrument of

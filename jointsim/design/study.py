@@ -24,7 +24,7 @@ import numpy as np
 from .._cores import available_cores, run_local
 from ..geometry import electrode_layout
 from ..instrument import Instrument
-from ..io.records import open_records
+from ..io.records import Records, open_records
 from ..io.schema import Field, Schema
 from ..io.store import attach, exclusive, open_store
 from ..mechanics.build import membrane_from_scene
@@ -33,7 +33,7 @@ from ..mechanics.newton import NewtonError
 from ..mesh.morph import MeshInversionError
 from ..scene import Scene
 from .bounds import Bounds, fisher, median_error, nuisance_prior, press_bounds
-from .sensitivity import TARGET, electrode_moves, parameter_names, press_sensitivity
+from .sensitivity import ELECTRODE_STEP, TARGET, electrode_moves, parameter_names, press_sensitivity
 
 __all__ = ["Plan", "press_grid", "plan_presses", "design_schema", "run_design", "DesignBounds", "design_bounds"]
 
@@ -128,7 +128,7 @@ def _setup(scene: Scene) -> tuple[Instrument, list]:
             _WORKER.pop("inst").free()
         inst = Instrument.build(scene, imaging=False)
         _WORKER.clear()
-        _WORKER.update(key=key, inst=inst, moves=electrode_moves(inst, 1e-5), models={})
+        _WORKER.update(key=key, inst=inst, moves=electrode_moves(inst, ELECTRODE_STEP), models={})
     return _WORKER["inst"], _WORKER["moves"]
 
 
@@ -238,12 +238,13 @@ class DesignBounds:
         return len(self.columns["depth"])
 
 
-def design_bounds(path: str | Path, scene: Scene, *, snr_db: float | None = None, reference_frames: int = 50,
+def design_bounds(study: str | Path | Records, scene: Scene, *, snr_db: float | None = None, reference_frames: int = 50,
                   hold_frames: int = 1) -> DesignBounds:
-    """The :class:`DesignBounds` of the finished study at ``path`` for ``scene``'s nuisance
-    priors, at ``snr_db`` (default the scene's: the stored noise is rescaled), with the
-    reference averaged over ``reference_frames`` and a press over ``hold_frames`` frames."""
-    rec = open_records(path)
+    """The :class:`DesignBounds` of the finished study (its path, or its records already read:
+    bounds at several SNRs then read the file once) for ``scene``'s nuisance priors, at
+    ``snr_db`` (default the scene's: the stored noise is rescaled), with the reference averaged
+    over ``reference_frames`` and a press over ``hold_frames`` frames."""
+    rec = study if isinstance(study, Records) else open_records(study)
     prov = rec.provenance["params"]
     names = tuple(prov["parameters"])
     plan = prov["plan"]
