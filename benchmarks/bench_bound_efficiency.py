@@ -36,7 +36,8 @@ from _machine import atomic_write, machine
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from jointsim.design.sensitivity import press_sensitivity, touch  # noqa: E402
+from jointsim.design.sensitivity import press_sensitivity  # noqa: E402
+from jointsim.mechanics.touch import touch  # noqa: E402
 from jointsim.instrument import Instrument  # noqa: E402
 from jointsim.mechanics.build import membrane_from_scene  # noqa: E402
 from jointsim.scene import SCENES_DIR, load_scene  # noqa: E402

@@ -967,20 +967,26 @@ def _palpation(data: dict[str, Any], base_r: float, height: float, thick: float,
 
 
 DATASET_CONTROLS = ("depth", "force")
+# mm: contact points are drawn at least this far inside the base's rim: the smooth outer surface
+# about a point is fitted to the nodes within 3 mm of it (mechanics.touch.FIT_RADIUS)
+DATASET_RIM_MM = 3.0
 
 
 @dataclass(frozen=True)
 class DatasetSpec:
     """What ``jointsim dataset`` samples (SI). Each press trajectory ("group") draws a target
-    sphere ``radius`` (m, uniform in the range), a contact centre ``xy`` uniform over the disc
-    of radius ``r_max`` (m) on the base plane, and the domain randomisation: ``membrane_scale``
+    sphere ``radius`` (m, uniform in the range), a contact point (where it first touches the
+    membrane, the target's centre solved from it) uniform over the disc of radius ``r_max`` (m)
+    about the axis, and the domain randomisation: ``membrane_scale``
     (multiplier of the membrane moduli, log-uniform), saline ``conductivity`` (S/m, uniform),
     ``contact_impedance`` (Ω·m², log-uniform, every electrode), an in-plane offset of each
     ring electrode uniform over a disc of radius ``electrode_jitter`` (m), ``snr_db``
     (uniform), and the target: rigid with probability ``rigid_fraction``, else soft with
     Young's modulus ``target_modulus`` (Pa, log-uniform). The target is pressed in steps of at
     most ``step`` (m) and ``samples_per_press`` samples are taken at depths past first contact
-    stratified over ``depth`` (m): one in each of as many equal slices of the range. The
+    stratified over ``depth`` (m): one in each of as many equal slices of the range (of the
+    part of it the dome allows at that point, where the sphere would otherwise come within a
+    membrane thickness of the base). The
     steady-state reference is the mean of ``reference_frames`` noisy frames; ``images`` stores
     each reconstructed image. ``control`` "force" takes the samples at contact forces (N, along
     z) stratified over ``force`` instead, the target lowered until each is reached; the depth
@@ -1033,7 +1039,8 @@ def _dataset(data: dict[str, Any], base_r: float, height: float, ring: float, ga
         radius = tuple(x / 2 for x in _range(t, "diameter_mm", (8.0, 30.0), 0.0, 10 * base_r, lo_open=True))
     else:
         radius = _range(t, "radius_mm", (4.0, 15.0), 0.0, 5 * base_r, lo_open=True)
-    r_max = t.number("r_max_mm", min(15.0, ring), 0.0, base_r, hi_open=True)
+    # contact points stay DATASET_RIM_MM inside the rim, where the dome's top meets its clamp
+    r_max = t.number("r_max_mm", min(15.0, ring), 0.0, base_r - DATASET_RIM_MM)
     # the membrane's inner surface reaches the base (and the electrodes) at about the dome height
     depth = _range(t, "depth_mm", (0.5, 3.0), 0.0, 0.9 * height, lo_open=True)
     k = t.integer("samples_per_press", d.samples_per_press, 1, 1000)

@@ -286,6 +286,9 @@ def test_map_loads_in_a_new_process_with_identical_predictions(built, stores):
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
     with np.load(out) as z:
         for k, v in here.items():
+            if k == "outside":  # the flags: equal as strings
+                assert z[k].tolist() == v.tolist()
+                continue
             # the same parameters give the same numbers up to the summation order of BLAS, which
             # depends on the process's threading state (bitwise equal alone; 1.7e-12 relative,
             # 1e-16 absolute, after the mechanics tests had run in this process); a parameter
@@ -493,6 +496,23 @@ def test_calibrated_frames_of_a_palpation_run(built):
     np.testing.assert_allclose(table["cal_depth"][ok], depth[ok], atol=0.3e-3)
     rows = summarise_calibrated(table)
     assert [r["frame"] for r in rows] == [3, 3] and abs(rows[0]["cal_x_mm"] - 3.0) < 0.3
+
+
+def test_a_map_knows_the_region_it_was_trained_on(built, stores):
+    """The map records what its training samples span (read back from its file) and flags
+    estimates outside it by name; a map without a recorded region flags nothing."""
+    from jointsim.calibration.maps import outside_region
+
+    r = built.map.region
+    assert 0 < r["r_max_m"] and r["depth_m"][0] < r["depth_m"][1] and r["diameter_m"][0] < r["diameter_m"][1]
+    assert load_map(save_map(built.map, stores["dir"] / "map_region.h5")).region == r
+    inside = np.array([r["depth_m"][0], r["diameter_m"][0]]) * 1.01
+    xy = np.array([[0.0, 0.0], [r["r_max_m"] * 1.01, 0.0], [0.0, 0.0]])
+    flags = outside_region(r, xy, np.array([inside[0], inside[0], r["depth_m"][1] * 2]),
+                           np.array([inside[1], r["diameter_m"][1] * 2, inside[1]]))
+    assert flags.tolist() == ["", "position+diameter", "depth"]
+    assert outside_region({}, xy, np.ones(3), np.ones(3)).tolist() == ["", "", ""]
+    assert built.evaluation["region"]["test_samples"] > 0
 
 
 def load_samples_like(built, rng, n):

@@ -19,6 +19,7 @@ from jointsim.scene import SceneError, load_scene, scene_from_dict, scene_toml
 
 ROOT = Path(__file__).resolve().parents[1]
 N, K, SEED = 7, 3, 3
+CONTACT_DRIFT = 1e-3  # m: centre of pressure from the point first touched, at <= 1.5 mm deep
 
 SCENE = """
 extends = "paper_sensor"
@@ -72,8 +73,8 @@ def reference(scene, scene_file, tmp_path_factory):
 def test_records_follow_the_contract(reference):
     run, rec = reference
     assert len(rec) == N and run.groups_run == 3 and run.samples_resumed == 0
-    assert rec.schema.name == "dataset" and rec.schema.version == 2
-    shapes = {"xy": (N, 2), "force": (N, 3), "electrode_jitter": (N, 16, 2), "voltages": (N, 256), "dv": (N, 256),
+    assert rec.schema.name == "dataset" and rec.schema.version == 3
+    shapes = {"xy": (N, 2), "contact_point": (N, 2), "force": (N, 3), "electrode_jitter": (N, 16, 2), "voltages": (N, 256), "dv": (N, 256),
               "reference_clean": (N, 256), "com": (N, 3), "timings": (N, 5)}
     for name, shape in shapes.items():
         assert rec[name].shape == shape, name
@@ -88,7 +89,7 @@ def test_labels_lie_in_the_requested_ranges(scene, reference):
     _, rec = reference
     d = scene.dataset
     assert ((rec["radius"] >= d.radius[0]) & (rec["radius"] <= d.radius[1])).all()
-    assert (np.hypot(*rec["xy"].T) <= d.r_max).all()
+    assert (np.hypot(*rec["contact_point"].T) <= d.r_max).all()
     assert ((rec["depth"] >= d.depth[0]) & (rec["depth"] <= d.depth[1])).all()
     for name, (lo, hi) in (("membrane_scale", d.membrane_scale), ("conductivity", d.conductivity),
                            ("contact_impedance", d.contact_impedance), ("snr_db", d.snr_db)):
@@ -98,12 +99,15 @@ def test_labels_lie_in_the_requested_ranges(scene, reference):
     assert np.isinf(rec["target_modulus"]).all()  # rigid_fraction = 1
     assert (rec["force"][:, 2] > 0).all() and (rec["displaced_volume"] > 0).all()
     # the contact lies on the line from the target's centre towards the dome's axis (the dome
-    # slopes away from it), on the outer surface (10 mm dome + 2 mm membrane at the apex)
-    c = rec["contact_centre"]
+    # slopes away from it), on the outer surface (10 mm dome + 2 mm membrane at the apex), about
+    # the point first touched: the centre of pressure moves with the patch as it grows
+    c, p = rec["contact_centre"], rec["contact_point"]
     r_t, r_c = np.hypot(*rec["xy"].T), np.hypot(*c[:, :2].T)
     assert (r_c < r_t).all() and (r_c > 0.3 * r_t).all()
     assert (np.einsum("ij,ij->i", c[:, :2], rec["xy"]) > 0.99 * r_c * r_t).all()
+    assert (np.einsum("ij,ij->i", p, rec["xy"]) > 0.99 * np.hypot(*p.T) * r_t).all()
     assert ((c[:, 2] > 3e-3) & (c[:, 2] < 12e-3)).all()
+    assert (np.linalg.norm(c[:, :2] - p, axis=1) < CONTACT_DRIFT).all()
 
 
 def test_groups_are_consistent(reference):
@@ -111,7 +115,7 @@ def test_groups_are_consistent(reference):
     one; its depths are stratified: one in each third of the range, increasing."""
     _, rec = reference
     np.testing.assert_array_equal(rec["group"], np.arange(N) // K)
-    per_group = ("radius", "xy", "target_modulus", "membrane_scale", "conductivity", "contact_impedance",
+    per_group = ("radius", "xy", "contact_point", "target_modulus", "membrane_scale", "conductivity", "contact_impedance",
                  "electrode_jitter", "snr_db", "reference_clean")
     for g in np.unique(rec["group"]):
         sel = rec["group"] == g
@@ -266,6 +270,22 @@ def test_force_control_samples_at_the_drawn_forces(scene, scene_file, tmp_path):
     assert rec.provenance["params"]["scene"]["dataset"]["control"] == "force"
 
 
+def test_contact_points_cover_the_disc_whatever_is_redrawn():
+    """Contact points, not target centres, are drawn uniformly over r <= r_max: over 4000 groups
+    the fraction past r = 0.9 r_max is 1 - 0.81 = 0.19 (±0.019 is three standard errors), the
+    mean angle's vector is ~0; a redrawn attempt keeps its group's point."""
+    from jointsim.scene import DatasetSpec
+
+    spec = DatasetSpec()
+    p = np.array([draw_group(spec, 0, g).contact_point for g in range(4000)])
+    r = np.hypot(*p.T)
+    assert r.max() <= spec.r_max
+    assert abs(np.mean(r > 0.9 * spec.r_max) - 0.19) < 0.019
+    assert np.linalg.norm(np.mean(p / r[:, None], axis=0)) < 3 / np.sqrt(4000)
+    assert draw_group(spec, 0, 7).xy is None
+    np.testing.assert_array_equal(draw_group(spec, 0, 7, attempt=3).contact_point, draw_group(spec, 0, 7).contact_point)
+
+
 def test_draws_are_seeded_per_group():
     from jointsim.scene import DatasetSpec
 
@@ -317,7 +337,7 @@ def test_schema_has_the_image_only_when_asked():
     [
         ({"radius_mm": [15.0, 4.0]}, r"dataset\.radius_mm = \[15, 4\]: min must not exceed max"),
         ({"diameter_mm": [-8.0, 30.0]}, r"dataset\.diameter_mm\[0\] = -8: must be in \(0, 200\]"),
-        ({"r_max_mm": 25.0}, r"dataset\.r_max_mm = 25: must be in \[0, 20\)"),
+        ({"r_max_mm": 25.0}, r"dataset\.r_max_mm = 25: must be in \[0, 17\]"),
         ({"depth_mm": [0.5, 12.0]}, r"dataset\.depth_mm\[1\] = 12: must be in \(0, 9\]"),
         ({"snr_db": [40.0, 300.0]}, r"dataset\.snr_db\[1\] = 300: must be in \[0, 200\]"),
         ({"membrane_scale": [2.0, 0.5]}, r"dataset\.membrane_scale = \[2, 0.5\]: min must not exceed max"),

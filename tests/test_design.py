@@ -10,7 +10,7 @@ import pytest
 
 from jointsim.cli.main import main
 from jointsim.design.bounds import Bounds, fisher, median_error, nuisance_prior, press_bounds
-from jointsim.design.sensitivity import TARGET, parameter_names, press_sensitivity, surface_slope
+from jointsim.design.sensitivity import TARGET, parameter_names, press_sensitivity
 from jointsim.instrument import Instrument
 from jointsim.mechanics.build import membrane_from_scene
 
@@ -117,19 +117,6 @@ def _pressed(scene, xy, d):
     m = _membrane(scene)
     _press(m, xy, d)
     return m.u
-
-
-def test_surface_slope_of_a_sphere():
-    """The cubic fit's slope on a sphere of radius 25 mm sampled like a membrane's surface (1 mm
-    apart, 3 mm about the point, 7 mm off the axis): the analytic −x/√(ρ² − r²) to 0.1 %."""
-    rho = 25e-3
-    g = np.arange(-3, 3.01, 1.0) * 1e-3
-    at = np.array([6e-3, -4e-3])
-    X, Y = np.meshgrid(at[0] + g, at[1] + g)
-    Z = np.sqrt(rho**2 - X**2 - Y**2)
-    slope = surface_slope(np.column_stack([X.ravel(), Y.ravel(), Z.ravel()]), at)
-    exact = -at / np.sqrt(rho**2 - at @ at)
-    np.testing.assert_allclose(slope, exact, rtol=1e-3)
 
 
 def test_the_bound_is_reached_by_least_squares_on_a_linear_model():

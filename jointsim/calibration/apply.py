@@ -49,6 +49,7 @@ def summarise_calibrated(table: dict[str, np.ndarray]) -> list[dict[str, Any]]:
         row["force_mN"] = float(table["force"][k] * 1e3)
         row["direct_force_mN"] = float(table["direct_force"][k] * 1e3)
         row["modulus_kPa"] = float(table["modulus"][k] / 1e3)
+        row["outside_trained_region"] = str(table["outside"][k])
         rows.append(row)
     return rows
 
@@ -60,7 +61,8 @@ def write_calibrated(out: str | Path, rec: Records, cmap: CalibrationMap, map_pa
     table = calibrate_frames(cmap, rec)
     written = [write_csv(out / "calibrated.csv", table)]
     meta = {"map": str(map_path), "map_created": cmap.created, "sensor_fingerprint": fingerprint_digest(cmap.fingerprint),
-            "size_route": cmap.size_route, "regressor": cmap.regressor.kind,
+            "size_route": cmap.size_route, "regressor": cmap.regressor.kind, "trained_region": cmap.region,
+            "frames_outside_trained_region": int(np.count_nonzero(table["outside"])),
             "stiffness": {"estimable": cmap.stiffness.estimable, "reason": cmap.stiffness.reason},
             "held_out_goals": cmap.evaluation.get("goals", []), "targets": summarise_calibrated(table)}
     with atomic_path(out / "calibrated.json") as tmp:

@@ -21,7 +21,7 @@ from ..io.provenance import package_versions, utc_now
 from .com import fit_com_map
 from .curves import ALONG, LevelCurves, default_levels, fit_level_curves, value_at
 from .data import Samples, split_groups, voltage_features
-from .maps import VERSION_PACKAGES, CalibrationMap
+from .maps import VERSION_PACKAGES, CalibrationMap, outside_region, trained_region
 from .regression import KINDS, OUTPUTS, fit_regressor, moved_by_symmetry, noisy_features, regression_targets
 from .stiffness import decades, fit_stiffness, force_sensitivity, group_features
 
@@ -346,6 +346,10 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
                           "unit": "" if q == "modulus" else "mm", "met": met, "verdict": verdict, "note": note})
     ev["goals"] = goals
     ev["warnings"] = worse_than_uncalibrated(ev["com"])
+    region = trained_region(train.position[:, :2], train.depth, train.size)
+    # held-out estimates outside what was trained are flagged, as apply() flags frames
+    flags = outside_region(region, direct[s.regressor][:, :2], direct[s.regressor][:, 2], direct[s.regressor][:, 3])
+    ev["region"] = {**region, "test_estimates_outside": int(np.count_nonzero(flags)), "test_samples": len(flags)}
 
     cmap = CalibrationMap(
         fingerprint=samples.fingerprint, com=com_map, size=curves, size_route=route, regressor=regs[s.regressor],
@@ -354,5 +358,6 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
                   "goal_snr_db": s.goal_snr_db, "snr_band_db": s.snr_band_db, "max_com_points": s.max_com_points,
                   "noise_copies": s.noise_copies, "symmetry": s.symmetry},
         evaluation=ev, versions=package_versions(VERSION_PACKAGES), created=utc_now("seconds"),
+        region=region,
     )
     return Calibration(cmap, ev, tables)

@@ -20,8 +20,8 @@ __all__ = ["SCHEMA_NAME", "SCHEMA_VERSION", "REQUIRED", "MIN_GROUPS", "Samples",
            "first_per_group", "voltage_features"]
 
 SCHEMA_NAME = "dataset"
-SCHEMA_VERSION = 2
-SCHEMA_VERSIONS = (1, 2)  # version 1 has no contact_centre: positions are then the target's centre
+SCHEMA_VERSION = 3
+SCHEMA_VERSIONS = (1, 2, 3)  # version 1 has no contact_centre: positions are then the target's centre; 3 adds contact_point
 REQUIRED = ("group", "radius", "xy", "depth", "target_modulus", "force", "snr_db", "voltages", "dv", "com",
             "sum_sigma", "diameter")
 MIN_GROUPS = 5  # 3 to fit, 2 held out, at the least

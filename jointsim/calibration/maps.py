@@ -12,7 +12,8 @@ CoM spline fitted the position itself with one smoothing, still load)::
 
     /            attrs: format, format_version, created, size_route, and JSON strings
                  fingerprint (the sensor), source (dataset path, digest, size), settings,
-                 evaluation (held-out errors), versions (packages that built it)
+                 evaluation (held-out errors), versions (packages that built it), region
+                 (what the training samples span; absent in maps written before it)
     /com         points (p, 3), values (p, 3) in mm (x, y: corrections to the CoM), smoothing
                  (p,); attrs kernel, degree
     /size/<along>__<metric>   levels (L,); x (diameter m), y (metric) (L, K) breakpoints of each
@@ -40,14 +41,15 @@ from .fingerprint import check_fingerprint, sensor_fingerprint
 from .regression import OUTPUTS, DirectRegressor
 from .stiffness import StiffnessModel
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "CalibrationMap", "save_map", "load_map", "APPLIED"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "CalibrationMap", "save_map", "load_map", "APPLIED", "trained_region",
+           "outside_region"]
 
 FORMAT = "jointsim-calibration"
 FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2)
 VERSION_PACKAGES = ("jointsim", "numpy", "scipy", "scikit-learn", "h5py")
 # what apply() returns per frame (SI): the image route, the direct regression, the modulus
-APPLIED = ("cal_x", "cal_y", "cal_depth", "cal_diameter", *(f"direct_{o}" for o in OUTPUTS), "modulus")
+APPLIED = ("cal_x", "cal_y", "cal_depth", "cal_diameter", *(f"direct_{o}" for o in OUTPUTS), "outside", "modulus")
 
 
 @dataclass(frozen=True)
@@ -55,7 +57,9 @@ class CalibrationMap:
     """A fitted calibration: the sensor ``fingerprint`` it holds for, the ``com`` map, the
     inverse ``size`` curves keyed ``"<along>/<metric>"`` and the per-frame ``size_route`` among
     them (best held-out), the ``regressor`` (voltages → x, y, depth, diameter, force), the
-    ``stiffness`` model, and JSON ``source``, ``settings``, ``evaluation``, ``versions``."""
+    ``stiffness`` model, and JSON ``source``, ``settings``, ``evaluation``, ``versions``, and
+    the ``region`` its training samples span (:func:`trained_region`; {} for a map written
+    before maps recorded it)."""
 
     fingerprint: dict[str, Any]
     com: ComMap
@@ -68,6 +72,7 @@ class CalibrationMap:
     evaluation: dict[str, Any] = field(default_factory=dict)
     versions: dict[str, str] = field(default_factory=dict)
     created: str = ""
+    region: dict[str, Any] = field(default_factory=dict)
 
     def check_scene(self, scene: Scene, what: str = "this calibration map") -> None:
         """Refuse (SceneMismatchError naming the values) a scene of another sensor."""
@@ -97,6 +102,7 @@ class CalibrationMap:
                "cal_diameter": self.size_of(metrics, pos[:, 2], fmag)}
         direct = self.regressor(voltage_features(frames["voltages"], dv))
         out.update({f"direct_{o}": direct[:, i] for i, o in enumerate(OUTPUTS)})
+        out["outside"] = outside_region(self.region, direct[:, :2], direct[:, 2], direct[:, 3])
         out["modulus"] = np.full(n, np.nan)
         if self.stiffness.estimable and "group" in frames and "depth" in frames:
             g, d = np.asarray(frames["group"]), np.asarray(frames["depth"], float)
@@ -106,6 +112,32 @@ class CalibrationMap:
             lookup = dict(zip(ids.tolist(), E.tolist()))
             out["modulus"] = np.array([lookup.get(i, np.nan) for i in g.tolist()])
         return out
+
+
+def trained_region(xy: np.ndarray, depth: np.ndarray, diameter: np.ndarray) -> dict[str, Any]:
+    """The region training samples span (JSON-ready, SI): the largest distance from the axis of
+    their positions ``xy`` (n, 2) m (where the target presses: the contact's centre of
+    pressure), and the ranges of ``depth`` and target ``diameter`` (n,) m."""
+    return {"r_max_m": float(np.hypot(*np.asarray(xy, float).T).max()),
+            "depth_m": [float(np.min(depth)), float(np.max(depth))],
+            "diameter_m": [float(np.min(diameter)), float(np.max(diameter))]}
+
+
+def outside_region(region: Mapping[str, Any], xy: np.ndarray, depth: np.ndarray, diameter: np.ndarray) -> np.ndarray:
+    """Per estimate (n,) str: what lies outside the ``region`` a map was trained on, of
+    "position" (``xy`` (n, 2) farther from the axis), "depth", "diameter" (n,), joined by "+";
+    "" where all lie inside. A map that recorded no region flags nothing."""
+    n = len(depth)
+    out = np.full(n, "", dtype=object)
+    if not region:
+        return out.astype(str)
+    lo_d, hi_d = region["depth_m"]
+    lo_s, hi_s = region["diameter_m"]
+    checks = {"position": np.hypot(*np.asarray(xy, float).T) > region["r_max_m"],
+              "depth": (depth < lo_d) | (depth > hi_d), "diameter": (diameter < lo_s) | (diameter > hi_s)}
+    for name, bad in checks.items():
+        out[bad] = [f"{o}+{name}" if o else name for o in out[bad]]
+    return out.astype(str)
 
 
 def _press_in(group: np.ndarray, depth: np.ndarray) -> np.ndarray:
@@ -135,6 +167,7 @@ def save_map(cmap: CalibrationMap, path: str | Path) -> Path:
                 format=FORMAT, format_version=FORMAT_VERSION, created=cmap.created or utc_now("seconds"), size_route=cmap.size_route,
                 fingerprint=_json(cmap.fingerprint), source=_json(cmap.source), settings=_json(cmap.settings),
                 evaluation=_json(cmap.evaluation), versions=_json(cmap.versions or package_versions(VERSION_PACKAGES)),
+                region=_json(cmap.region),
             )
             c = h5.create_group("com")
             c.create_dataset("points", data=cmap.com.points)
@@ -215,4 +248,5 @@ def load_map(path: str | Path) -> CalibrationMap:
         return CalibrationMap(
             json.loads(a["fingerprint"]), com, size, str(a["size_route"]), reg, st, json.loads(a["source"]),
             json.loads(a["settings"]), json.loads(a["evaluation"]), json.loads(a["versions"]), str(a["created"]),
+            json.loads(a["region"]) if "region" in a else {},
         )

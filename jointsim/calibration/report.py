@@ -169,6 +169,15 @@ def _stiffness_figure(out: Path, t: Mapping[str, np.ndarray]) -> Path:
     return _save(fig, out / "stiffness.png")
 
 
+def _region_text(r: Mapping[str, Any]) -> list[str]:
+    """The region the map was trained on, and the held-out estimates flagged outside it."""
+    return [f"Trained on presses within r ≤ {r['r_max_m'] * 1e3:.3g} mm of the axis (centre of pressure), "
+            f"{r['depth_m'][0] * 1e3:.3g}–{r['depth_m'][1] * 1e3:.3g} mm deep, targets of "
+            f"{r['diameter_m'][0] * 1e3:.3g}–{r['diameter_m'][1] * 1e3:.3g} mm diameter. Applied to frames, "
+            "an estimate outside this region is flagged (`outside` in calibrated.csv); "
+            f"{r['test_estimates_outside']} of {r['test_samples']} held-out samples' direct estimates were.", ""]
+
+
 def _fmt(v: Any, digits: int = 3) -> str:
     return "—" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.{digits}g}"
 
@@ -188,6 +197,7 @@ def _markdown(cal: Calibration, command: str, files: list[str]) -> str:
         "Every error below is on the held-out presses only.", "",
         f"Goal figures use {ev['goal_band']}.", "",
         *([f"**Warning:** {w}." for w in ev.get("warnings", [])] + [""] if ev.get("warnings") else []),
+        *(_region_text(ev["region"]) if "region" in ev else []),
         "## Goals (at 74 dB)", "",
         "| goal | route | statistic | limit | held-out value | verdict |", "|---|---|---|---|---|---|",
     ]

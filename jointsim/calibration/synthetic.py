@@ -89,7 +89,7 @@ def write_synthetic_dataset(
                        params={"synthetic": True, **(params or {})}, batch=n, fsync=False)
     for i in range(n):
         store.put(i, {
-            "group": g[i], "radius": Rg[i], "xy": xyg[i], "depth": d[i], "target_modulus": Eg[i],
+            "group": g[i], "radius": Rg[i], "xy": xyg[i], "contact_point": xyg[i], "depth": d[i], "target_modulus": Eg[i],
             "force": np.array([0.0, 0.0, fz[i]]), "contact_centre": np.array([*xyg[i], 0.0]), "contact_area": np.pi * Rg[i] * d[i], "displaced_volume": np.pi * Rg[i] * d[i] ** 2,
             "peak_strain": 0.1 * d[i] / MM, "membrane_scale": 1.0, "conductivity": 0.37, "contact_impedance": 1e-3,
             "electrode_jitter": np.zeros((N_ELECTRODES, 2)), "snr_db": snrg[i], "voltages_clean": ref + dv_clean[i],

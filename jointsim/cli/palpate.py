@@ -148,6 +148,7 @@ def run(args: argparse.Namespace) -> int:
         for r in json.loads((out / "calibrated.json").read_text())["targets"]:
             print(f"  calibrated, target {r['target']} at its deepest frame: x {r['cal_x_mm']:.2f} y {r['cal_y_mm']:.2f} mm, "
                   f"depth {r['cal_depth_mm']:.2f} mm (true {r['true_depth_mm']:.2f}), diameter {r['cal_diameter_mm']:.1f} mm "
-                  f"(true {r['true_diameter_mm']:.1f}), modulus {r['modulus_kPa']:.3g} kPa")
+                  f"(true {r['true_diameter_mm']:.1f}), modulus {r['modulus_kPa']:.3g} kPa"
+                  + (f"; {r['outside_trained_region']} outside the map's trained region" if r["outside_trained_region"] else ""))
     print(f"  wrote {out / 'palpation.h5'}, {len(written)} report files to {out}")
     return 0

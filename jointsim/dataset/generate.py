@@ -1,10 +1,17 @@
 """Labelled samples of one press trajectory ("group"): the draw, the press, the records.
 
-A group is one draw of target (radius, contact centre, stiffness) and domain randomisation
-(membrane moduli, saline conductivity, contact impedance, electrode positions, SNR). Its
-target comes down at ``xy`` onto the membrane inflated under that draw, and is pressed in
-quasi-static steps of at most ``[dataset] step_mm`` (each warm-started from the last) through
-``samples_per_press`` depths stratified over ``[dataset] depth_mm``; at each of them the
+A group is one draw of target (radius, contact point, stiffness) and domain randomisation
+(membrane moduli, saline conductivity, contact impedance, electrode positions, SNR). The
+contact point, where the target first touches the membrane, is drawn uniformly over the disc
+r ≤ ``[dataset] r_max_mm``, and the target's centre is solved from it on the membrane inflated
+under that draw (:func:`~jointsim.mechanics.touch.centre_touching`: off the axis the centre lies
+outside the point, by R sin θ on a surface tilted by θ), so the samples cover the disc their
+labels claim; drawing the *centre* over the disc left contacts past ~11 mm untrained. The
+target comes down there and is pressed in quasi-static steps of at most ``[dataset] step_mm``
+(each warm-started from the last) through ``samples_per_press`` depths stratified over
+``[dataset] depth_mm``, up to what the dome allows at that point (the sphere's lowest point
+stays a membrane thickness above the base: a large sphere touching near the ring reaches
+less deep, :func:`~jointsim.mechanics.touch.depth_reach`); at each of them the
 sample is taken: membrane state, morphed chamber, clean and noisy voltages, δV against the
 noisy steady-state reference, the instrument's image and its metrics. The marginal cost of a
 sample is therefore one or two mechanics steps, not a whole press. With ``control = "force"``
@@ -35,7 +42,9 @@ Electrode jitter: the electrodes are re-clipped, not the mesh moved
 
 Determinism
     Everything a group draws comes from ``SeedSequence(seed, spawn_key=(group, attempt, stream))``:
-    the same seed gives the same group whatever worker computes it and in whatever order. A
+    the same seed gives the same group whatever worker computes it and in whatever order. The
+    contact point is the group's, drawn once (attempt 0) and kept by every redraw, so what is
+    rejected never thins the disc's edge. A
     draw the mechanics or the chamber mesh cannot take (a sphere that would reach the base,
     a chamber that collapses onto the electrodes: ``UnreachablePose``; a Newton failure; an
     inverted morph) is rejected as a whole and the group draws again (attempt + 1),
@@ -57,6 +66,7 @@ from ..io.schema import Field, Schema
 from ..mechanics.build import membrane_from_scene
 from ..mechanics.dome import MembraneModel, UnreachablePose
 from ..mechanics.newton import NewtonError
+from ..mechanics.touch import centre_touching, depth_reach, point_touched
 from ..mesh.chamber import ChamberMesh
 from ..mesh.morph import MeshInversionError
 from ..metrics import metric_fields
@@ -67,23 +77,26 @@ __all__ = ["SCHEMA_NAME", "SCHEMA_VERSION", "STAGES", "GroupDraw", "DatasetSetup
            "dataset_params", "group_indices", "n_groups"]
 
 SCHEMA_NAME = "dataset"
-SCHEMA_VERSION = 2  # 2: contact_centre
+SCHEMA_VERSION = 3  # 2: contact_centre; 3: contact points drawn over the disc, contact_point
 STAGES = ("group_setup", "mechanics", "mesh", "forward", "reconstruction")
 MAX_ATTEMPTS = 16  # draws of one group before its failure is reported
+REACH_MARGIN = 1e-6  # m kept from the dome's depth limit at a contact point
 
 
 @dataclass(frozen=True)
 class GroupDraw:
-    """One press trajectory's draw (SI): target ``radius`` m, centre ``xy`` (2,) m,
+    """One press trajectory's draw (SI): target ``radius`` m, centre ``xy`` (2,) m (None:
+    solved on the group's membrane from ``contact_point``, where it first touches, (2,) m),
     ``modulus`` Pa (inf: rigid), ``membrane_scale``, ``conductivity`` S/m,
     ``contact_impedance`` Ω·m², ``jitter`` (n_el, 2) m, ``snr_db``, and the samples'
-    ``levels`` (K,), increasing: depths m past first contact, or contact forces N when the
-    spec's ``control`` is "force"."""
+    ``levels`` (K,), increasing: depths m past first contact (over the spec's range; scaled
+    into what the dome allows where it allows less), or contact forces N when the spec's
+    ``control`` is "force"."""
 
     group: int
     attempt: int
     radius: float
-    xy: np.ndarray
+    xy: np.ndarray | None
     modulus: float
     membrane_scale: float
     conductivity: float
@@ -91,6 +104,7 @@ class GroupDraw:
     jitter: np.ndarray
     snr_db: float
     levels: np.ndarray
+    contact_point: np.ndarray | None = None
 
 
 def _rng(seed: int, group: int, attempt: int, stream: int) -> np.random.Generator:
@@ -103,13 +117,15 @@ def _log_uniform(rng: np.random.Generator, lo_hi: tuple[float, float]) -> float:
 
 
 def draw_group(spec: DatasetSpec, seed: int, group: int, attempt: int = 0, n_electrodes: int = 16) -> GroupDraw:
-    """The draw of ``group`` (its ``attempt``-th): uniform radius, centre uniform over the
-    disc r ≤ r_max, log-uniform moduli scale, contact impedance and target modulus, uniform
-    conductivity and SNR, each electrode moved uniformly within a disc of radius
-    ``electrode_jitter``, K depths (or forces) one per equal slice of their range."""
+    """The draw of ``group`` (its ``attempt``-th): uniform radius, the contact point uniform
+    over the disc r ≤ r_max (the group's: the same for every attempt), log-uniform moduli
+    scale, contact impedance and target modulus, uniform conductivity and SNR, each electrode
+    moved uniformly within a disc of radius ``electrode_jitter``, K depths (or forces) one per
+    equal slice of their range. The target's centre is left to the press (``xy`` None)."""
     rng = _rng(seed, group, attempt, 0)
     radius = float(rng.uniform(*spec.radius))
-    r, phi = spec.r_max * math.sqrt(rng.uniform()), 2 * math.pi * rng.uniform()
+    at = _rng(seed, group, 0, 2).uniform(size=2)
+    r, phi = spec.r_max * math.sqrt(at[0]), 2 * math.pi * at[1]
     rigid = rng.uniform() < spec.rigid_fraction
     modulus = _log_uniform(rng, spec.target_modulus)
     scale = _log_uniform(rng, spec.membrane_scale)
@@ -122,9 +138,16 @@ def draw_group(spec: DatasetSpec, seed: int, group: int, attempt: int = 0, n_ele
     lo, hi = spec.force if spec.control == "force" else spec.depth
     levels = lo + (hi - lo) * (np.arange(k) + rng.uniform(size=k)) / k
     return GroupDraw(
-        group, attempt, radius, np.array([r * math.cos(phi), r * math.sin(phi)]), math.inf if rigid else modulus,
-        scale, sigma, z, np.column_stack([jr * np.cos(ja), jr * np.sin(ja)]), snr, levels,
+        group, attempt, radius, None, math.inf if rigid else modulus, scale, sigma, z,
+        np.column_stack([jr * np.cos(ja), jr * np.sin(ja)]), snr, levels, np.array([r * math.cos(phi), r * math.sin(phi)]),
     )
+
+
+def _where(draw: GroupDraw) -> str:
+    """Where ``draw`` presses, in words (mm)."""
+    if draw.contact_point is not None:
+        return f"touching at {np.round(draw.contact_point * 1e3, 2).tolist()} mm"
+    return f"centred at {np.round(draw.xy * 1e3, 2).tolist()} mm"
 
 
 def n_groups(n_samples: int, samples_per_press: int) -> int:
@@ -145,6 +168,8 @@ def dataset_schema(n_electrodes: int, n_meas: int, n_cells: int | None) -> Schem
         F("group", (), "int64", "", "press trajectory (group) id: samples of one group share the draw; split by group"),
         F("radius", (), "float64", "m", "target sphere radius"),
         F("xy", (2,), "float64", "m", "target centre in the base plane"),
+        F("contact_point", (2,), "float64", "m", "where the target first touches the untouched membrane's (smooth) outer "
+          "surface, in the base plane: drawn uniformly over the disc r <= r_max, the target centre solved from it"),
         F("depth", (), "float64", "m", "indentation past first contact (target centre below its first-contact height)"),
         F("target_modulus", (), "float64", "Pa", "target Young's modulus (inf: rigid)"),
         F("force", (3,), "float64", "N", "FEM contact force of the membrane on the target"),
@@ -232,7 +257,7 @@ class DatasetSetup:
             # only what a draw can cause: any other error (a bug, a bad setting) stops the run
             # rather than being redrawn around, as an int8 overflow once was
             except (UnreachablePose, NewtonError, MeshInversionError) as e:
-                errors.append(f"group {group} attempt {attempt} (radius {draw.radius * 1e3:.2f} mm, xy {np.round(draw.xy * 1e3, 2).tolist()} mm, "
+                errors.append(f"group {group} attempt {attempt} (radius {draw.radius * 1e3:.2f} mm, {_where(draw)}, "
                               f"target modulus {draw.modulus:.3g} Pa, membrane x{draw.membrane_scale:.2f}): {type(e).__name__}: {e}")
         raise ValueError(f"group {group}: no draw in {MAX_ATTEMPTS} could be pressed ({'; '.join(errors[-3:])}); "
                            "narrow [dataset] depth_mm, radius_mm or r_max_mm")
@@ -243,6 +268,7 @@ class DatasetSetup:
         t: dict[str, float] = {}
         with timed(t, "group_setup"):
             model = self._membrane(draw)
+            draw, levels = self._placed(draw, model)
             ref_dome = inst.dome(model.u)
             ref_chamber = inst.deform(ref_dome).chamber
             rng = _rng(self.seed, draw.group, draw.attempt, 1)
@@ -254,7 +280,7 @@ class DatasetSetup:
             contact_z = model.first_contact_height(draw.xy)
         share = t["group_setup"] / n_samples
         records, depth_done = [], 0.0
-        for level in draw.levels[:n_samples]:
+        for level in levels[:n_samples]:
             t = {s: 0.0 for s in STAGES}
             t["group_setup"] = share
             with timed(t, "mechanics"):
@@ -272,7 +298,7 @@ class DatasetSetup:
             r = inst.measure(inst.dome(st.u), rng, readout=readout, reference=ref_dome)
             t.update(r.timings)
             rec = {
-                "group": draw.group, "radius": draw.radius, "xy": draw.xy, "depth": d, "target_modulus": draw.modulus,
+                "group": draw.group, "radius": draw.radius, "xy": draw.xy, "contact_point": draw.contact_point, "depth": d, "target_modulus": draw.modulus,
                 "force": st.force, "contact_centre": st.contact_centre, "contact_area": st.contact_area, "displaced_volume": st.displaced_volume,
                 "peak_strain": st.peak_strain, "membrane_scale": draw.membrane_scale, "conductivity": draw.conductivity,
                 "contact_impedance": draw.contact_impedance, "electrode_jitter": draw.jitter, "snr_db": draw.snr_db,
@@ -285,6 +311,29 @@ class DatasetSetup:
             records.append(rec)
         readout.free()
         return records
+
+    def _placed(self, draw: GroupDraw, model: MembraneModel) -> tuple[GroupDraw, np.ndarray]:
+        """``draw`` with both its target centre and its contact point on ``model`` (the group's
+        untouched membrane), the other solved from the one given; and its levels, the depths
+        scaled into what the dome allows there (:func:`~jointsim.mechanics.touch.depth_reach`)
+        where it allows less than the spec's range. UnreachablePose where it allows less than
+        the range's start."""
+        if draw.xy is None:
+            draw = replace(draw, xy=centre_touching(model, draw.contact_point)[:2])
+        elif draw.contact_point is None:
+            draw = replace(draw, contact_point=point_touched(model, draw.xy))
+        levels = draw.levels
+        if self.spec.control == "depth":
+            lo, hi = self.spec.depth
+            # a hair short of the limit: press() refuses the lowest point below it by round-off
+            reach = depth_reach(model, model.first_contact_height(draw.xy)) - REACH_MARGIN
+            if reach < levels[0]:
+                raise UnreachablePose(f"a {2 * draw.radius * 1e3:.3g} mm target touching at "
+                                      f"{np.round(draw.contact_point * 1e3, 2).tolist()} mm reaches {max(reach, 0) * 1e3:.3g} mm "
+                                      f"deep, less than the first depth {levels[0] * 1e3:.3g} mm")
+            if reach < hi:  # (then hi > lo: reach ≥ levels[0] ≥ lo)
+                levels = lo + (levels - lo) * (reach - lo) / (hi - lo)
+        return draw, levels
 
     def _membrane(self, draw: GroupDraw) -> MembraneModel:
         """The membrane of ``draw`` (moduli scaled, inflated by the reservoir, untouched) with

@@ -43,9 +43,9 @@ import numpy as np
 from ..eit.parameters import conductivity_sensitivity, contact_impedance_sensitivity, electrode_position_sensitivity, moved_discs
 from ..instrument import Instrument
 from ..mechanics.dome import MembraneModel
+from ..mechanics.touch import touch
 
-__all__ = ["TARGET", "ELECTRODE_STEP", "PressSensitivity", "parameter_names", "press_sensitivity", "electrode_moves",
-           "surface_slope", "touch"]
+__all__ = ["TARGET", "ELECTRODE_STEP", "PressSensitivity", "parameter_names", "press_sensitivity", "electrode_moves"]
 
 TARGET = ("x", "y", "depth", "radius")  # the target's parameters, m
 # m: an electrode's move either way for its position derivative (a difference of clipped moments,
@@ -102,35 +102,6 @@ def _electrical(inst: Instrument, chamber, moves: list, step: float) -> np.ndarr
     dsigma = conductivity_sensitivity(fields, ro.protocol, dz)
     dc = electrode_position_sensitivity(fields, ro.protocol, moves, step)
     return np.column_stack([dsigma, dz.T, dc.reshape(-1, ro.n_meas).T])
-
-
-# the outer surface's nodes fitted by a cubic about the touching node: within this radius (m)
-# of it, at least FIT_NODES of them (a 64-rim membrane's P2 surface has nodes ~1 mm apart: ~30
-# within 3 mm). A quadratic erred by 1 % of the slope 7 mm off the axis of a 25 mm sphere, the
-# cubic by 0.03 % (tests/test_design.py)
-FIT_RADIUS = 3e-3
-FIT_NODES = 20
-
-
-def surface_slope(points: np.ndarray, at: np.ndarray) -> np.ndarray:
-    """∇f (2,) at ``at`` (2,) of the cubic z = f(x, y) fitted (least squares) to ``points``
-    (k ≥ 10, 3) around it: the smooth surface's slope where the faceted one has none."""
-    d = points[:, :2] - at
-    x, y = d[:, 0], d[:, 1]
-    A = np.column_stack([np.ones(len(d)), x, y, x * x, x * y, y * y, x**3, x * x * y, x * y * y, y**3])
-    coef = np.linalg.lstsq(A, points[:, 2], rcond=None)[0]
-    return coef[1:3]
-
-
-def touch(model: MembraneModel, xy: np.ndarray) -> tuple[int, np.ndarray]:
-    """(index into the contact's nodes of the node the sphere coming down at ``xy`` touches
-    first, ∇f (2,) of the outer surface there)."""
-    c = model.contact
-    n = model.first_contact(xy)[1]
-    x = c.X[c.nodes] + model.u[c.nodes]
-    dist = np.linalg.norm(x[:, :2] - x[n, :2], axis=1)
-    radius = max(FIT_RADIUS, float(np.sort(dist)[min(FIT_NODES, len(dist) - 1)]))
-    return n, surface_slope(x[dist <= radius], x[n, :2])
 
 
 def press_sensitivity(inst: Instrument, model: MembraneModel, xy: np.ndarray, depths: np.ndarray, *,
