@@ -313,7 +313,7 @@ def test_only_draws_the_simulator_cannot_take_are_redrawn():
             raise failures.pop(0)
         return [{"radius": draw.radius}] * k
 
-    fake = SimpleNamespace(spec=spec, seed=0, n_electrodes=16, press=press)
+    fake = SimpleNamespace(spec=spec, seed=0, n_electrodes=16, press=press, presses=None)
     records, errors = DatasetSetup.group(fake, 3, n_samples=2)
     assert len(records) == 2 and len(errors) == 2
     assert records[0]["radius"] == draw_group(spec, 0, 3, 2, 16).radius  # the third attempt's draw
@@ -323,7 +323,7 @@ def test_only_draws_the_simulator_cannot_take_are_redrawn():
         raise ValueError("a bug, not a draw")
 
     with pytest.raises(ValueError, match=r"^a bug, not a draw$"):  # not redrawn MAX_ATTEMPTS times
-        DatasetSetup.group(SimpleNamespace(spec=spec, seed=0, n_electrodes=16, press=faulty), 3)
+        DatasetSetup.group(SimpleNamespace(spec=spec, seed=0, n_electrodes=16, press=faulty, presses=None), 3)
 
 
 def test_schema_has_the_image_only_when_asked():

@@ -2,7 +2,8 @@
 (target radius, contact position, depth, stiffness, and domain randomisation of the membrane,
 saline, contact impedance, electrode positions and noise), one labelled sample per depth along
 each press: labels, force, displaced volume, clean and noisy voltages, dV, image metrics and
-optionally the image. Writes OUT.h5 (schema "dataset", provenance, data_sha256). The same seed
+optionally the image; or the presses of a list (--presses CSV: a calibration rig's raster).
+Writes OUT.h5 (schema "dataset", provenance, data_sha256). The same seed
 gives the same data whatever the workers; a run killed at any moment resumes when run again
 with the same settings. Local worker processes by default; --scheduler runs the groups on an
 existing Dask distributed cluster whose workers see OUT's folder."""
@@ -27,7 +28,10 @@ HELP = "synthetic labelled dataset (voltages, labels, force, image metrics) in o
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
-    p.add_argument("--n", type=int, required=True, help="number of labelled samples")
+    p.add_argument("--n", type=int, help="number of labelled samples (required unless --presses gives them)")
+    p.add_argument("--presses", type=Path, metavar="CSV",
+                   help="press these presses instead of drawn ones: a CSV with contact_x_mm, contact_y_mm (or the targets' "
+                        "centres x_mm, y_mm), diameter_mm, optionally modulus_kpa and depth_mm (one row per sample)")
     p.add_argument("--out", type=Path, default=Path("out/dataset.h5"), help="output file (default out/dataset.h5)")
     p.add_argument("--seed", type=int, help="dataset seed (default: the scene's [noise] seed)")
     p.add_argument("--workers", type=int, help=f"local worker processes (default: one per core, here {available_cores()})")
@@ -45,6 +49,23 @@ def run(args: argparse.Namespace) -> int:
     scene = scene_from_args(args)
     if args.images is not None:
         scene = replace(scene, dataset=replace(scene.dataset, images=args.images))
+    presses = None
+    if args.presses is not None:
+        from ..dataset.presses import read_presses
+
+        try:
+            presses = read_presses(args.presses)
+        except ValueError as e:
+            raise ValueError(f"--presses: {e}") from None
+        k_list = presses.samples_per_press or scene.dataset.samples_per_press
+        scene = replace(scene, dataset=replace(scene.dataset, samples_per_press=k_list))
+        if args.n is None:
+            args.n = len(presses) * k_list
+        elif args.n != len(presses) * k_list:
+            raise ValueError(f"--n = {args.n}: the press list {args.presses} has {len(presses)} presses x {k_list} depths "
+                             f"= {len(presses) * k_list} samples (leave --n out to take them all)")
+    if args.n is None:
+        raise ValueError("--n: the number of labelled samples is required (or --presses CSV)")
     if args.n < 1:
         raise ValueError(f"--n = {args.n}: must be >= 1 (labelled samples)")
     if args.seed is not None and not 0 <= args.seed <= 2**63 - 1:
@@ -54,9 +75,11 @@ def run(args: argparse.Namespace) -> int:
     d = scene.dataset
     k = d.samples_per_press
     where = f"Dask scheduler {args.scheduler}" if args.scheduler else f"{args.workers or available_cores()} local worker(s)"
+    what = (f"the presses of {args.presses}" if presses is not None else
+            f"radius {d.radius[0] * 1e3:g}-{d.radius[1] * 1e3:g} mm, depth {d.depth[0] * 1e3:g}-{d.depth[1] * 1e3:g} mm, "
+            f"contact points r <= {d.r_max * 1e3:g} mm")
     print(f"jointsim dataset: scene {scene.name}, mesh {scene.mesh.preset} P{scene.mesh.element_order}, {args.n} samples "
-          f"({-(-args.n // k)} presses x {k} depths), radius {d.radius[0] * 1e3:g}-{d.radius[1] * 1e3:g} mm, "
-          f"depth {d.depth[0] * 1e3:g}-{d.depth[1] * 1e3:g} mm, r <= {d.r_max * 1e3:g} mm, {where} -> {args.out}")
+          f"({-(-args.n // k)} presses x {k} depths), {what}, {where} -> {args.out}")
     bar = tqdm(total=args.n, unit="sample", desc="dataset", disable=None if args.progress is None else not args.progress, smoothing=0.1)
 
     def start(done: int, todo: int) -> None:
@@ -68,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     with bar:
         res = generate_dataset(scene, args.n, args.out, seed=args.seed, workers=args.workers, scheduler=args.scheduler,
                                scene_toml=scene_toml(args.scene), command=command, progress=bar.update,
-                               on_start=start)
+                               on_start=start, presses=presses)
     if res.groups_run == 0:
         print(f"  {res.path} is complete ({res.n_samples} samples): nothing to do")
     else:

@@ -72,8 +72,9 @@ from ..mesh.morph import MeshInversionError
 from ..metrics import metric_fields
 from ..scene import UNRECORDED_ELEMENT, DatasetSpec, Scene
 from ..timing import timed
+from .presses import PressList
 
-__all__ = ["SCHEMA_NAME", "SCHEMA_VERSION", "STAGES", "GroupDraw", "DatasetSetup", "draw_group", "dataset_schema",
+__all__ = ["SCHEMA_NAME", "SCHEMA_VERSION", "STAGES", "GroupDraw", "DatasetSetup", "draw_group", "listed_draw", "dataset_schema",
            "dataset_params", "group_indices", "n_groups"]
 
 SCHEMA_NAME = "dataset"
@@ -105,6 +106,7 @@ class GroupDraw:
     snr_db: float
     levels: np.ndarray
     contact_point: np.ndarray | None = None
+    fixed_levels: bool = False  # the levels are a press list's own depths: never scaled
 
 
 def _rng(seed: int, group: int, attempt: int, stream: int) -> np.random.Generator:
@@ -141,6 +143,19 @@ def draw_group(spec: DatasetSpec, seed: int, group: int, attempt: int = 0, n_ele
         group, attempt, radius, None, math.inf if rigid else modulus, scale, sigma, z,
         np.column_stack([jr * np.cos(ja), jr * np.sin(ja)]), snr, levels, np.array([r * math.cos(phi), r * math.sin(phi)]),
     )
+
+
+def listed_draw(draw: GroupDraw, presses: PressList, spec: DatasetSpec) -> GroupDraw:
+    """``draw`` (its sensor randomisation) pressing the press list's press ``draw.group``: its
+    place, radius and modulus, and its depths (else the centres of the spec's K depth slices)."""
+    g = draw.group
+    k = spec.samples_per_press
+    lo, hi = spec.force if spec.control == "force" else spec.depth
+    levels = presses.depths[g] if presses.depths is not None else lo + (hi - lo) * (np.arange(k) + 0.5) / k
+    xy = presses.xy[g].copy()
+    return replace(draw, radius=float(presses.radius[g]), modulus=float(presses.modulus[g]), levels=levels,
+                   xy=xy if presses.place == "centre" else None, contact_point=xy if presses.place == "contact" else None,
+                   fixed_levels=presses.depths is not None)
 
 
 def _where(draw: GroupDraw) -> str:
@@ -209,11 +224,12 @@ LATER_KEYS: dict[tuple[str, str], object] = {("membrane", "moulding"): "cap", ("
                                              ("drive", "stim"): None, ("drive", "meas"): None}
 
 
-def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str) -> dict[str, Any]:
+def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str, presses: PressList | None = None) -> dict[str, Any]:
     """What shapes the data beyond the scene file's text: the effective scene (after
     command-line overrides: sampling spec, mesh, membrane, noise, reconstruction settings; not
     the palpation program, which a dataset does not use), N, the stimulation and measurement
-    patterns with the voltages' channel order, and the chamber mesh used (a
+    patterns with the voltages' channel order, the press list when one is given, and the
+    chamber mesh used (a
     resumed run continues on the mesh it started with, whatever mesher version the machine
     has). JSON-ready; the store's identity."""
     d = scene.to_dict()
@@ -222,8 +238,11 @@ def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str) -> dict[st
     for (section, key), before in LATER_KEYS.items():
         if d[section].get(key) == before:
             del d[section][key]
-    return {"scene": d, "n_samples": int(n_samples), "chamber_sha256": chamber_sha256,
-            "protocol": scene_protocol(scene).to_record()}
+    params = {"scene": d, "n_samples": int(n_samples), "chamber_sha256": chamber_sha256,
+              "protocol": scene_protocol(scene).to_record()}
+    if presses is not None:  # recorded only when given: a store of drawn presses keeps its identity
+        params["presses"] = presses.to_record()
+    return params
 
 
 class DatasetSetup:
@@ -231,10 +250,11 @@ class DatasetSetup:
     :class:`~jointsim.instrument.Instrument` of ``scene`` on ``chamber`` (morpher, protocol,
     voxel grid, reconstruction matrix) and the record schema."""
 
-    def __init__(self, scene: Scene, chamber: ChamberMesh, seed: int):
+    def __init__(self, scene: Scene, chamber: ChamberMesh, seed: int, presses: PressList | None = None):
         self.scene = scene
         self.spec = scene.dataset
         self.seed = int(seed)
+        self.presses = presses
         self.instrument = Instrument.build(scene, chamber=chamber, reference_frames=self.spec.reference_frames)
         self.n_electrodes = scene.electrodes.n_active  # the electrodes a draw moves
         inst = self.instrument
@@ -252,6 +272,8 @@ class DatasetSetup:
         errors = []
         for attempt in range(MAX_ATTEMPTS):
             draw = draw_group(self.spec, self.seed, group, attempt, self.n_electrodes)
+            if self.presses is not None:
+                draw = listed_draw(draw, self.presses, self.spec)
             try:
                 return self.press(draw, k), errors
             # only what a draw can cause: any other error (a bug, a bad setting) stops the run
@@ -327,6 +349,9 @@ class DatasetSetup:
             lo, hi = self.spec.depth
             # a hair short of the limit: press() refuses the lowest point below it by round-off
             reach = depth_reach(model, model.first_contact_height(draw.xy)) - REACH_MARGIN
+            if draw.fixed_levels and reach < levels[-1]:  # a listed depth is the user's: not scaled, not redrawn
+                raise ValueError(f"press {draw.group} ({_where(draw)}, {2 * draw.radius * 1e3:.3g} mm): depth "
+                                 f"{levels[-1] * 1e3:.4g} mm is past what the dome allows there ({max(reach, 0) * 1e3:.3g} mm)")
             if reach < levels[0]:
                 raise UnreachablePose(f"a {2 * draw.radius * 1e3:.3g} mm target touching at "
                                       f"{np.round(draw.contact_point * 1e3, 2).tolist()} mm reaches {max(reach, 0) * 1e3:.3g} mm "

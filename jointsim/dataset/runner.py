@@ -41,7 +41,7 @@ import os
 import tempfile
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -57,6 +57,7 @@ from ..mesh.tetmesh import TetMesh
 from ..instrument import deployed_chamber
 from ..scene import Scene
 from .generate import DatasetSetup, dataset_params, dataset_schema, group_indices
+from .presses import PressList
 
 __all__ = ["DatasetRun", "generate_dataset", "default_workers", "THREAD_VARIABLES"]
 
@@ -138,25 +139,26 @@ _WORKER: dict[str, Any] = {}
 _WORKER_LOCK = threading.Lock()
 
 
-def _worker(path: str, scene: Scene, seed: int) -> tuple[DatasetSetup, RecordStore]:
+def _worker(path: str, scene: Scene, seed: int, presses: PressList | None) -> tuple[DatasetSetup, RecordStore]:
     """This process's set-up and store writer for the run at ``path``, built on first use."""
-    key = (path, seed, scene.digest())
+    key = (path, seed, scene.digest(), None if presses is None else json.dumps(presses.to_record()))
     if _WORKER.get("key") != key:
         if "setup" in _WORKER:
             _WORKER.pop("setup").free()
         final, partial = _paths(path)
         chamber, _ = _load_chamber(partial, scene)
-        setup = DatasetSetup(scene, chamber, seed)
+        setup = DatasetSetup(scene, chamber, seed, presses)
         _WORKER.update(key=key, setup=setup)
     # a fresh writer per group: a retried or resubmitted group may write its indices again
     return _WORKER["setup"], attach(_paths(path)[0], batch=scene.dataset.samples_per_press)
 
 
-def _run_group(path: str, scene: Scene, seed: int, group: int, n_samples: int) -> tuple[int, int, list[str], float]:
+def _run_group(path: str, scene: Scene, seed: int, group: int, n_samples: int,
+               presses: PressList | None = None) -> tuple[int, int, list[str], float]:
     """Compute and store ``group`` (one record file); returns (group, samples, why draws were rejected, s)."""
     with _WORKER_LOCK:  # one group at a time per process: the set-up is not thread-safe
         t0 = time.perf_counter()
-        setup, store = _worker(path, scene, seed)
+        setup, store = _worker(path, scene, seed, presses)
         records, rejected = setup.group(group)
         idx = group_indices(group, n_samples, setup.spec.samples_per_press)
         for i, rec in zip(idx, records):
@@ -194,6 +196,23 @@ def _run_dask(tasks: Sequence[tuple], scheduler: Any, tick: Callable[[tuple], No
 # The driver
 
 
+def _with_presses(scene: Scene, presses: PressList, n_samples: int) -> Scene:
+    """``scene`` with the press list's samples per press; refuses a list the scene cannot take
+    or an ``n_samples`` other than the list's."""
+    from ..scene import DATASET_RIM_MM
+
+    spec = scene.dataset
+    if presses.depths is not None and spec.control == "force":
+        raise ValueError("a press list with depth_mm: the scene's [dataset] control is \"force\" (its samples are at "
+                         "forces); give the list without depths or set control = \"depth\"")
+    presses.check_within(scene.chamber.base_radius - DATASET_RIM_MM * 1e-3, 0.9 * scene.chamber.dome_height)
+    k = presses.samples_per_press or spec.samples_per_press
+    if n_samples != len(presses) * k:
+        raise ValueError(f"n_samples = {n_samples}: the press list has {len(presses)} presses x {k} depths = "
+                         f"{len(presses) * k} samples")
+    return replace(scene, dataset=replace(spec, samples_per_press=k))
+
+
 def generate_dataset(
     scene: Scene,
     n_samples: int,
@@ -206,6 +225,7 @@ def generate_dataset(
     command: Sequence[str] | None = None,
     progress: Callable[[int], None] | None = None,
     on_start: Callable[[int, int], None] | None = None,
+    presses: PressList | None = None,
 ) -> DatasetRun:
     """Generate (or resume, or find finished) the dataset of ``n_samples`` labelled samples
     of ``scene`` (its [dataset] section) at ``out`` (``.h5`` appended without an HDF5 suffix).
@@ -222,6 +242,9 @@ def generate_dataset(
     command : the command line recorded with the session (default ``sys.argv``)
     progress : told the number of samples of each group as it is stored
     on_start : told (samples already stored, samples to compute) before the work starts
+    presses : a :class:`~jointsim.dataset.presses.PressList`: these presses, one group each, instead
+        of drawn ones (``n_samples`` must then be its length × its samples per press, the
+        list's own depths' count or the scene's); the sensor's randomisation is still drawn
     """
     t0 = time.perf_counter()
     if not isinstance(n_samples, (int, np.integer)) or isinstance(n_samples, bool) or n_samples < 1:
@@ -229,6 +252,8 @@ def generate_dataset(
     seed = scene.noise.seed if seed is None else seed
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or not 0 <= seed <= MAX_SEED:
         raise ValueError(f"seed = {seed!r}: must be an integer in [0, 2^63 - 1]")
+    if presses is not None:
+        scene = _with_presses(scene, presses, n_samples)
     workers = default_workers() if workers is None else workers
     if not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ValueError(f"workers = {workers!r}: must be an integer >= 1")
@@ -239,7 +264,7 @@ def generate_dataset(
             prov = rec.provenance
             same = prov["schema"]["name"] == "dataset" and prov["n_records"] == n_samples and prov["seed"] == seed
             if same:
-                want = dataset_params(scene, n_samples, prov["params"].get("chamber_sha256", ""))
+                want = dataset_params(scene, n_samples, prov["params"].get("chamber_sha256", ""), presses)
                 same = json.loads(json.dumps(want)) == prov["params"]
             if not same:
                 raise ValueError(f"{final} holds a finished run with other settings; remove it or write to another path")
@@ -266,7 +291,7 @@ def generate_dataset(
         n_meas = scene_protocol(scene).n_meas
         schema = dataset_schema(scene.electrodes.n_active, n_meas, n_cells)
         store = open_store(final, schema, scene_toml=scene_toml if scene_toml is not None else f'name = "{scene.name}"\n',
-                           seed=int(seed), n_records=int(n_samples), params=dataset_params(scene, n_samples, sha),
+                           seed=int(seed), n_records=int(n_samples), params=dataset_params(scene, n_samples, sha, presses),
                            command=command)
         missing = store.missing()
         todo = np.unique(missing // k)
@@ -279,7 +304,7 @@ def generate_dataset(
             if progress is not None:
                 progress(result[1])
 
-        tasks = [(str(final), scene, int(seed), int(g), int(n_samples)) for g in todo]
+        tasks = [(str(final), scene, int(seed), int(g), int(n_samples), presses) for g in todo]
         if tasks:
             if scheduler is not None:
                 _run_dask(tasks, scheduler, tick)
