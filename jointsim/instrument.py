@@ -53,7 +53,7 @@ from .reconstruction.tikhonov import SVD, Reconstructor, choose_lambda
 from .scene import Scene
 from .timing import timed
 
-__all__ = ["STAGES", "Instrument", "Readout", "Imager", "Reading", "deployed_chamber", "displaced_centroid"]
+__all__ = ["STAGES", "Instrument", "Readout", "Imager", "Reading", "deployed_chamber", "dent_centroid"]
 
 STAGES = ("mesh", "forward", "reconstruction")  # a frame step's stages, timed in Reading.timings
 # × membrane thickness: how far the chamber's dome may lie off the membrane's inner surface.
@@ -260,8 +260,8 @@ class Reading:
     """What the frame step gives: the deformed inner surface ``dome`` it was given, the
     ``chamber`` (path taken, quality), the clean and measured voltages (n_meas,) V and their
     changes against the reference, the ``image`` (n_cells,) S/m, its noise-normalised version
-    and ``metrics`` (None without an image or when it is all zero), the displaced saline's
-    centroid ``true_centre`` (3,) m (NaN when not asked for or none), and the stages' wall
+    and ``metrics`` (None without an image or when it is all zero), the dent's centroid
+    ``true_centre`` (3,) m (:func:`dent_centroid`; NaN when not asked for or none), and the stages' wall
     ``timings`` s (:data:`STAGES`)."""
 
     dome: DomeSurface
@@ -277,15 +277,29 @@ class Reading:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def displaced_centroid(reference: ChamberMesh, chamber: ChamberMesh) -> np.ndarray:
-    """Centroid (3,) of the saline ``chamber`` lost against ``reference``: (V₀c₀ − V c)/(V₀ − V);
-    NaN when none was lost."""
-    a, b = reference.mesh, chamber.mesh
-    va, vb = a.volumes, b.volumes
-    lost = va.sum() - vb.sum()
-    if lost <= 1e-9 * va.sum():
+def dent_centroid(reference: DomeSurface, dome: DomeSurface) -> np.ndarray:
+    """Centroid (3,) m of the dent: the saline displaced where the membrane's inner surface
+    moved *in* from ``reference`` to ``dome`` (the same triangles); NaN where it moved in
+    nowhere. Each triangle sweeps ΔV = −d̄·S̄ (d̄ its vertices' mean move, S̄ its outward area
+    vector averaged over the two states), centred half-way along the move; the centroid is
+    over the triangles with ΔV > 0. The bulges a press raises about the dent are left out: the
+    centroid of the *net* saline lost, (V₀c₀ − V c)/(V₀ − V), divides by a small difference and
+    fell outside the chamber for off-axis presses (x = 21 mm for a press at 12 mm, past the
+    20 mm base)."""
+    a, b = reference.vertices, dome.vertices
+    f = reference.faces
+
+    def area_vectors(x: np.ndarray) -> np.ndarray:
+        return 0.5 * np.cross(x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]])
+
+    S = 0.5 * (area_vectors(a) + area_vectors(b))
+    ca, cb = a[f].mean(axis=1), b[f].mean(axis=1)
+    S *= np.sign(np.einsum("ij,ij->", area_vectors(a), ca))  # outward: the enclosed volume Σ S·c/3 > 0
+    swept = -np.einsum("ij,ij->i", cb - ca, S)
+    w = np.where(swept > 0, swept, 0.0)
+    if w.sum() <= 1e-12 * abs(np.einsum("ij,ij->", area_vectors(a), ca)) / 3:
         return np.full(3, np.nan)
-    return (va @ a.centroids - vb @ b.centroids) / lost
+    return w @ (0.5 * (ca + cb)) / w.sum()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -422,8 +436,8 @@ class Instrument:
         its chamber and clean voltages are reused, as a recomputation would give them, and only
         the noise is drawn anew. ``reference``: the untouched dome a remesh is pulled back onto
         (default the instrument's; a dataset's randomised membrane has its own).
-        ``truth_volume``: the displaced volume m³ from the mechanics; given, the displaced
-        saline's centroid is computed and the metrics are taken against both."""
+        ``truth_volume``: the displaced volume m³ from the mechanics; given, the dent's centroid
+        (:func:`dent_centroid`) is computed and the metrics are taken against both."""
         ro = self.readout if readout is None else readout
         t = {s: 0.0 for s in STAGES}
         same = last is not None and np.array_equal(last.dome.vertices, dome.vertices)
@@ -437,7 +451,7 @@ class Instrument:
         centre = np.full(3, np.nan)
         with timed(t, "reconstruction"):
             if truth_volume is not None:
-                centre = displaced_centroid(self.reference, dc.chamber)
+                centre = dent_centroid(self.reference_dome if reference is None else reference, dome)
             if image and self.imager is not None:
                 img, normalised, metrics = self.imager.image(dv, centre, truth_volume)
         return Reading(dome, dc, clean, v, dv_clean, dv, img, normalised, metrics, centre, t)

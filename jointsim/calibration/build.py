@@ -116,6 +116,20 @@ class Calibration:
 
 SIZE_BINS = (8e-3, 12e-3, 16e-3, 20e-3, 25e-3, 30e-3 + 1e-9)  # m, true diameter
 DEPTH_BINS = (0.0, 1e-3, 2e-3, 3e-3 + 1e-9)  # m, true depth
+RADIUS_BINS = (0.0, 3e-3, 6e-3, 9e-3, 12e-3, 15e-3, np.inf)  # m, the true position's distance from the axis
+
+
+def _position_by_radius(xy_true: np.ndarray, xy_pred: np.ndarray) -> list[dict[str, Any]]:
+    """Held-out in-plane errors per bin of the true position's distance from the axis: n,
+    median and P95 (m). Where over the sensor the position is read, and where it was not trained."""
+    r = np.hypot(*xy_true.T)
+    e = np.linalg.norm(xy_pred - xy_true, axis=1)
+    rows = []
+    for lo, hi in zip(RADIUS_BINS[:-1], RADIUS_BINS[1:]):
+        sel = (r >= lo) & (r < hi) & np.isfinite(e)
+        rows.append({"from": float(lo), "to": float(hi) if np.isfinite(hi) else None, "n": int(sel.sum()),
+                     **({"median": float(np.median(e[sel])), "p95": float(np.percentile(e[sel], 95))} if sel.any() else {})})
+    return rows
 
 
 def _binned(by: np.ndarray, pred: np.ndarray, edges: Sequence[float], truth: np.ndarray | None = None) -> list[dict[str, Any]]:
@@ -284,6 +298,7 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
                    "size": err_stats(d[in_range & band, 3])}
     ev["regression"] = {"kind": s.regressor, "comparison": comparison,
                         "by_size": _binned(Tte[:, 3], direct[s.regressor][:, 3], SIZE_BINS),
+                        "position_by_radius": _position_by_radius(Tte[:, :2], direct[s.regressor][:, :2]),
                         "force_by_depth": _binned(test.depth, direct[s.regressor][:, 4], DEPTH_BINS, truth=Tte[:, 4]),
                         "training": {"samples": len(train), "noise_copies": copies, "rows": int(len(Xtr)),
                                      "symmetries": len(symmetries),

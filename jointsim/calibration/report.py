@@ -40,9 +40,19 @@ def _training_text(t: dict | None) -> str:
             f"(SNR uniform {lo:.0f}–{hi:.0f} dB, as the dataset draws it{moved}): {t['rows']} rows.")
 
 
+def _span_mm(lo: float, hi: float | None) -> str:
+    """A bin of lengths in m as "a-b" mm ("a+" when open above: ``hi`` None)."""
+    return f"{lo * 1e3:.0f}-{hi * 1e3:.0f}" if hi is not None else f"{lo * 1e3:.0f}+"
+
+
 def _binned_tables(reg: Mapping[str, Any]) -> list[str]:
-    """Where the direct regression's size and force errors come from (held-out, by bin)."""
+    """Where the direct regression's position, size and force errors come from (held-out, by bin)."""
     L = []
+    rows = [r for r in reg.get("position_by_radius", []) if r["n"]]
+    if rows:
+        L += ["", "In-plane position error by the true position's distance from the axis (all held-out samples, all SNRs):", "",
+              "| r (mm) | n | median (mm) | P95 (mm) |", "|---|---|---|---|"]
+        L += [f"| {_span_mm(r['from'], r['to'])} | {r['n']} | {_fmt(r['median'] * 1e3)} | {_fmt(r['p95'] * 1e3)} |" for r in rows]
     rows = [r for r in reg.get("by_size", []) if r["n"]]
     if rows:
         L += ["", "By true diameter (all held-out samples): a predicted median that stays near the training mean "

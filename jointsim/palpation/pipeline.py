@@ -64,7 +64,7 @@ __all__ = [
 
 STAGES = ("mujoco", "mechanics") + FRAME_STAGES
 MESH_PATHS = ("morph", "remesh")
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: true_centre is the dent's centroid (was the net displaced saline's)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -131,7 +131,7 @@ def _segments(spec: PalpationSpec, frame_rate: float) -> tuple[Segment, ...]:
 class Frame:
     """One frame as computed: its global ``index``, ``segment``, the ``rig`` frame (pose,
     command, the force MuJoCo received), the membrane ``state``, the instrument's ``reading``
-    (chamber, voltages, δV, image, metrics, the displaced saline's centroid), the per-stage
+    (chamber, voltages, δV, image, metrics, the dent's centroid), the per-stage
     ``timings`` s, and the ``record`` stored for it."""
 
     index: int
@@ -268,9 +268,10 @@ class Palpation:
                 F("rms_dv", (), "float64", "V", "RMS of dv"),
                 F("rms_dv_clean", (), "float64", "V", "RMS of dv_clean"),
                 F("image", (c,), "float32", "S/m", "reconstructed conductivity change on the voxel grid"),
-                F("true_centre", (3,), "float64", "m", "centroid of the displaced saline (NaN when none)"),
+                F("true_centre", (3,), "float64", "m", "centroid of the dent: the saline displaced where the membrane's "
+                  "inner surface moved in, the bulges about it left out (NaN when none)"),
                 F("com", (3,), "float64", "m", "CoM of the perturbation cluster (noise-normalised image)"),
-                F("com_error", (), "float64", "m", "|com - true_centre|"),
+                F("com_error", (), "float64", "m", "|com - true_centre|: the image's CoM from the dent's centroid, in 3-D"),
                 F("com_error_xy", (), "float64", "m", "in-plane part of com_error"),
                 F("sum_sigma", (), "float64", "S/m voxel", "total change in the cluster"),
                 F("diameter", (), "float64", "m", "equivalent diameter of the cluster (sphere of its volume)"),

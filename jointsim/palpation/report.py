@@ -186,6 +186,7 @@ def summarise(rec: Records) -> list[dict[str, Any]]:
             "hold_sum_sigma": float(np.nanmean(rec["sum_sigma"][hold])) if len(hold) else float("nan"),
             "hold_sum_sigma_std": float(np.nanstd(rec["sum_sigma"][hold])) if len(hold) else float("nan"),
             "hold_com_error_xy_mm": 1e3 * float(np.nanmean(rec["com_error_xy"][hold])) if len(hold) else float("nan"),
+            "hold_com_error_mm": 1e3 * float(np.nanmean(rec["com_error"][hold])) if len(hold) else float("nan"),
             "remeshed_frames": int((rec["mesh_path"][sel] == MESH_PATHS.index("remesh")).sum()),
             "volume_mismatch_max": float(np.nanmax(np.where(
                 rec["displaced_volume"][sel] > 1e-9,
@@ -271,10 +272,11 @@ def _markdown(path: Path, meta: dict[str, Any]) -> Path:
         "",
         "Peak: the frame of largest RMS δV (clean). Hold: mean ± std over frames at ≥ 90 % of the deepest indentation. "
         "Image figures from the noise-normalised image (cluster ≥ 75 % of its maximum, as the paper), Σσ from the Δσ image "
-        "(S/m·voxel). CoM error against the centroid of the displaced saline.",
+        "(S/m·voxel). CoM error against the dent's centroid (the saline displaced where the membrane moved in), in the "
+        "base plane (XY) and in 3-D.",
         "",
-        "| target mm | frames | depth mm | force mN | displaced mm³ | peak RMS δV µV | peak max δV µV | image diameter mm (peak; hold) | Σσ (peak; hold) | CoM err XY mm (peak; hold) | remeshed | chamber/FEM volume − 1 |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| target mm | frames | depth mm | force mN | displaced mm³ | peak RMS δV µV | peak max δV µV | image diameter mm (peak; hold) | Σσ (peak; hold) | CoM err XY mm (peak; hold) | CoM err 3-D mm (peak; hold) | remeshed | chamber/FEM volume − 1 |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in meta["targets"]:
         lines.append(
@@ -282,7 +284,7 @@ def _markdown(path: Path, meta: dict[str, Any]) -> Path:
             f"| {r['peak_rms_dv_uV']:.0f} | {r['peak_max_abs_dv_uV']:.0f} | {r['peak_image_diameter_mm']:.1f}; "
             f"{r['hold_image_diameter_mm']:.1f} ± {r['hold_image_diameter_std_mm']:.1f} | {r['peak_sum_sigma']:.3g}; "
             f"{r['hold_sum_sigma']:.3g} ± {r['hold_sum_sigma_std']:.2g} | {r['peak_com_error_xy_mm']:.2f}; {r['hold_com_error_xy_mm']:.2f} "
-            f"| {r['remeshed_frames']} | {r['volume_mismatch_max']:.2%} |"
+            f"| {r['peak_com_error_mm']:.2f}; {r['hold_com_error_mm']:.2f} | {r['remeshed_frames']} | {r['volume_mismatch_max']:.2%} |"
         )
     t = meta["frame_timings"]
     lines += [
@@ -365,7 +367,7 @@ def _figures(out: Path, rec: Records, grid: ChamberGrid, rows: list[dict]) -> li
     axes[0, 0].set_ylabel("y (mm)")
     axes[1, 0].set_ylabel("z (mm)")
     fig.colorbar(im, ax=axes, shrink=0.7, label="Δσ / its noise std")
-    fig.suptitle("Reconstructed perturbation at maximum change (+: displaced saline centroid; cf. Fig. 4B)", fontsize=10)
+    fig.suptitle("Reconstructed perturbation at maximum change (+: the dent's centroid; cf. Fig. 4B)", fontsize=10)
     written.append(_save(fig, out / "fig4b_images.png", plt))
 
     # (C) image metrics against target size
