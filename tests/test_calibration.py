@@ -452,7 +452,7 @@ def test_bad_datasets_get_clear_errors(tmp_path, stores):
 
 def test_calibrate_command_writes_the_map_and_report(stores, tmp_path, capsys):
     out = tmp_path / "out"
-    assert main(["calibrate", str(stores["rigid"]), "--out", str(out), "--regressor", "ridge", "--depths", "1,2,3"]) == 0
+    assert main(["calibrate", str(stores["rigid"]), "--out", str(out), "--regressor", "ridge", "--depths-mm", "1,2,3"]) == 0
     for name in ("calibration_map.h5", "report.md", "com_error_map.png", "com_error_map.csv", "size_curves_depth.png",
                  "size_curves_force.png", "regression_comparison.csv", "goals.csv", "evaluation.json"):
         assert (out / name).is_file(), name
@@ -462,9 +462,9 @@ def test_calibrate_command_writes_the_map_and_report(stores, tmp_path, capsys):
     np.testing.assert_allclose(m.size["depth/sum_sigma"].levels, [1e-3, 2e-3, 3e-3])
     # bad input: one line and exit 2, nothing written
     assert main(["calibrate", str(tmp_path / "none.h5"), "--out", str(tmp_path / "x")]) == 2
-    assert main(["calibrate", str(stores["rigid"]), "--out", str(tmp_path / "y"), "--depths", "2,1"]) == 2
+    assert main(["calibrate", str(stores["rigid"]), "--out", str(tmp_path / "y"), "--depths-mm", "2,1"]) == 2
     err = capsys.readouterr().err
-    assert "no such file" in err and "--depths" in err and not (tmp_path / "x").exists()
+    assert "no such file" in err and "--depths-mm" in err and not (tmp_path / "x").exists()
 
 
 def test_palpate_refuses_a_map_of_another_sensor_before_any_work(built, stores, tmp_path, capsys):

@@ -43,7 +43,7 @@ def test_an_unknown_flag_gets_the_subcommands_usage_and_version_is_there(capsys)
     with pytest.raises(SystemExit) as e:
         main(["palpate", "--dome-rim", "32"])
     err = capsys.readouterr().err
-    assert e.value.code == 2 and err.startswith("usage: jointsim palpate") and "jointsim palpate: error: unrecognized arguments: --dome-rim" in err
+    assert e.value.code == 2 and err.startswith("usage: jointsim palpate") and "jointsim palpate: error: unrecognized arguments: --dome-rim (--dome-rim is now --rim-vertices)" in err
     with pytest.raises(SystemExit) as e:
         main(["--version"])
     assert e.value.code == 0 and capsys.readouterr().out.strip() == f"jointsim {__import__('jointsim').__version__}"

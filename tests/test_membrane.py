@@ -146,11 +146,11 @@ def test_indent_command_writes_the_curve(tmp_path):
     import sys
 
     out = tmp_path / "ind"
-    cmd = [sys.executable, "-m", "jointsim", "indent", "--dome-rim", "32", "--layers", "1", "--depth-mm", "1", "--out", str(out)]
+    cmd = [sys.executable, "-m", "jointsim", "indent", "--rim-vertices", "32", "--layers", "1", "--depth-mm", "1", "--out", str(out)]
     r = subprocess.run(cmd, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr[-2000:]
     # a membrane this coarse is soft: said in one line, as an error would be
-    assert "jointsim indent: warning: --dome-rim = 32: wedge membranes coarser than 48" in r.stderr
+    assert "jointsim indent: warning: --rim-vertices = 32: wedge membranes coarser than 48" in r.stderr
     rows = list(csv.DictReader((out / "force_indentation.csv").open()))
     assert [float(x["depth_mm"]) for x in rows] == [0.5, 1.0]
     assert 0 < float(rows[0]["force_N"]) < float(rows[1]["force_N"])

@@ -378,9 +378,9 @@ def test_palpate_command_writes_and_resumes(tmp_path, test_chamber):
     import sys
 
     out = tmp_path / "p"
-    base = [sys.executable, "-m", "jointsim", "palpate", "--mesh", "test", "--membrane-rim", "32", "--membrane-layers", "1",
-            "--targets", "15", "--hold", "0", "--out", str(out), "--no-progress"]
-    cmd = base + ["--depth", "0.5"]
+    base = [sys.executable, "-m", "jointsim", "palpate", "--mesh", "test", "--rim-vertices", "32", "--layers", "1",
+            "--target-diameters-mm", "15", "--hold-s", "0", "--out", str(out), "--no-progress"]
+    cmd = base + ["--depth-mm", "0.5"]
     r = subprocess.run(cmd, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr[-3000:]
     rec = open_records(out / "palpation.h5")
@@ -393,7 +393,7 @@ def test_palpate_command_writes_and_resumes(tmp_path, test_chamber):
     # a rerun finds the finished file and only rewrites the reports; other settings are refused
     again = subprocess.run(cmd, capture_output=True, text=True)
     assert again.returncode == 0 and "is complete" in again.stdout
-    other = subprocess.run(base + ["--depth", "1"], capture_output=True, text=True)
+    other = subprocess.run(base + ["--depth-mm", "1"], capture_output=True, text=True)
     assert other.returncode == 2 and "other settings" in other.stderr
 
 
@@ -407,8 +407,8 @@ def test_a_rerun_from_an_empty_mesh_cache_stores_the_same_arrays(tmp_path, monke
     for k in range(2):
         monkeypatch.setenv("JOINTSIM_CACHE", str(tmp_path / f"cache{k}"))
         out = tmp_path / f"run{k}"
-        assert main(["palpate", str(SCENES_DIR / "paper_sensor.toml"), "--mesh", "test", "--targets", "15", "--depth", "1",
-                     "--speed", "50", "--hold", "0", "--membrane-rim", "24", "--membrane-layers", "1", "--vtu-every", "0",
+        assert main(["palpate", str(SCENES_DIR / "paper_sensor.toml"), "--mesh", "test", "--target-diameters-mm", "15", "--depth-mm", "1",
+                     "--speed-mm-per-s", "50", "--hold-s", "0", "--rim-vertices", "24", "--layers", "1", "--vtu-every", "0",
                      "--no-progress", "--out", str(out)]) == 0
         assert list((tmp_path / f"cache{k}").glob("chamber-*.npz"))
         stores.append(open_records(out / "palpation.h5"))

@@ -113,3 +113,18 @@ def test_the_command_line_takes_a_press_list_and_refuses_a_wrong_n(listed, tmp_p
     assert main(["dataset", str(scene_file), "--presses", str(bad), "--out", str(tmp_path / "y")]) == 2
     assert "contact points must be within 17 mm" in capsys.readouterr().err
     assert not (tmp_path / "x.h5").exists() and not (tmp_path / "y.h5").exists()
+
+
+def test_overwrite_discards_a_store_of_other_settings(listed, tmp_path, capsys):
+    """A finished store of other settings is refused naming --overwrite; with it, the store and
+    any run in progress are removed and the run starts afresh."""
+    scene_file, csv, _, run, _ = listed
+    out = tmp_path / "again.h5"
+    out.write_bytes(run.path.read_bytes())
+    (tmp_path / "again.partial").mkdir()  # a leftover run in progress goes too
+    args = ["dataset", str(scene_file), "--presses", str(csv), "--out", str(out), "--workers", "1", "--no-progress"]
+    assert main(args + ["--seed", "2"]) == 2
+    assert "other settings; remove it (--overwrite)" in capsys.readouterr().err
+    assert main(args + ["--seed", "2", "--overwrite"]) == 0
+    assert f"--overwrite: removed {out}" in capsys.readouterr().out
+    assert open_records(out).provenance["seed"] == 2 and not (tmp_path / "again.partial").exists()

@@ -12,20 +12,10 @@ import argparse
 import shlex
 from pathlib import Path
 
+from .common import float_list
+
 OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "build calibration maps (size, CoM, direct regression, stiffness) from a dataset, evaluated on held-out presses"
-
-
-def _levels(text: str | None, name: str, scale: float) -> tuple[float, ...] | None:
-    if text is None:
-        return None
-    try:
-        v = tuple(float(x) * scale for x in text.split(",") if x.strip())
-    except ValueError:
-        raise ValueError(f"{name} = {text!r}: comma-separated positive numbers") from None
-    if not v or any(not x > 0 for x in v) or list(v) != sorted(v):
-        raise ValueError(f"{name} = {text!r}: positive, increasing, at least one")
-    return v
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -33,11 +23,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("out/calibration"), help="output folder (default out/calibration)")
     p.add_argument("--test-fraction", type=float, default=0.2, help="fraction of presses held out (default 0.2)")
     p.add_argument("--seed", type=int, default=0, help="split and fit seed (default 0)")
-    p.add_argument("--depths", help="size-curve depths, mm, comma-separated (default: from the data)")
-    p.add_argument("--forces", help="size-curve forces, N, comma-separated (default: from the data)")
+    p.add_argument("--depths-mm", metavar="D,D,...", help="size-curve depths, comma-separated (default: from the data)")
+    p.add_argument("--forces-n", metavar="F,F,...", help="size-curve forces, comma-separated (default: from the data)")
     p.add_argument("--regressor", choices=("mlp", "ridge"), default="mlp", help="direct regression model (default mlp)")
-    p.add_argument("--goal-snr", type=float, default=74.2, help="SNR the goals are judged at, dB (default 74.2)")
-    p.add_argument("--snr-band", type=float, default=4.0, help="held-out samples within this many dB of --goal-snr (default 4)")
+    p.add_argument("--goal-snr-db", type=float, default=74.2, help="SNR the goals are judged at (default 74.2)")
+    p.add_argument("--snr-band-db", type=float, default=4.0, help="held-out samples within this many dB of --goal-snr-db (default 4)")
     p.add_argument("--max-com-points", type=int, default=3000, help="CoM map points fitted at most (default 3000)")
     p.add_argument("--noise-copies", type=int, default=30,
                    help="fresh noise draws of each training sample for the direct regression, 0-1000 (default 30; 0: stored samples only)")
@@ -48,12 +38,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _command(args: argparse.Namespace) -> str:
     """The command line that reproduces this run (every setting spelled out)."""
     parts = ["jointsim calibrate", str(args.dataset), "--out", str(args.out), "--test-fraction", f"{args.test_fraction:g}",
-             "--seed", str(args.seed), "--regressor", args.regressor, "--goal-snr", f"{args.goal_snr:g}",
-             "--snr-band", f"{args.snr_band:g}", "--max-com-points", str(args.max_com_points),
+             "--seed", str(args.seed), "--regressor", args.regressor, "--goal-snr-db", f"{args.goal_snr_db:g}",
+             "--snr-band-db", f"{args.snr_band_db:g}", "--max-com-points", str(args.max_com_points),
              "--noise-copies", str(args.noise_copies)] + (["--symmetry"] if args.symmetry else [])
-    parts += [f"--depths {args.depths}"] if args.depths else []
-    parts += [f"--forces {args.forces}"] if args.forces else []
+    parts += [f"--depths-mm {args.depths_mm}"] if args.depths_mm else []
+    parts += [f"--forces-n {args.forces_n}"] if args.forces_n else []
     return " ".join(shlex.quote(p) if " " not in p else p for p in parts)
+
+
+def _levels(text: str | None, flag: str, scale: float) -> tuple[float, ...] | None:
+    """Size-curve levels (SI) from a list flag in its unit (× ``scale``); None when not given."""
+    return None if text is None else tuple(v * scale for v in float_list(flag, text, 0.0, increasing=True))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -69,9 +64,9 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.noise_copies <= 1000:
         raise ValueError(f"--noise-copies = {args.noise_copies}: must be in [0, 1000]")
     settings = Settings(
-        test_fraction=args.test_fraction, seed=args.seed, depth_levels=_levels(args.depths, "--depths", 1e-3),
-        force_levels=_levels(args.forces, "--forces", 1.0), regressor=args.regressor, goal_snr_db=args.goal_snr,
-        snr_band_db=args.snr_band, max_com_points=args.max_com_points, noise_copies=args.noise_copies,
+        test_fraction=args.test_fraction, seed=args.seed, depth_levels=_levels(args.depths_mm, "--depths-mm", 1e-3),
+        force_levels=_levels(args.forces_n, "--forces-n", 1.0), regressor=args.regressor, goal_snr_db=args.goal_snr_db,
+        snr_band_db=args.snr_band_db, max_com_points=args.max_com_points, noise_copies=args.noise_copies,
         symmetry=args.symmetry,
     )
     command = _command(args)

@@ -1,9 +1,10 @@
 """Helpers shared by subcommands: scene loading with mesh preset and element order overrides,
-stage timing."""
+list flags, stage timing, output checks."""
 
 from __future__ import annotations
 
 import argparse
+import math
 import shutil
 import tempfile
 from contextlib import contextmanager
@@ -17,11 +18,14 @@ from ..timing import timed
 DEFAULT_SCENE = SCENES_DIR / "paper_sensor.toml"
 
 
-def add_scene_arguments(p: argparse.ArgumentParser) -> None:
+def add_scene_arguments(p: argparse.ArgumentParser, eit: bool = True) -> None:
+    """The scene file, its mesh preset, and (for a command that runs the EIT forward: ``eit``)
+    the forward model's element order."""
     p.add_argument("scene", nargs="?", default=str(DEFAULT_SCENE), help="scene TOML file (default: the paper's sensor)")
     p.add_argument("--mesh", dest="mesh_preset", choices=sorted(MESH_PRESETS), help="override the scene's mesh preset")
-    p.add_argument("--order", dest="element_order", type=int, choices=(1, 2),
-                   help="override the scene's mesh.element_order: P1 or P2 elements in the EIT forward model")
+    if eit:
+        p.add_argument("--order", dest="element_order", type=int, choices=(1, 2),
+                       help="override the scene's mesh.element_order: P1 or P2 elements in the EIT forward model")
 
 
 def add_target_size_arguments(p: argparse.ArgumentParser, default: str) -> None:
@@ -43,6 +47,37 @@ def target_radius_mm(args: argparse.Namespace, default: float) -> float:
     if not 0 < radius <= 100:
         raise ValueError(f"target radius = {radius} mm: must be in (0, 100]")
     return radius
+
+
+def add_overwrite_argument(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--overwrite", action="store_true",
+                   help=f"discard what --out holds ({what}, finished or in progress, of any settings) and start afresh "
+                        "(default: resume it, or refuse one of other settings)")
+
+
+def overwrite(args: argparse.Namespace, store: Path) -> None:
+    """With ``--overwrite``: remove the store ``store`` (and its run in progress), saying so."""
+    from ..io.store import discard
+
+    if args.overwrite and discard(store):
+        print(f"  --overwrite: removed {store} and its run in progress", flush=True)
+
+
+def float_list(flag: str, text: str, lo: float = -math.inf, hi: float = math.inf, *, count: int | None = None,
+               increasing: bool = False) -> tuple[float, ...]:
+    """The numbers of a comma-separated list flag (every list flag is written so: "8,15,30"), each
+    in (``lo``, ``hi``]; ``count`` of them, or at least one; strictly ``increasing`` if asked.
+    A ValueError naming ``flag`` and what is allowed."""
+    try:
+        vals = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        vals = ()
+    want = (f"{count} comma-separated numbers" if count else "comma-separated numbers") + \
+        (f" in ({lo:g}, {hi:g}]" if math.isfinite(lo) or math.isfinite(hi) else "") + (", increasing" if increasing else "")
+    if not vals or (count is not None and len(vals) != count) or any(not lo < v <= hi for v in vals) \
+            or (increasing and any(b <= a for a, b in zip(vals, vals[1:]))):
+        raise ValueError(f"{flag} = {text!r}: {want}")
+    return vals
 
 
 def scene_from_args(args: argparse.Namespace) -> Scene:

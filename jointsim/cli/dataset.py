@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from .._cores import available_cores
 from ..scene import scene_toml
-from .common import add_scene_arguments, scene_from_args
+from .common import add_overwrite_argument, add_scene_arguments, overwrite, scene_from_args
 
 OUTPUT = "file"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "synthetic labelled dataset (voltages, labels, force, image metrics) in one resumable HDF5 file"
@@ -33,6 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="press these presses instead of drawn ones: a CSV with contact_x_mm, contact_y_mm (or the targets' "
                         "centres x_mm, y_mm), diameter_mm, optionally modulus_kpa and depth_mm (one row per sample)")
     p.add_argument("--out", type=Path, default=Path("out/dataset.h5"), help="output file (default out/dataset.h5)")
+    add_overwrite_argument(p, "the dataset store")
     p.add_argument("--seed", type=int, help="dataset seed (default: the scene's [noise] seed)")
     p.add_argument("--workers", type=int, help=f"local worker processes (default: one per core, here {available_cores()})")
     p.add_argument("--scheduler", metavar="ADDRESS",
@@ -87,6 +88,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"  resuming: {done} of {args.n} samples already stored", flush=True)
         bar.update(done)
 
+    from ..io.records import final_path
+
+    overwrite(args, final_path(args.out))
     command = ["jointsim", "dataset", *(sys.argv[2:] if sys.argv[1:2] == ["dataset"] else [])]
     with bar:
         res = generate_dataset(scene, args.n, args.out, seed=args.seed, workers=args.workers, scheduler=args.scheduler,

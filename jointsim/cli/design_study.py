@@ -15,20 +15,10 @@ from tqdm import tqdm
 
 from .._cores import available_cores
 from ..scene import SNR_RANGE_DB
-from .common import DEFAULT_SCENE
+from .common import DEFAULT_SCENE, add_overwrite_argument, float_list, overwrite
 
 OUTPUT = "folder"
 HELP = "what each design can measure: Cramer-Rao bounds of position, depth and size, designs side by side"
-
-
-def _floats(flag: str, text: str, lo: float, hi: float) -> tuple[float, ...]:
-    try:
-        vals = tuple(float(v) for v in text.split(",") if v.strip())
-    except ValueError:
-        vals = ()
-    if not vals or any(not lo < v <= hi for v in vals):
-        raise ValueError(f"{flag} = {text!r}: comma-separated numbers in ({lo:g}, {hi:g}]")
-    return vals
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -36,6 +26,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="scene TOML files, one per design (default: the paper's sensor)")
     p.add_argument("--mesh", dest="mesh_preset", help="override every scene's mesh preset")
     p.add_argument("--out", type=Path, default=Path("out/design_study"), help="output folder (default out/design_study)")
+    add_overwrite_argument(p, "each design's sensitivities.h5")
     p.add_argument("--diameters-mm", default="8,15,30", help="target sphere diameters (default 8,15,30: the paper's)")
     p.add_argument("--depths-mm", default="1,2,3", help="depths past first contact, increasing (default 1,2,3)")
     p.add_argument("--spacing-mm", type=float, default=3.0, help="spacing of the polar grid of target centres (default 3)")
@@ -55,8 +46,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.mesh_preset is not None and args.mesh_preset not in MESH_PRESETS:
         raise ValueError(f"--mesh = {args.mesh_preset!r}: one of {sorted(MESH_PRESETS)}")
-    diameters = _floats("--diameters-mm", args.diameters_mm, 0.0, 200.0)
-    depths = _floats("--depths-mm", args.depths_mm, 0.0, 100.0)
+    diameters = float_list("--diameters-mm", args.diameters_mm, 0.0, 200.0)
+    depths = float_list("--depths-mm", args.depths_mm, 0.0, 100.0)
     if list(depths) != sorted(set(depths)):
         raise ValueError(f"--depths-mm = {args.depths_mm!r}: increasing")
     if not args.spacing_mm > 0:
@@ -68,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     if args.estimators is not None and not args.estimators.is_file():
         raise ValueError(f"--estimators = {args.estimators}: no such file (a goals.csv written by jointsim calibrate)")
     lo, hi = SNR_RANGE_DB
-    snrs = _floats("--snr-db", args.snr_db, lo - 1e-9, hi) if args.snr_db.strip() else ()
+    snrs = float_list("--snr-db", args.snr_db, lo - 1e-9, hi) if args.snr_db.strip() else ()
     plan = Plan(tuple(d * 1e-3 for d in diameters), tuple(d * 1e-3 for d in depths), args.spacing_mm * 1e-3,
                 None if args.r_max_mm is None else args.r_max_mm * 1e-3, hold_frames=args.hold_frames)
     scenes = []
@@ -93,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
             def started(done: int, left: int) -> None:
                 bar.update(done)
                 todo[0] = left
+            overwrite(args, args.out / scene.name / "sensitivities.h5")
             h5 = run_design(scene, plan, args.out / scene.name / "sensitivities.h5", workers=args.workers,
                             scene_toml=scene_toml(path), progress=bar.update, on_start=started)
         workers = min(args.workers or available_cores(), max(todo[0], 1))

@@ -24,14 +24,14 @@ HELP = "force-indentation sweep of the dome membrane (FEM): CSV, PNG, VTU"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    add_scene_arguments(p)
+    add_scene_arguments(p, eit=False)
     p.add_argument("--out", type=Path, default=Path("out/indentation"), help="output folder (default out/indentation; the committed results are written with --out results/indentation)")
     add_target_size_arguments(p, "the scene's [target]")
     p.add_argument("--x-mm", type=float, default=0.0, help="contact position x (default 0)")
     p.add_argument("--y-mm", type=float, default=0.0, help="contact position y (default 0)")
     p.add_argument("--depth-mm", type=float, default=3.0, help="final indentation past first contact (default 3)")
     p.add_argument("--step-mm", type=float, default=0.5, help="step (default 0.5: one 50 Hz frame at 25 mm/s)")
-    p.add_argument("--dome-rim", type=int, help="membrane resolution: vertices on the rim (default: the scene's membrane.rim_vertices)")
+    p.add_argument("--rim-vertices", type=int, help="membrane resolution: vertices on the rim (default: the scene's membrane.rim_vertices)")
     p.add_argument("--layers", type=int, help="element layers through the thickness (default: the scene's)")
     p.add_argument("--device", default="cpu", help="Warp device of the element kernel: cpu (default) or cuda / cuda:N where a GPU is")
 
@@ -51,8 +51,8 @@ def run(args: argparse.Namespace) -> int:
     radius = target_radius_mm(args, scene.target.radius * 1e3)
     if not 0 < args.step_mm <= args.depth_mm:
         raise ValueError(f"--step-mm = {args.step_mm}: must be in (0, --depth-mm = {args.depth_mm}]")
-    if args.dome_rim is not None:
-        scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=membrane_rim_vertices(args.dome_rim, scene.membrane.element, "--dome-rim")))
+    if args.rim_vertices is not None:
+        scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=membrane_rim_vertices(args.rim_vertices, scene.membrane.element, "--rim-vertices")))
     if args.layers is not None:
         scene = replace(scene, membrane=replace(scene.membrane, layers=membrane_layers(args.layers, "--layers")))
     out: Path = args.out

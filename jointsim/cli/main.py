@@ -57,10 +57,17 @@ def _warning_line(command: str):
     return show
 
 
+# flags renamed to the one convention (units in the name as in scene keys, one name per thing);
+# the others' old names are prefixes of their new ones, which argparse still takes
+RENAMED = {"--targets": "--target-diameters-mm", "--membrane-rim": "--rim-vertices", "--dome-rim": "--rim-vertices",
+           "--membrane-layers": "--layers"}
+
+
 def main(argv: list[str] | None = None) -> int:
     args, extra = build_parser().parse_known_args(argv)
     if extra:  # refused by the subcommand's parser: its usage, not the top level's
-        args.parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        old = [f"{a} is now {RENAMED[a.split('=')[0]]}" for a in extra if a.split("=")[0] in RENAMED]
+        args.parser.error(f"unrecognized arguments: {' '.join(extra)}" + (f" ({'; '.join(old)})" if old else ""))
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _warning_line(args.command)

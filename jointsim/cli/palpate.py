@@ -18,7 +18,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..scene import PALPATION_MODES, membrane_layers, membrane_rim_vertices, scene_toml
-from .common import add_scene_arguments, scene_from_args
+from .common import add_overwrite_argument, add_scene_arguments, float_list, overwrite, scene_from_args
 
 OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "virtual palpation with the MuJoCo rig (paper Fig. 4): HDF5 frames, VTU series, PNG, summary"
@@ -27,16 +27,18 @@ HELP = "virtual palpation with the MuJoCo rig (paper Fig. 4): HDF5 frames, VTU s
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
     p.add_argument("--out", type=Path, default=Path("out/palpation"), help="output folder (default out/palpation)")
-    p.add_argument("--targets", help="target diameters in mm, comma-separated (default: the scene's [palpation], 8,15,30)")
-    p.add_argument("--depth", type=float, help="indentation past first contact, mm (position and compliant modes)")
+    add_overwrite_argument(p, "palpation.h5")
+    p.add_argument("--target-diameters-mm", metavar="D,D,...",
+                   help="target diameters, comma-separated (default: the scene's [palpation], 8,15,30)")
+    p.add_argument("--depth-mm", type=float, help="indentation past first contact (position and compliant modes)")
     p.add_argument("--mode", choices=PALPATION_MODES, help="stage control (default: the scene's, position)")
-    p.add_argument("--force", type=float, help="press force, N (force mode)")
-    p.add_argument("--speed", type=float, help="stage speed, mm/s (default 25)")
-    p.add_argument("--hold", type=float, help="hold at depth or force, s")
-    p.add_argument("--xy", help="where the target comes down, 'x,y' in mm (default 0,0)")
+    p.add_argument("--force-n", type=float, help="press force (force mode)")
+    p.add_argument("--speed-mm-per-s", type=float, help="stage speed (default 25)")
+    p.add_argument("--hold-s", type=float, help="hold at depth or force")
+    p.add_argument("--xy-mm", metavar="X,Y", help="where the target comes down (default 0,0)")
     p.add_argument("--seed", type=int, help="noise seed (default: the scene's [noise] seed)")
-    p.add_argument("--membrane-rim", type=int, help="membrane resolution: vertices on its rim (default: the scene's)")
-    p.add_argument("--membrane-layers", type=int, help="membrane element layers through the thickness (default: the scene's)")
+    p.add_argument("--rim-vertices", type=int, help="membrane resolution: vertices on its rim (default: the scene's)")
+    p.add_argument("--layers", type=int, help="membrane element layers through the thickness (default: the scene's)")
     p.add_argument("--device", default="cpu", help="Warp device of the membrane's element kernel: cpu (default) or cuda / cuda:N where a GPU is")
     p.add_argument("--vtu-every", type=int, default=5, help="write the VTU series every N frames of each target and its last (0: none; default 5)")
     p.add_argument("--calibration", type=Path, metavar="MAP",
@@ -46,51 +48,42 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="show a progress bar (default: when the output is a terminal)")
 
 
-def _floats(text: str, name: str) -> list[float]:
-    try:
-        return [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise ValueError(f"{name} = {text!r}: must be comma-separated numbers") from None
-
-
 def configure(args: argparse.Namespace):
     """The scene with the command line's overrides applied (validated as scene values)."""
     scene = scene_from_args(args)
     m = scene.membrane
-    if args.membrane_rim is not None:
-        m = replace(m, rim_vertices=membrane_rim_vertices(args.membrane_rim, m.element, "--membrane-rim"))
-    if args.membrane_layers is not None:
-        m = replace(m, layers=membrane_layers(args.membrane_layers, "--membrane-layers"))
+    if args.rim_vertices is not None:
+        m = replace(m, rim_vertices=membrane_rim_vertices(args.rim_vertices, m.element, "--rim-vertices"))
+    if args.layers is not None:
+        m = replace(m, layers=membrane_layers(args.layers, "--layers"))
     spec = scene.palpation
     c = scene.chamber
-    if args.targets is not None:
-        d = _floats(args.targets, "--targets")
-        if not d or any(not 0 < v <= 10 * c.base_radius * 1e3 for v in d):
-            raise ValueError(f"--targets = {args.targets!r}: diameters in (0, {10 * c.base_radius * 1e3:g}] mm, at least one")
+    if args.target_diameters_mm is not None:
+        d = float_list("--target-diameters-mm", args.target_diameters_mm, 0.0, 10 * c.base_radius * 1e3)
         spec = replace(spec, target_radii=tuple(v * 1e-3 / 2 for v in d))
     if args.mode is not None:
         spec = replace(spec, mode=args.mode)
-    if args.depth is not None:
+    if args.depth_mm is not None:
         hi = c.dome_height * 1e3  # as palpation.depth_mm: beyond it the sphere would press the membrane onto the base
-        if not 0 < args.depth <= hi:
-            raise ValueError(f"--depth = {args.depth}: must be in (0, {hi:g}] mm (the dome's height)")
-        spec = replace(spec, depth=args.depth * 1e-3)
-    if args.force is not None:
-        if not 0 < args.force <= 10:
-            raise ValueError(f"--force = {args.force}: must be in (0, 10] N")
-        spec = replace(spec, force=args.force)
-    if args.speed is not None:
-        if not 0 < args.speed <= 1000:
-            raise ValueError(f"--speed = {args.speed}: must be in (0, 1000] mm/s")
-        spec = replace(spec, speed=args.speed * 1e-3)
-    if args.hold is not None:
-        if not 0 <= args.hold <= 60:
-            raise ValueError(f"--hold = {args.hold}: must be in [0, 60] s")
-        spec = replace(spec, hold=args.hold)
-    if args.xy is not None:
-        xy = _floats(args.xy, "--xy")
-        if len(xy) != 2 or (xy[0] ** 2 + xy[1] ** 2) ** 0.5 >= c.base_radius * 1e3:
-            raise ValueError(f"--xy = {args.xy!r}: two numbers 'x,y' in mm within the base radius {c.base_radius * 1e3:g} mm")
+        if not 0 < args.depth_mm <= hi:
+            raise ValueError(f"--depth-mm = {args.depth_mm}: must be in (0, {hi:g}] mm (the dome's height)")
+        spec = replace(spec, depth=args.depth_mm * 1e-3)
+    if args.force_n is not None:
+        if not 0 < args.force_n <= 10:
+            raise ValueError(f"--force-n = {args.force_n}: must be in (0, 10] N")
+        spec = replace(spec, force=args.force_n)
+    if args.speed_mm_per_s is not None:
+        if not 0 < args.speed_mm_per_s <= 1000:
+            raise ValueError(f"--speed-mm-per-s = {args.speed_mm_per_s}: must be in (0, 1000] mm/s")
+        spec = replace(spec, speed=args.speed_mm_per_s * 1e-3)
+    if args.hold_s is not None:
+        if not 0 <= args.hold_s <= 60:
+            raise ValueError(f"--hold-s = {args.hold_s}: must be in [0, 60] s")
+        spec = replace(spec, hold=args.hold_s)
+    if args.xy_mm is not None:
+        xy = float_list("--xy-mm", args.xy_mm, count=2)
+        if (xy[0] ** 2 + xy[1] ** 2) ** 0.5 >= c.base_radius * 1e3:
+            raise ValueError(f"--xy-mm = {args.xy_mm!r}: two numbers 'x,y' in mm within the base radius {c.base_radius * 1e3:g} mm")
         spec = replace(spec, xy=(xy[0] * 1e-3, xy[1] * 1e-3))
     noise = scene.noise
     if args.seed is not None:
@@ -127,6 +120,7 @@ def run(args: argparse.Namespace) -> int:
     diam = ", ".join(f"{2e3 * r:g}" for r in spec.target_radii)
     print(f"jointsim palpate: scene {scene.name}, mesh {scene.mesh.preset} P{scene.mesh.element_order}, {spec.mode} mode, targets {diam} mm, "
           f"{n} frames at {scene.noise.frame_rate_hz:g} Hz -> {out}")
+    overwrite(args, out / "palpation.h5")
     with tqdm(total=n, unit="frame", desc="palpation", disable=None if args.progress is None else not args.progress) as bar:
         def progress(k, f):
             bar.update(k)

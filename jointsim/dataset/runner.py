@@ -267,7 +267,7 @@ def generate_dataset(
                 want = dataset_params(scene, n_samples, prov["params"].get("chamber_sha256", ""), presses)
                 same = json.loads(json.dumps(want)) == prov["params"]
             if not same:
-                raise ValueError(f"{final} holds a finished run with other settings; remove it or write to another path")
+                raise ValueError(f"{final} holds a finished run with other settings; remove it (--overwrite), or write to another path")
             # a rerun reads the whole file back against its digest: damage (a flipped chunk) is
             # found here, not by the user's analysis later
             try:

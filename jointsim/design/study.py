@@ -193,7 +193,7 @@ def run_design(scene: Scene, plan: Plan, out: str | Path, *, workers: int | None
             # a store written when the frame counts were part of its plan is the same study
             stored["plan"] = {k: v for k, v in stored.get("plan", {}).items() if k in shape}
             if stored != params or len(rec) != n:
-                raise ValueError(f"{final} holds a design study with other settings; remove it or write to another path")
+                raise ValueError(f"{final} holds a design study with other settings; remove it (--overwrite), or write to another path")
             return final
         store = open_store(final, schema, scene_toml=scene_toml or f'name = "{scene.name}"\n', seed=None, n_records=n,
                            params=params)

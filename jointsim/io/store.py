@@ -80,6 +80,7 @@ __all__ = [
     "package_versions",
     "utc_now",
     "exclusive",
+    "discard",
 ]
 
 _FILE_RE = re.compile(r"^r(\d+)_(\d+)x(\d+)\.[0-9a-f]+\.npz$")
@@ -130,6 +131,23 @@ def exclusive(path: str | Path) -> Iterator[None]:
         yield
     finally:
         os.close(fd)  # closing the descriptor releases the lock
+
+
+def discard(path: str | Path) -> bool:
+    """Remove the store at ``path`` (``--overwrite``): its finished file and its run in
+    progress, once no other run holds it (:func:`exclusive`; refused otherwise). The partial
+    folder is renamed away first, so a kill during the removal never leaves half a store under
+    its name. Whether there was anything to remove."""
+    final = final_path(path)
+    partial = _partial_path(final)
+    with exclusive(final):
+        found = final.exists() or partial.exists()
+        final.unlink(missing_ok=True)
+        if partial.exists():
+            trash = partial.with_name(f".{partial.name}.removing-{secrets.token_hex(4)}")
+            os.replace(partial, trash)
+            shutil.rmtree(trash, ignore_errors=True)
+    return found
 
 
 def _fsync_dir(d: Path) -> None:

@@ -53,7 +53,7 @@ def palpate(scene: Scene, out: str | Path, *, scene_text: str, command: str, dev
         if h5.exists():
             rec = open_records(h5)
             if rec.provenance["params"] != json.loads(json.dumps(params)):
-                raise ValueError(f"{h5} holds a finished run with other settings; remove it or use another --out")
+                raise ValueError(f"{h5} holds a finished run with other settings; remove it, give --overwrite, or use another --out")
             say(f"  {h5} is complete ({len(rec)} frames): reports rewritten from it")
         else:
             pal = Palpation(scene, spec, device=device)
