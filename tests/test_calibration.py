@@ -520,3 +520,18 @@ def load_samples_like(built, rng, n):
     v = 0.2 + 1e-3 * rng.standard_normal((n, 256))
     return {"voltages": v, "dv": 1e-5 * rng.standard_normal((n, 256)), "force": np.tile([0.0, 0.0, 0.1], (n, 1)),
             "sum_sigma": np.full(n, -50.0), "diameter": np.full(n, 8e-3)}
+
+
+def test_a_nan_estimate_comes_with_its_reason(built):
+    """A diameter off the size curves' levels and a modulus of a press that missed the stiffness
+    levels are NaN with a sentence saying why; finite values carry none."""
+    from jointsim.calibration.apply import why_nan
+
+    lc = built.map.size[built.map.size_route]
+    far = 10 * float(lc.levels[-1])
+    table = {"cal_diameter": np.array([np.nan, 0.01]), "cal_depth": np.array([far, 1e-3]), "force": np.array([far, 0.01]),
+             "modulus": np.array([np.nan, 1e5])}
+    why = why_nan(built.map, table, 0)
+    assert "outside the size curves' levels" in why["diameter"]
+    assert "stiffness" in why["modulus"] or built.map.stiffness.reason in why["modulus"]
+    assert why_nan(built.map, table, 1) == {}

@@ -20,7 +20,7 @@ from .fingerprint import fingerprint_digest
 from .maps import APPLIED, CalibrationMap
 from .report import write_csv
 
-__all__ = ["calibrate_frames", "summarise_calibrated", "write_calibrated"]
+__all__ = ["calibrate_frames", "summarise_calibrated", "write_calibrated", "why_nan"]
 
 PALPATION_FIELDS = ("target", "frame", "target_radius", "position", "depth", "com", "voltages", "dv", "force", "sum_sigma",
                     "diameter")
@@ -36,8 +36,29 @@ def calibrate_frames(cmap: CalibrationMap, rec: Records) -> dict[str, np.ndarray
             "force": np.linalg.norm(f["force"], axis=1), **{k: out[k] for k in APPLIED}}
 
 
-def summarise_calibrated(table: dict[str, np.ndarray]) -> list[dict[str, Any]]:
-    """One row per target at its deepest frame: true and calibrated values (mm, mN, kPa)."""
+def why_nan(cmap: CalibrationMap, table: dict[str, np.ndarray], k: int) -> dict[str, str]:
+    """Why frame ``k``'s calibrated diameter or modulus is NaN, per quantity (only those NaN)."""
+    why = {}
+    if not np.isfinite(table["cal_diameter"][k]):
+        lc = cmap.size[cmap.size_route]
+        at, unit, scale = ((table["cal_depth"][k], "mm", 1e3) if lc.along == "depth" else (table["force"][k], "mN", 1e3))
+        lo, hi = lc.levels[0] * scale, lc.levels[-1] * scale
+        if not np.isfinite(at) or not lo <= at * scale <= hi:
+            why["diameter"] = (f"the frame's {lc.along} ({at * scale:.3g} {unit}) is outside the size curves' levels "
+                               f"({lo:.3g}-{hi:.3g} {unit})")
+        else:
+            why["diameter"] = f"the frame's {lc.metric} is outside what the size curves span at its {lc.along}"
+    if not np.isfinite(table["modulus"][k]):
+        st = cmap.stiffness
+        why["modulus"] = (st.reason if not st.estimable else
+                          f"the press does not reach every depth level of the stiffness model "
+                          f"({', '.join(f'{v * 1e3:.3g}' for v in st.levels)} mm)")
+    return why
+
+
+def summarise_calibrated(table: dict[str, np.ndarray], cmap: CalibrationMap | None = None) -> list[dict[str, Any]]:
+    """One row per target at its deepest frame: true and calibrated values (mm, mN, kPa), and
+    (given the map) why any of them is NaN."""
     rows = []
     for t in np.unique(table["target"]):
         sel = np.flatnonzero(table["target"] == t)
@@ -50,6 +71,8 @@ def summarise_calibrated(table: dict[str, np.ndarray]) -> list[dict[str, Any]]:
         row["direct_force_mN"] = float(table["direct_force"][k] * 1e3)
         row["modulus_kPa"] = float(table["modulus"][k] / 1e3)
         row["outside_trained_region"] = str(table["outside"][k])
+        if cmap is not None:
+            row["why_nan"] = why_nan(cmap, table, k)
         rows.append(row)
     return rows
 
@@ -64,7 +87,7 @@ def write_calibrated(out: str | Path, rec: Records, cmap: CalibrationMap, map_pa
             "size_route": cmap.size_route, "regressor": cmap.regressor.kind, "trained_region": cmap.region,
             "frames_outside_trained_region": int(np.count_nonzero(table["outside"])),
             "stiffness": {"estimable": cmap.stiffness.estimable, "reason": cmap.stiffness.reason},
-            "held_out_goals": cmap.evaluation.get("goals", []), "targets": summarise_calibrated(table)}
+            "held_out_goals": cmap.evaluation.get("goals", []), "targets": summarise_calibrated(table, cmap)}
     with atomic_path(out / "calibrated.json") as tmp:
         tmp.write_text(json.dumps(meta, indent=2, default=float))
     written.append(out / "calibrated.json")

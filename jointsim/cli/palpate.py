@@ -140,9 +140,11 @@ def run(args: argparse.Namespace) -> int:
 
         written += write_calibrated(out, rec, cmap, args.calibration)
         for r in json.loads((out / "calibrated.json").read_text())["targets"]:
+            why = r.get("why_nan", {})
+            size = f"diameter {r['cal_diameter_mm']:.1f} mm" if "diameter" not in why else f"diameter n/a ({why['diameter']})"
+            modulus = f"modulus {r['modulus_kPa']:.3g} kPa" if "modulus" not in why else f"modulus n/a ({why['modulus']})"
             print(f"  calibrated, target {r['target']} at its deepest frame: x {r['cal_x_mm']:.2f} y {r['cal_y_mm']:.2f} mm, "
-                  f"depth {r['cal_depth_mm']:.2f} mm (true {r['true_depth_mm']:.2f}), diameter {r['cal_diameter_mm']:.1f} mm "
-                  f"(true {r['true_diameter_mm']:.1f}), modulus {r['modulus_kPa']:.3g} kPa"
-                  + (f"; {r['outside_trained_region']} outside the map's trained region" if r["outside_trained_region"] else ""))
+                  f"depth {r['cal_depth_mm']:.2f} mm (true {r['true_depth_mm']:.2f}), {size} (true {r['true_diameter_mm']:.1f}), "
+                  f"{modulus}" + (f"; {r['outside_trained_region']} outside the map's trained region" if r["outside_trained_region"] else ""))
     print(f"  wrote {out / 'palpation.h5'}, {len(written)} report files to {out}")
     return 0
