@@ -155,6 +155,13 @@ def test_indent_command_writes_the_curve(tmp_path):
     assert [float(x["depth_mm"]) for x in rows] == [0.5, 1.0]
     assert 0 < float(rows[0]["force_N"]) < float(rows[1]["force_N"])
     assert (out / "force_indentation.png").is_file() and (out / "membrane_001.vtu").is_file()
+    import meshio  # the membrane's strain and stress ride with it, per corner tetrahedron, the pressed one strained
+    cells = meshio.read(out / "membrane_001.vtu").cell_data
+    assert {"green_strain_max", "von_mises_stress", "mean_stress"} <= set(cells)
+    # a corner tetrahedron spans the layer's thickness from surface to surface, where bending
+    # strains most; the CSV's peak is at the elements' centroids, mid-thickness: measured 4.2x
+    assert float(rows[1]["peak_strain"]) < cells["green_strain_max"][0].max() < 10 * float(rows[1]["peak_strain"])
+    assert (cells["von_mises_stress"][0] >= 0).all()
     bad = subprocess.run(cmd[:-2] + ["--depth-mm", "50", "--out", str(out)], capture_output=True, text=True)
     assert bad.returncode == 2 and "beyond what the dome can take" in bad.stderr
     bad = subprocess.run(cmd[:-4] + ["--depth-mm", "-1", "--out", str(out)], capture_output=True, text=True)
@@ -540,3 +547,24 @@ def test_the_newton_stop_relative_to_the_contact_force_changes_nothing_that_matt
         assert st.force[2] == pytest.approx(tight.force[2], rel=3e-4)
         assert st.displaced_volume == pytest.approx(tight.displaced_volume, rel=3e-4)
         assert np.abs(st.u - tight.u).max() < 0.2e-6
+
+
+def test_the_output_stress_is_the_laws_uniaxial_stress():
+    """The membrane VTU's stress (Material.cauchy_stress): an isochoric uniaxial stretch λ of
+    the Yeoh law gives σ₁₁ − σ₂₂ = λ P(λ), P its incompressible uniaxial nominal stress (the
+    lateral stresses are the pressure's, which the difference removes), to round-off; zero at
+    rest; per tetrahedron, tet_fields reads F from the corners exactly for an affine move."""
+    from jointsim.mechanics.dome import ECOFLEX_00_50
+    from jointsim.mechanics.fem import tet_fields
+
+    m = ECOFLEX_00_50
+    lam = np.array([0.7, 1.0, 1.3, 1.9])
+    F = np.array([np.diag([v, v**-0.5, v**-0.5]) for v in lam])
+    s = m.cauchy_stress(F)
+    np.testing.assert_allclose(s[:, 0, 0] - s[:, 1, 1], lam * m.uniaxial_nominal_stress(lam), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(s[1], 0.0, atol=1e-9)
+    nodes = np.array([[0.0, 0, 0], [1e-3, 0, 0], [0, 1e-3, 0], [0, 0, 1e-3]])
+    u = nodes @ (F[2] - np.eye(3)).T
+    f = tet_fields(nodes, np.array([[0, 1, 2, 3]]), u, m)
+    assert f["green_strain_max"][0] == pytest.approx(0.5 * (1.3**2 - 1), rel=1e-12)
+    assert f["von_mises_stress"][0] == pytest.approx(s[2, 0, 0] - s[2, 1, 1], rel=1e-9)

@@ -55,7 +55,7 @@ from .materials import (
 )
 from .newton import NewtonSystem, SystemValues
 
-__all__ = ["P2Mesh", "ElementState", "HessianTarget", "ElementKernel", "ElasticTerm", "project_psd", "assemble_hessian", "assemble_gradient", "warp_device"]
+__all__ = ["P2Mesh", "tet_fields", "principal_green_strain", "ElementState", "HessianTarget", "ElementKernel", "ElasticTerm", "project_psd", "assemble_hessian", "assemble_gradient", "warp_device"]
 
 # the element loops are short but deeply nested: unrolling them makes compile times explode,
 # and no adjoint kernels are needed (derivatives are formed explicitly)
@@ -100,9 +100,34 @@ QUAD_BARY = KEAST_POINTS
 QUAD_W = np.full(4, 0.25)
 
 
+def principal_green_strain(F: np.ndarray) -> np.ndarray:
+    """Largest principal Green–Lagrange strain of E = (FᵀF − I)/2 at each of the deformation
+    gradients F (m, 3, 3): (m,)."""
+    return np.linalg.eigvalsh(0.5 * (np.swapaxes(F, 1, 2) @ F - np.eye(3)))[:, -1]
+
+
+def tet_fields(nodes: np.ndarray, tets: np.ndarray, u: np.ndarray, material) -> dict[str, np.ndarray]:
+    """Strain and stress per linear tetrahedron (m,) of ``tets`` over ``nodes`` (n, 3) displaced by
+    ``u`` (n, 3), each from its corners' constant F, in ``material``
+    (:meth:`~jointsim.mechanics.materials.Material.cauchy_stress`): the largest principal
+    Green–Lagrange strain, the von Mises stress √(3/2 s:s) Pa and the mean stress tr σ/3 Pa.
+    For output (the membrane's VTU, split into corner tetrahedra): the element's own field varies
+    inside it."""
+    X = nodes[tets]
+    x = X + u[tets]
+    dX = np.swapaxes(X[:, 1:] - X[:, :1], 1, 2)
+    dx = np.swapaxes(x[:, 1:] - x[:, :1], 1, 2)
+    F = dx @ np.linalg.inv(dX)
+    sigma = material.cauchy_stress(F)
+    mean = np.trace(sigma, axis1=1, axis2=2) / 3
+    dev = sigma - mean[:, None, None] * np.eye(3)
+    return {"green_strain_max": principal_green_strain(F), "von_mises_stress": np.sqrt(1.5 * np.einsum("mij,mij->m", dev, dev)),
+            "mean_stress": mean}
+
+
 def peak_green_strain(F: np.ndarray) -> float:
     """Largest principal Green–Lagrange strain E = (FᵀF − I)/2 over deformation gradients F (m, 3, 3)."""
-    return float(np.linalg.eigvalsh(0.5 * (np.swapaxes(F, 1, 2) @ F - np.eye(3))).max())
+    return float(principal_green_strain(F).max())
 
 
 @dataclass(frozen=True, eq=False)

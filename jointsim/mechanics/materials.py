@@ -75,6 +75,20 @@ class Material:
         """Small-strain shear modulus 2·C₁."""
         return 2 * self.c1
 
+    def cauchy_stress(self, F: np.ndarray) -> np.ndarray:
+        """Cauchy stress σ = P Fᵀ / J (m, 3, 3) Pa at deformation gradients ``F`` (m, 3, 3), P the
+        module docstring's: σ = 2 W₁ J^{-5/3} (F Fᵀ − I₁/3 I) + κ (J − 1) I. For output (the
+        membrane's VTU); the solver's stress is the Warp kernels'."""
+        F = np.asarray(F, float)
+        J = np.linalg.det(F)
+        B = F @ np.swapaxes(F, 1, 2)
+        i1 = np.trace(B, axis1=1, axis2=2)
+        d = J ** (-2.0 / 3.0) * i1 - 3.0
+        w1 = self.c1 + 2 * self.c2 * d + 3 * self.c3 * d**2
+        eye = np.eye(3)
+        return ((2 * w1 * J ** (-5.0 / 3.0))[:, None, None] * (B - (i1 / 3)[:, None, None] * eye)
+                + (self.bulk * (J - 1))[:, None, None] * eye)
+
     def uniaxial_nominal_stress(self, stretch: np.ndarray) -> np.ndarray:
         """Incompressible uniaxial nominal stress P = 2(λ − λ⁻²)·W₁(I₁), I₁ = λ² + 2/λ."""
         lam = np.asarray(stretch, float)

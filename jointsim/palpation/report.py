@@ -21,6 +21,8 @@ from .. import __version__
 from ..io.export import atomic_path, write_npz, write_voxels_vtu, write_vtu
 from ..io.figures import pyplot
 from ..io.records import Records
+from ..mechanics.dome import membrane_material
+from ..mechanics.fem import tet_fields
 from ..mesh.electrodes import electrode_tags
 from ..mesh.tetmesh import TetMesh
 from ..metrics import largest_cluster
@@ -54,6 +56,7 @@ class VtuSeries:
         self.dir = Path(out) / "vtu"
         self.pal = pal
         self.every = every
+        self.material = membrane_material(pal.scene.membrane)
 
     def wants(self, frame: Frame) -> bool:
         return frame.frame % self.every == 0 or frame.frame == frame.segment.n_frames - 1
@@ -65,7 +68,8 @@ class VtuSeries:
         inst = pal.instrument
         m = pal.membrane_mesh
         u = frame.state.u[: m.n_nodes]
-        write_vtu(self.dir / f"membrane_{i:05d}.vtu", TetMesh(m.nodes + u, m.tets), point_data={"displacement": u})
+        write_vtu(self.dir / f"membrane_{i:05d}.vtu", TetMesh(m.nodes + u, m.tets), point_data={"displacement": u},
+                  cell_data=tet_fields(m.nodes, m.tets, u, self.material))
         ch = frame.chamber.chamber.mesh
         cell, point = {}, {"electrode": electrode_tags(ch.n_nodes, frame.chamber.chamber.electrodes)}
         if frame.chamber.path == "morph":

@@ -17,6 +17,9 @@ from .. import __version__
 from ..io.export import atomic_path, write_npz, write_vtu
 from ..io.figures import pyplot
 from ..mechanics.build import membrane_from_scene
+from ..mechanics.dome import membrane_material
+from ..mechanics.fem import tet_fields
+from ..mechanics.touch import depth_reach
 from ..mesh.tetmesh import TetMesh
 from ..scene import Scene
 
@@ -32,18 +35,16 @@ def indentation_sweep(scene: Scene, radius_mm: float, xy_mm: tuple[float, float]
     iterations). ``announce`` gets a one-line description of the model before the first step,
     ``progress`` 1 after each. A depth beyond what the dome can take is refused (ValueError)."""
     radius = radius_mm
-    c = scene.chamber
     model = membrane_from_scene(scene, radius * 1e-3, device=device)
     xy = np.array(xy_mm) * 1e-3
     top = model.first_contact_height(xy)
     depths = np.arange(1, int(round(depth_mm / step_mm)) + 1) * step_mm
-    if depths[-1] * 1e-3 > top - radius * 1e-3 - c.membrane_thickness:
-        raise ValueError(
-            f"--depth-mm = {depth_mm}: beyond what the dome can take here "
-            f"(at most {(top - radius * 1e-3 - c.membrane_thickness) * 1e3:.2f} mm)"
-        )
+    reach = depth_reach(model, top)
+    if depths[-1] * 1e-3 > reach:
+        raise ValueError(f"--depth-mm = {depth_mm}: beyond what the dome can take here (at most {reach * 1e3:.2f} mm)")
     rows = []
     corners = TetMesh(model.mesh.nodes, model.mesh.corner_tets)  # ParaView's view of the quadratic elements
+    material = membrane_material(scene.membrane)
     if announce is not None:
         announce(f"target r = {radius:g} mm at ({xy_mm[0]:g}, {xy_mm[1]:g}) mm, membrane {model.mesh.n_nodes} nodes "
                  f"({scene.membrane.element}, {scene.membrane.rim_vertices} rim vertices, "
@@ -64,7 +65,8 @@ def indentation_sweep(scene: Scene, radius_mm: float, xy_mm: tuple[float, float]
                 "residual_N": st.residual,
             }
         )
-        write_vtu(out / f"membrane_{i:03d}.vtu", corners, point_data={"displacement": st.u})
+        write_vtu(out / f"membrane_{i:03d}.vtu", corners, point_data={"displacement": st.u},
+                  cell_data=tet_fields(corners.nodes, corners.tets, st.u, material))
         write_npz(out / f"inner_surface_{i:03d}.npz", vertices=st.dome.vertices, faces=st.dome.faces, rim=st.dome.rim)
         if progress is not None:
             progress(1)
