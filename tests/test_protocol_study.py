@@ -84,7 +84,7 @@ def test_protocol_study_command(test_chamber, tmp_path):
         capture_output=True, text=True, env=dict(os.environ),
     )
     assert r.returncode == 0, r.stderr[-2000:]
-    for name in ("fig2_GH.png", "images.png", "table.csv", "table.md", "study.json", "images_skip8.vtu"):
+    for name in ("fig2_GH.png", "fig2_BC.png", "images.png", "table.csv", "table.md", "study.json", "images_skip8.vtu"):
         assert (out / name).is_file(), name
     rows = (out / "table.csv").read_text().splitlines()
     assert len(rows) == 10  # header + skip 0..8

@@ -127,8 +127,9 @@ def _size_figure(out: Path, cal: Calibration, along: str) -> Path:
     t = cal.tables["size_at_levels"]
     fig, axes = plt.subplots(1, len(curves), figsize=(4.2 * len(curves), 3.6), squeeze=False)
     cmap = plt.get_cmap("viridis")
-    unit = {"sum_sigma": ("Σσ", 1.0), "diameter": ("image diameter (mm)", 1e3), "rms_dv": ("RMS δV (µV)", 1e6),
-            "force": ("|F| (mN)", 1e3)}
+    unit = {"sum_sigma": ("Σσ, total conductivity change (S/m·voxel)", 1.0), "diameter": ("image diameter (mm)", 1e3),
+            "rms_dv": ("RMS δV (µV)", 1e6), "force": ("|F| (mN)", 1e3)}
+    words = {"sum_sigma": "Σσ", "diameter": "image diameter", "rms_dv": "RMS δV", "force": "|F|"}
     for ax, (key, lc) in zip(axes[0], curves.items()):
         label, s = unit[lc.metric]
         for i, (lv, c) in enumerate(zip(lc.levels, lc.curves)):
@@ -140,7 +141,7 @@ def _size_figure(out: Path, cal: Calibration, along: str) -> Path:
             ax.plot(t["size"][sel] * 1e3, t["value"][sel] * s, "o", ms=3, color=col, mfc="none")
         ax.set_xlabel("true target diameter (mm)")
         ax.set_ylabel(label)
-        ax.set_title(f"{lc.metric} at fixed {along}" + (" (route used)" if key == cal.map.size_route else ""), fontsize=9)
+        ax.set_title(f"{words[lc.metric]} at fixed {along}" + (" (route used)" if key == cal.map.size_route else ""), fontsize=9)
         ax.legend(fontsize=6, title=f"{along}", title_fontsize=6)
     fig.suptitle("size curves: lines fitted on training presses (isotonic), circles held-out presses", fontsize=9)
     return _save(fig, out / f"size_curves_{along}.png")
@@ -162,7 +163,7 @@ def _com_figure(out: Path, grids: dict[str, dict[str, np.ndarray]]) -> Path:
         ax.set_title(f"held-out median |{name} error| (mm) per {CELL * 1e3:g} mm cell", fontsize=9)
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm)")
-        fig.colorbar(im, ax=ax, shrink=0.8)
+        fig.colorbar(im, ax=ax, shrink=0.8, label=f"median |{name} error| (mm)")
     return _save(fig, out / "com_error_map.png")
 
 

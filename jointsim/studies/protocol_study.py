@@ -85,6 +85,8 @@ class StudyResult:
     metrics_raw: dict[int, list[ImageMetrics]]  # of the Δσ images (Σσ in S/m·voxel)
     noise_std: dict[int, float]
     floor: dict[str, dict[int, float]] = field(default_factory=dict)  # kind -> skip -> dB re mean |V|
+    # skip -> (n_cells,) ‖∂V/∂σ_i‖₂ / V_i, V S⁻¹ m⁻²: the measurements' sensitivity density (paper Fig. 2B/C)
+    sensitivity: dict[int, np.ndarray] = field(default_factory=dict)
     mirror_pairs: dict[str, float] = field(default_factory=dict)  # "6~8" -> relative difference
 
     def table(self) -> list[dict]:
@@ -191,6 +193,7 @@ def run_protocol_study(scene: Scene, config: StudyConfig = StudyConfig(), progre
     result = StudyResult(
         config, scene, grid, centres, volumes, v_ref, dv, dv_clean, j_sens, lambdas, images, metrics, metrics_raw, std
     )
+    result.sensitivity = {s: np.linalg.norm(J[s], axis=0) / grid.volume for s in config.skips}
     ring = scene.electrodes.is_ring and scene.drive.measure == "reference"
     result.mirror_pairs = mirror_pair_differences(v_def, n_el) if ring else {}
     if config.mesh_floor:
@@ -238,6 +241,7 @@ def mesh_noise_floor(scene: Scene, fields, protocols: dict) -> dict[str, dict[in
     triangulation) and permutes the electrodes back (the paper's ring only). The morphed (fixed-topology) path has no
     such floor: no deformation gives the reference mesh itself."""
     n_el = scene.electrodes.count
+    result.sensitivity = {s: np.linalg.norm(J[s], axis=0) / grid.volume for s in config.skips}
     ring = scene.electrodes.is_ring and scene.drive.measure == "reference"
     out: dict[str, dict[int, float]] = {"jitter": {}, **({"rotate": {}} if ring else {})}
     again = _fields(jittered_chamber(scene, 1e-6), scene)

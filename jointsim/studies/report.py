@@ -29,6 +29,8 @@ def write_study(result: StudyResult, out: Path, command: str) -> list[Path]:
     for s in result.config.skips:
         data = {f"pos{i}": result.images[s][i] for i in range(len(result.config.positions))}
         data["volume_fraction"] = result.grid.volume_fraction
+        if s in result.sensitivity:
+            data["sensitivity_density"] = result.sensitivity[s]
         written.append(write_voxels_vtu(out / f"images_skip{s}.vtu", result.grid, data))
     meta = {
         "command": command,
@@ -123,6 +125,28 @@ def _markdown(path: Path, result: StudyResult, rows: list[dict], command: str) -
     return path
 
 
+def _slices(axes, g, values: np.ndarray, at: np.ndarray, ylabel: bool = True, **style):
+    """A cell field ``values`` on the grid ``g`` drawn on two axes: the xy slice through height
+    ``at[2]`` and the xz slice through ``at[1]``, in mm (empty cells blank; y axes labelled where
+    ``ylabel``); the last image."""
+    full = g.to_full(values)
+    o, h, n = g.grid.origin, g.grid.spacing, g.grid.shape
+    k = int(np.clip((at[2] - o[2]) / h[2], 0, n[2] - 1))
+    j = int(np.clip((at[1] - o[1]) / h[1], 0, n[1] - 1))
+    ext_xy = np.array([o[0], o[0] + n[0] * h[0], o[1], o[1] + n[1] * h[1]]) * 1e3
+    ext_xz = np.array([o[0], o[0] + n[0] * h[0], o[2], o[2] + n[2] * h[2]]) * 1e3
+    axes[0].imshow(full[:, :, k].T, origin="lower", extent=ext_xy, **style)
+    im = axes[1].imshow(full[:, j, :].T, origin="lower", extent=ext_xz, aspect="auto", **style)
+    axes[0].set_xlabel("x (mm)", fontsize=8)
+    axes[1].set_xlabel("x (mm)", fontsize=8)
+    if ylabel:
+        axes[0].set_ylabel(f"y (mm), slice z = {(o[2] + (k + 0.5) * h[2]) * 1e3:.1f} mm", fontsize=8)
+        axes[1].set_ylabel(f"z (mm), slice y = {(o[1] + (j + 0.5) * h[1]) * 1e3:.1f} mm", fontsize=8)
+    for ax in axes:
+        ax.tick_params(labelsize=7)
+    return im
+
+
 def _figures(out: Path, result: StudyResult, rows: list[dict]) -> list[Path]:
     plt = pyplot()
 
@@ -133,7 +157,7 @@ def _figures(out: Path, result: StudyResult, rows: list[dict]) -> list[Path]:
     a.set_ylabel("RMS δV (µV)", color="tab:red")
     a2 = a.twinx()
     a2.plot(skips, [r["J_sens"] for r in rows], "s-", color="tab:blue")
-    a2.set_ylabel("J_sens", color="tab:blue")
+    a2.set_ylabel("J_sens (V S⁻¹ m⁻²)", color="tab:blue")
     a.set_title("G: voltage change and sensitivity")
     b.plot(skips, [r["com_error_mm_mean"] for r in rows], "o-", color="tab:red", label="mean")
     b.plot(skips, [r["com_error_mm_max"] for r in rows], "o--", color="tab:red", alpha=0.5, label="max")
@@ -151,32 +175,40 @@ def _figures(out: Path, result: StudyResult, rows: list[dict]) -> list[Path]:
         fig.savefig(tmp, dpi=130)
     plt.close(fig)
 
-    # images: a vertical slice through the first off-centre position, skip 0 and the best skip
+    # images: slices through the first off-centre position's true centre, every skip
     g = result.grid
-    fig, axes = plt.subplots(2, len(result.config.skips), figsize=(2.0 * len(result.config.skips), 4.2), squeeze=False)
     i_pos = min(1, len(result.config.positions) - 1)
-    zc = result.true_centres[i_pos, 2]
+    centre = result.true_centres[i_pos]
+    fig, axes = plt.subplots(2, len(result.config.skips), figsize=(2.2 * len(result.config.skips) + 1.5, 4.8), squeeze=False)
+    # one scale for every skip: how strongly each images the same press is part of the comparison
+    vmax = max(float(np.nanmax(np.abs(result.images[s][i_pos]))) for s in result.config.skips)
     for col, s in enumerate(result.config.skips):
-        full = g.to_full(result.images[s][i_pos])
-        k = int(np.clip((zc - g.grid.origin[2]) / g.grid.spacing[2], 0, g.grid.shape[2] - 1))
-        j = int(np.clip((result.true_centres[i_pos, 1] - g.grid.origin[1]) / g.grid.spacing[1], 0, g.grid.shape[1] - 1))
-        vmax = np.nanmax(np.abs(full))
-        ext_xy = [g.grid.origin[0], g.grid.origin[0] + g.grid.shape[0] * g.grid.spacing[0], g.grid.origin[1], g.grid.origin[1] + g.grid.shape[1] * g.grid.spacing[1]]
-        axes[0, col].imshow(full[:, :, k].T, origin="lower", cmap="RdBu_r", vmin=-vmax, vmax=vmax, extent=np.array(ext_xy) * 1e3)
-        ext_xz = [ext_xy[0], ext_xy[1], g.grid.origin[2], g.grid.origin[2] + g.grid.shape[2] * g.grid.spacing[2]]
-        axes[1, col].imshow(full[:, j, :].T, origin="lower", cmap="RdBu_r", vmin=-vmax, vmax=vmax, extent=np.array(ext_xz) * 1e3)
-        for ax in axes[:, col]:
-            ax.set_xticks([])
-            ax.set_yticks([])
-        axes[0, col].plot(*(result.true_centres[i_pos, :2] * 1e3), "k+")
+        im = _slices(axes[:, col], g, result.images[s][i_pos], centre, ylabel=col == 0, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
+        axes[0, col].plot(*(centre[:2] * 1e3), "k+")
         axes[0, col].plot(*(result.metrics[s][i_pos].com[:2] * 1e3), "kx")
         axes[0, col].set_title(f"skip {s}", fontsize=9)
-    axes[0, 0].set_ylabel("xy slice")
-    axes[1, 0].set_ylabel("xz slice")
-    fig.suptitle("Difference images (+ true centre, x reconstructed CoM); blue = conductivity decrease", fontsize=9)
-    fig.tight_layout()
+    fig.colorbar(im, ax=axes.ravel().tolist(), shrink=0.8, label="Δσ (S/m)")
+    fig.suptitle(f"Difference images of the press at ({centre[0] * 1e3:.1f}, {centre[1] * 1e3:.1f}) mm (+ true centre, "
+                 "× reconstructed CoM); blue = conductivity decrease", fontsize=9)
     p2 = out / "images.png"
     with atomic_path(p2) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+
+    # the paper's Fig. 2 B/C: where the measurements are sensitive, for the first and last skip
+    shown = sorted({result.config.skips[0], result.config.skips[-1]})
+    fig, axes = plt.subplots(2, len(shown), figsize=(3.6 * len(shown) + 1.0, 6.0), squeeze=False)
+    dens = {s: np.log10(result.sensitivity[s]) for s in shown}
+    lo = min(float(np.percentile(d, 1)) for d in dens.values())
+    hi = max(float(d.max()) for d in dens.values())
+    mid = np.array([0.0, 0.0, 0.5 * result.true_centres[:, 2].mean()])  # half-way up to the dents
+    for col, s in enumerate(shown):
+        im = _slices(axes[:, col], g, dens[s], mid, ylabel=col == 0, cmap="viridis", vmin=lo, vmax=hi)
+        axes[0, col].set_title(f"skip {s}: sensitivity density", fontsize=9)
+    fig.colorbar(im, ax=axes.ravel().tolist(), shrink=0.8, label="log₁₀ ‖∂V/∂σᵢ‖ / Vᵢ (V S⁻¹ m⁻²)")
+    fig.suptitle("Measurement sensitivity per unit volume (cf. paper Fig. 2B/C), slices through the axis", fontsize=9)
+    p4 = out / "fig2_BC.png"
+    with atomic_path(p4) as tmp:
         fig.savefig(tmp, dpi=110)
     plt.close(fig)
     fig, ax = plt.subplots(figsize=(5, 3.5))
@@ -193,4 +225,4 @@ def _figures(out: Path, result: StudyResult, rows: list[dict]) -> list[Path]:
     with atomic_path(p3) as tmp:
         fig.savefig(tmp, dpi=110)
     plt.close(fig)
-    return [p1, p2, p3]
+    return [p1, p2, p3, p4]
