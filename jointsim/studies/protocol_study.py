@@ -241,7 +241,6 @@ def mesh_noise_floor(scene: Scene, fields, protocols: dict) -> dict[str, dict[in
     triangulation) and permutes the electrodes back (the paper's ring only). The morphed (fixed-topology) path has no
     such floor: no deformation gives the reference mesh itself."""
     n_el = scene.electrodes.count
-    result.sensitivity = {s: np.linalg.norm(J[s], axis=0) / grid.volume for s in config.skips}
     ring = scene.electrodes.is_ring and scene.drive.measure == "reference"
     out: dict[str, dict[int, float]] = {"jitter": {}, **({"rotate": {}} if ring else {})}
     again = _fields(jittered_chamber(scene, 1e-6), scene)
