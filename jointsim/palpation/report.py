@@ -161,6 +161,17 @@ def _hold(depth: np.ndarray) -> np.ndarray:
     return depth >= 0.9 * depth.max() if depth.max() > 0 else np.zeros(len(depth), bool)
 
 
+def _brief(params: dict[str, Any]) -> dict[str, Any]:
+    """The run's params for summary.json: the protocol's pattern matrices by their shapes (the
+    matrices themselves are in palpation.h5's provenance)."""
+    proto = params.get("protocol")
+    if not isinstance(proto, dict):
+        return params
+    short = {k: (f"{np.shape(v)} array: palpation.h5 provenance params.protocol.{k}" if isinstance(v, list) else v)
+             for k, v in proto.items()}
+    return {**params, "protocol": short}
+
+
 def summarise(rec: Records) -> list[dict[str, Any]]:
     """One row per target: the frame of maximum change and its figures, and means over the
     hold (frames at ≥ 90 % of the deepest indentation)."""
@@ -226,7 +237,7 @@ def write_report(out: str | Path, rec: Records, command: str) -> list[Path]:
         "date": time.strftime("%Y-%m-%d"),
         "data_sha256": rec.data_sha256,
         "seed": ident["seed"],
-        "params": ident["params"],
+        "params": _brief(ident["params"]),
         "versions": ident["versions"],
         "setup": setup,
         "targets": rows,
