@@ -221,13 +221,21 @@ def test_the_rings_symmetries_move_a_frame_with_its_press(pal):
 
 def test_force_mode_settles_at_the_commanded_force(test_chamber):
     """A 30 mN press switched on at first contact: the rig's force-mode loop contracts by
-    ~0.85 per frame at this contact stiffness (~25 N/m), so 40 frames settle to ≪ 1 %."""
+    ~0.85 per frame at this contact stiffness (~25 N/m), so 40 frames settle to ≪ 1 %. Then the
+    stage lifts the target away (RELEASE_S): the record ends with the target let go (it is off
+    in 4 frames, measured), not still pressing as the lagging rig left it at a zero command."""
+    from jointsim.palpation.pipeline import RELEASE_S
+
     scene, chamber = test_chamber
     spec = replace(scene.palpation, mode="force", target_radii=(7.5e-3,), force=0.03, force_ramp=0.0, hold=0.8)
     pal = Palpation(_coarse(scene, cells=500), spec, chamber=chamber)
     frames = list(run_palpation(pal))
     pal.free()
-    assert len(frames) == 41
+    n_release = round(RELEASE_S * 50)
+    assert len(frames) == 41 + n_release
+    release, frames = frames[41:], frames[:41]
+    assert all(f.rig.command_force == -0.03 for f in release)
+    assert release[-1].state.force[2] == 0 and release[-1].record["depth"] < 0
     F = np.array([f.state.force[2] for f in frames])
     z = np.array([f.rig.position[2] for f in frames])
     assert all(f.rig.command_force == 0.03 for f in frames)
@@ -357,6 +365,9 @@ def test_a_chamber_pressed_flat_is_refused_as_too_deep(pal):
 def test_force_profile_and_bad_settings():
     f = force_profile(0.05, 0.2, 0.5, 50.0)
     assert f[0] == 0 and f.max() == 0.05 and f[-1] == pytest.approx(0.0) and len(f) == 46
+    lifted = force_profile(0.05, 0.2, 0.5, 50.0, release_s=0.2)  # then the stage lifts for 10 frames
+    np.testing.assert_array_equal(lifted[:46], f)
+    assert len(lifted) == 56 and (lifted[46:] == -0.05).all()
     with pytest.raises(ValueError, match="force = "):
         force_profile(-1.0, 0.2, 0.5, 50.0)
     for bad, key in [({"mode": "pinch"}, "palpation.mode"), ({"depth_mm": 30}, "palpation.depth_mm"),

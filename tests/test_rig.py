@@ -264,7 +264,7 @@ def test_compliant_mode_settles_where_spring_balances_contact():
     (lambda: press_hold_retract(1e-3, gap=-1e-3), "gap"),
     (lambda: press_hold_retract(1e-3, hold_s=-1.0), "hold_s"),
     (lambda: Controller(mode="velocity", trajectory=press_hold_retract(1e-3)), "mode"),
-    (lambda: Controller.force(-0.1), "press_force"),
+    (lambda: Controller.force(float("nan")), "press_force"),
     (lambda: Controller("position"), "trajectory"),
     (lambda: Controller.compliant(press_hold_retract(1e-3), stiffness=-5.0), "spring_stiffness"),
     (lambda: load_rig(controller=Controller.position(press_hold_retract(20e-3))), "depth"),

@@ -64,6 +64,10 @@ __all__ = [
 
 STAGES = ("mujoco", "mechanics") + FRAME_STAGES
 MESH_PATHS = ("morph", "remesh")
+# s of the stage lifting the target after a force-mode press: the rig lags the command by a few
+# frames (measured: 12 mN still on a 15 mm target when a 30 mN command reached 0), so the record
+# ends only once the target has let go
+RELEASE_S = 0.2
 SCHEMA_VERSION = 2  # 2: true_centre is the dent's centroid (was the net displaced saline's)
 
 
@@ -72,21 +76,28 @@ SCHEMA_VERSION = 2  # 2: true_centre is the dent's centroid (was the net displac
 # ---------------------------------------------------------------------------------------------
 
 
-def force_profile(force: float, ramp_s: float, hold_s: float, frame_rate: float) -> np.ndarray:
+def force_profile(force: float, ramp_s: float, hold_s: float, frame_rate: float, release_s: float = 0.0) -> np.ndarray:
     """Force-mode program (n,) N at ``frame_rate`` Hz: a linear ramp from 0 to ``force`` in
-    ``ramp_s`` s, a hold of ``hold_s`` s, and a ramp back to 0 (a step when ``ramp_s`` is 0)."""
+    ``ramp_s`` s, a hold of ``hold_s`` s, a ramp back to 0 (a step when ``ramp_s`` is 0), then
+    ``release_s`` s of the stage lifting the target away with ``force`` (−``force``): with no
+    force at all the membrane alone pushes the target out, and the damped rig lets go only
+    exponentially (1.8 mN still on after 0.3 s, measured)."""
     if not (math.isfinite(force) and force > 0):
         raise ValueError(f"force = {force!r}: must be > 0 N")
     if not (math.isfinite(ramp_s) and ramp_s >= 0):
         raise ValueError(f"force_ramp_s = {ramp_s!r}: must be >= 0 s")
     if not (math.isfinite(hold_s) and hold_s >= 0):
         raise ValueError(f"hold_s = {hold_s!r}: must be >= 0 s")
+    if not (math.isfinite(release_s) and release_s >= 0):
+        raise ValueError(f"release_s = {release_s!r}: must be >= 0 s")
     end = 2 * ramp_s + hold_s
-    n = int(math.ceil(end * frame_rate - 1e-9)) + 1
+    n = int(math.ceil((end + release_s) * frame_rate - 1e-9)) + 1
     t = np.arange(n) / frame_rate
     if ramp_s == 0:
-        return np.where(t <= hold_s + 1e-12, force, 0.0) if hold_s > 0 else np.full(n, force)
-    return force * np.interp(t, [0.0, ramp_s, ramp_s + hold_s, end], [0.0, 1.0, 1.0, 0.0])
+        f = np.where(t <= hold_s + 1e-12, force, 0.0) if hold_s > 0 or release_s > 0 else np.full(n, force)
+    else:
+        f = force * np.interp(t, [0.0, ramp_s, ramp_s + hold_s, end], [0.0, 1.0, 1.0, 0.0])
+    return np.where(t > end + 1e-12, -force, f)
 
 
 @dataclass(frozen=True)
@@ -111,7 +122,8 @@ def _segments(spec: PalpationSpec, frame_rate: float) -> tuple[Segment, ...]:
     out, start = [], 0
     for i, r in enumerate(spec.target_radii):
         if spec.mode == "force":
-            c = Controller.force(force_profile(spec.force, spec.force_ramp, spec.hold, frame_rate), xy=spec.xy, gap=spec.gap)
+            c = Controller.force(force_profile(spec.force, spec.force_ramp, spec.hold, frame_rate, RELEASE_S),
+                                 xy=spec.xy, gap=spec.gap)
             n = len(c.press_force)
         else:
             tr = press_hold_retract(spec.depth, spec.speed, spec.hold, frame_rate, spec.xy, spec.gap)

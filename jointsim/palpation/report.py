@@ -409,10 +409,17 @@ def _figures(out: Path, rec: Records, grid: ChamberGrid, rows: list[dict]) -> li
         sel = rec["target"] == r["target"]
         t = rec["time"][sel]
         lab = f"{r['diameter_mm']:g} mm"
-        axes[0].plot(t, 1e3 * rec["depth"][sel], label=lab)
-        axes[1].plot(t, 1e3 * rec["force"][sel, 2])
+        line, = axes[0].plot(t, 1e3 * rec["depth"][sel], label=lab)
+        axes[1].plot(t, 1e3 * rec["force"][sel, 2], color=line.get_color())
+        commanded = rec["command_force"][sel]
+        if np.isfinite(commanded).any():  # force mode: what the stage was told, beside what it got
+            axes[1].plot(t, 1e3 * commanded, "--", lw=0.8, color=line.get_color())
         axes[2].plot(t, 1e9 * rec["displaced_volume"][sel])
         axes[3].plot(t, 1e6 * rec["rms_dv_clean"][sel])
+    if np.isfinite(rec["command_force"]).any():
+        axes[1].plot([], [], "k-", lw=1, label="contact")
+        axes[1].plot([], [], "k--", lw=0.8, label="commanded")
+        axes[1].legend(fontsize=7, loc="lower left")
     for ax, yl in zip(axes, ["depth (mm)", "force (mN)", "displaced (mm³)", "RMS δV clean (µV)"]):
         ax.set_ylabel(yl)
     axes[0].legend(fontsize=8)

@@ -156,8 +156,9 @@ class Controller:
     :meth:`compliant`.
 
     ``trajectory`` (position and compliant modes) is the stage program; ``press_force`` (force
-    mode) the pressing force, N, downward on the sensor: a constant or one value per frame
-    (n,), the last held after the end; ``xy`` and ``gap`` (force mode) where the target
+    mode) the pressing force, N, downward on the sensor (negative: the stage lifts the target
+    away): a constant or one value per frame (n,), the last held after the end; ``xy`` and
+    ``gap`` (force mode) where the target
     starts: ``gap`` m above first contact. ``spring_stiffness`` N/m and ``spring_damping``
     N s/m (compliant mode) override the probe spring of the MJCF; None keeps it."""
 
@@ -174,8 +175,8 @@ class Controller:
         if self.mode == "force":
             _check("press_force", self.press_force, self.press_force is not None, "given in force mode (N)")
             f = np.atleast_1d(np.asarray(self.press_force, float))
-            _check("press_force", self.press_force, f.ndim == 1 and len(f) >= 1 and bool(np.isfinite(f).all()) and bool((f >= 0).all()),
-                   ">= 0 N (a number or a 1-D array per frame)")
+            _check("press_force", self.press_force, f.ndim == 1 and len(f) >= 1 and bool(np.isfinite(f).all()),
+                   "finite N (a number or a 1-D array per frame; negative lifts)")
             _check("trajectory", self.trajectory, self.trajectory is None, "None in force mode (use press_force)")
             _check("gap", self.gap, _finite(self.gap) and self.gap >= 0, ">= 0 m")
             _check("xy", self.xy, len(self.xy) == 2 and all(_finite(v) for v in self.xy), "two finite numbers (m)")
