@@ -10,12 +10,13 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 import numbers
 import tomllib
 import warnings
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -34,6 +35,7 @@ __all__ = [
     "DatasetSpec",
     "Scene",
     "load_scene",
+    "parameter_table",
     "scene_data",
     "scene_toml",
     "scene_from_dict",
@@ -317,6 +319,16 @@ class Scene:
 # Parsing and validation
 
 
+# every key a scene's parse reads, with its default and what is allowed, while
+# parameter_table() collects them (None otherwise): the parse is the scene format's one definition
+_READS: list[dict[str, Any]] | None = None
+
+
+def _read(section: str, key: str, kind: str, default: Any, allowed: str) -> None:
+    if _READS is not None:
+        _READS.append({"section": section, "key": key, "kind": kind, "default": default, "allowed": allowed})
+
+
 class _Table:
     """Reads one TOML table, checking each key's range and rejecting unknown keys."""
 
@@ -341,11 +353,13 @@ class _Table:
         hi_open: bool = False,
     ) -> float:
         self.seen.add(k)
+        _read(self.name, k, "number", default, f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}")
         v = self.data.get(k, default)
         return _check_number(self.key(k), v, lo, hi, lo_open, hi_open)
 
     def integer(self, k: str, default: int, lo: int, hi: int) -> int:
         self.seen.add(k)
+        _read(self.name, k, "integer", default, f"[{lo}, {hi}]")
         v = self.data.get(k, default)
         if isinstance(v, bool) or not isinstance(v, int):
             raise SceneError(f"{self.key(k)} = {v!r}: must be an integer in [{lo}, {hi}]")
@@ -354,12 +368,16 @@ class _Table:
         return v
 
     def raw(self, k: str, default: Any) -> Any:
+        """A value its caller checks (a list, a table, a flag): recorded as such."""
         self.seen.add(k)
+        _read(self.name, k, "value", default, "")
         return self.data.get(k, default)
 
     def choice(self, k: str, default: str, allowed: tuple[str, ...]) -> str:
         """A value that must be one of ``allowed``."""
-        v = self.raw(k, default)
+        self.seen.add(k)
+        _read(self.name, k, "choice", default, " | ".join(map(str, allowed)))
+        v = self.data.get(k, default)
         if v not in allowed:
             raise SceneError(f"{self.key(k)} = {v!r}: allowed values are {', '.join(map(repr, allowed))}")
         return v
@@ -797,6 +815,29 @@ def _toml(data: dict[str, Any]) -> str:
 
 # the sections a scene file must describe, itself or through what it extends: the sensor
 SENSOR_SECTIONS = ("chamber", "electrodes")
+
+
+def parameter_table(paths: Sequence[str | Path] | None = None) -> list[dict[str, Any]]:
+    """Every key the parse of the scenes at ``paths`` (default: the shipped ones) reads, once
+    each in the order first read: section, key, kind (number, integer, choice, value), its
+    default and what is allowed. Generated from the parse itself, so the scene reference
+    (the documentation's) cannot drift from the code. A key only some scenes reach (an
+    electrode generator's, a soft target's) is there when one of them does."""
+    global _READS
+    if paths is None:  # the paper's sensor first: its reads set the order
+        paths = sorted(SCENES_DIR.glob("*.toml"), key=lambda p: (p.stem != "paper_sensor", p.stem))
+    rows: dict[tuple[str, str], dict[str, Any]] = {}
+    _READS = []
+    try:
+        for p in paths:
+            load_scene(p)
+            for r in _READS:
+                section = re.sub(r"\[\d+\]$", "", r["section"])  # one row per generator key, not per table
+                rows.setdefault((section, r["key"]), {**r, "section": section})
+            _READS.clear()
+    finally:
+        _READS = None
+    return list(rows.values())
 
 
 def load_scene(path: str | Path) -> Scene:

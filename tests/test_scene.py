@@ -209,3 +209,27 @@ def test_the_papers_reconstruction_is_the_one_every_job_images_with(paper_scene)
     r = paper_scene.reconstruction
     assert (r.cells, r.lambda_method) == (7000, "kfold")  # paper II.C: 7 k hexahedra, λ by cross-validation
     assert (r.lambda_radius, r.lambda_depth, *r.lambda_xy) == pytest.approx((7.5e-3, 3e-3, 0.0, 0.0))
+
+
+def test_the_parameter_table_holds_every_key_the_shipped_scenes_use():
+    """The documentation's scene reference is generated from parameter_table (the parse's own
+    reads): every key a shipped scene file writes is in it, with what is allowed for numbers."""
+    import tomllib
+
+    from jointsim.scene import SCENES_DIR, parameter_table
+
+    rows = {(r["section"], r["key"]): r for r in parameter_table()}
+    for path in SCENES_DIR.glob("*.toml"):
+        data = tomllib.loads(path.read_text())
+        for section, table in data.items():
+            if not isinstance(table, dict):
+                continue
+            for key, value in table.items():
+                if isinstance(value, list) and value and isinstance(value[0], dict):  # [[electrodes.ring]]
+                    keys = [(f"{section}.{key}", k) for item in value for k in item]
+                else:
+                    keys = [(section, key)]
+                for k in keys:
+                    assert k in rows, (path.name, k)
+    assert rows[("chamber", "base_radius_mm")]["allowed"] == "[1, 500]"
+    assert rows[("membrane", "element")]["kind"] == "choice"
