@@ -129,9 +129,13 @@ def check_fingerprint(built: Mapping[str, Any], given: Mapping[str, Any], what: 
     """Raise :class:`SceneMismatchError` naming every differing value when ``given`` (the scene
     in use) is not the sensor ``built`` (the map's) describes."""
     if diff := fingerprint_differences(built, given):
+        preset = built.get("mesh.preset")
+        # the commonest case: a quick-look map of `jointsim dataset --mesh test` on the default scene
+        hint = (f" (the map was built on the {preset!r} mesh preset: give --mesh {preset})"
+                if preset is not None and preset != given.get("mesh.preset") else "")
         raise SceneMismatchError(
             f"{what} was built for another sensor; {len(diff)} value(s) differ: " + "; ".join(diff)
-            + ". Build a map from a dataset of this scene (jointsim calibrate), or use the scene the map was built for."
+            + f". Build a map from a dataset of this scene (jointsim calibrate), or use the scene the map was built for{hint}."
         )
 
 
