@@ -453,3 +453,46 @@ def test_a_resume_from_any_frame_is_bit_for_bit_the_uninterrupted_run(test_chamb
             assert not diff, f"resumed before frame {k}: {diff} differ"
     finally:
         pal.free()
+
+
+def test_measured_frames_are_imaged_as_the_instrument_images_its_own(pal, run, tmp_path):
+    """Frames read from a file (pseudo-measured: this run's own noisy voltages, as CSV, as an
+    EIDORS .mat and as HDF5 with its patterns) against the run's measured
+    reference give the run's own images: the same CoM, Σσ and diameter to round-off. Frames of
+    another channel count or other patterns are refused naming the file."""
+    from scipy.io import savemat
+
+    from jointsim.io.frames import read_frames
+    from jointsim.studies.measured import image_frames
+
+    rec, _ = run
+    ro = pal.instrument.readout
+    ref = tmp_path / "reference.csv"
+    ref.write_text("# the measured steady-state reference\n" + ",".join(f"{v:.17g}" for v in ro.v_ref_measured) + "\n")
+    pressed = np.flatnonzero(rec["depth"] > 0.5e-3)
+    csv = tmp_path / "frames.csv"
+    csv.write_text("\n".join(",".join(f"{v:.17g}" for v in row) for row in rec["voltages"][pressed]) + "\n")
+    mat = tmp_path / "frames.mat"
+    savemat(mat, {"data": {"meas": rec["voltages"][pressed].T}})
+    import h5py
+
+    h5 = tmp_path / "frames.h5"
+    with h5py.File(h5, "w") as f:
+        f["voltages"], f["stim_A"], f["meas"] = rec["voltages"][pressed], pal.instrument.protocol.stim, pal.instrument.protocol.meas
+    for path in (csv, mat, h5):
+        res = image_frames(pal.scene, read_frames(path), read_frames(ref), instrument=pal.instrument)
+        np.testing.assert_allclose(res.dv, rec["dv"][pressed], rtol=0, atol=1e-15)
+        np.testing.assert_allclose(res.com, rec["com"][pressed], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(res.sum_sigma, rec["sum_sigma"][pressed], rtol=1e-12)
+    bad = tmp_path / "short.csv"
+    bad.write_text("1,2,3\n")
+    with pytest.raises(ValueError, match=r"short\.csv: 3 values per frame; the scene's protocol measures 256"):
+        image_frames(pal.scene, read_frames(bad), read_frames(ref), instrument=pal.instrument)
+    other = tmp_path / "other.mat"
+    proto = pal.instrument.protocol
+    stim = np.roll(proto.stim, 1, axis=1)  # the injections one electrode on
+    savemat(other, {"data": {"meas": rec["voltages"][pressed].T},
+                    "fwd_model": {"stimulation": np.array([(stim[s][:, None], proto.meas[s]) for s in range(len(stim))],
+                                                          dtype=[("stim_pattern", object), ("meas_pattern", object)])}})
+    with pytest.raises(ValueError, match=r"other\.mat: its stimulation pattern of injection 0 is not the scene's"):
+        image_frames(pal.scene, read_frames(other), read_frames(ref), instrument=pal.instrument)

@@ -20,7 +20,7 @@ from .fingerprint import fingerprint_digest
 from .maps import APPLIED, CalibrationMap
 from .report import write_csv
 
-__all__ = ["calibrate_frames", "summarise_calibrated", "write_calibrated", "why_nan"]
+__all__ = ["calibrate_frames", "calibrate_measured", "summarise_calibrated", "write_calibrated", "why_nan"]
 
 PALPATION_FIELDS = ("target", "frame", "target_radius", "position", "depth", "com", "voltages", "dv", "force", "sum_sigma",
                     "diameter")
@@ -34,6 +34,17 @@ def calibrate_frames(cmap: CalibrationMap, rec: Records) -> dict[str, np.ndarray
     return {"target": f["target"], "frame": f["frame"], "true_x": f["position"][:, 0], "true_y": f["position"][:, 1],
             "true_depth": f["depth"], "true_diameter": 2 * f["target_radius"],
             "force": np.linalg.norm(f["force"], axis=1), **{k: out[k] for k in APPLIED}}
+
+
+def calibrate_measured(cmap: CalibrationMap, voltages: np.ndarray, dv: np.ndarray, com: np.ndarray,
+                       sum_sigma: np.ndarray, diameter: np.ndarray) -> dict[str, np.ndarray]:
+    """The map's :data:`APPLIED` values (n,) for measured frames (their ``voltages`` and ``dv``
+    (n, n_meas) V, image ``com`` (n, 3) m, ``sum_sigma``, ``diameter`` (n,)). A measured frame
+    has no force: the size route along force and the modulus are NaN there."""
+    n = len(voltages)
+    frames = {"com": com, "voltages": voltages, "dv": dv, "force": np.full((n, 3), np.nan), "sum_sigma": sum_sigma,
+              "diameter": diameter}
+    return cmap.apply(frames)
 
 
 def why_nan(cmap: CalibrationMap, table: dict[str, np.ndarray], k: int) -> dict[str, str]:

@@ -10,12 +10,12 @@ import warnings
 
 from .. import __version__
 from ..scene import SceneError
-from . import calibrate, dataset, design_study, forward, indent, mesh, palpate, protocol_study, stiffness_study
+from . import calibrate, dataset, design_study, forward, frames, indent, mesh, palpate, protocol_study, stiffness_study
 from .common import check_output
 
 SUBCOMMANDS = {"forward": forward, "mesh": mesh, "protocol-study": protocol_study, "indent": indent, "palpate": palpate,
                "dataset": dataset, "calibrate": calibrate, "stiffness-study": stiffness_study,
-               "design-study": design_study}
+               "design-study": design_study, "frames": frames}
 
 
 def build_parser() -> argparse.ArgumentParser:

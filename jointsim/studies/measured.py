@@ -1,0 +1,67 @@
+"""Measured frames through the instrument (``jointsim frames``): frames from a real sensor, or
+from another simulator, imaged as the scene's instrument images its own.
+
+δV is each frame minus the mean of the reference frames (the untouched sensor, as the paper's
+steady-state reference), checked first against the scene's protocol
+(:func:`~jointsim.io.frames.check_patterns`); the image is the scene's reconstruction (its
+Jacobian on the nominal inflated chamber, λ by its [reconstruction] rule) with the paper's
+metrics. A calibration map is applied to the result by the caller
+(:func:`jointsim.calibration.apply.calibrate_measured`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..eit.protocol import scene_protocol
+from ..instrument import Instrument
+from ..io.frames import MeasuredFrames, check_patterns
+from ..metrics import metric_fields
+from ..scene import Scene
+
+__all__ = ["MeasuredImages", "image_frames"]
+
+
+@dataclass(frozen=True)
+class MeasuredImages:
+    """Per frame (n rows): ``voltages`` and ``dv`` (n, n_meas) V, the ``images`` (n, n_cells)
+    S/m on the scene's voxel grid, and their metrics ``com`` (n, 3) m, ``sum_sigma``,
+    ``diameter`` m, ``extent_xy`` m, ``cluster_cells`` (n,) (NaN and 0 for an all-zero
+    image); ``reference`` (n_meas,) V the mean reference frame."""
+
+    voltages: np.ndarray
+    dv: np.ndarray
+    reference: np.ndarray
+    images: np.ndarray
+    com: np.ndarray
+    sum_sigma: np.ndarray
+    diameter: np.ndarray
+    extent_xy: np.ndarray
+    cluster_cells: np.ndarray
+
+
+def image_frames(scene: Scene, frames: MeasuredFrames, reference: MeasuredFrames,
+                 instrument: Instrument | None = None) -> MeasuredImages:
+    """Image ``frames`` against the mean of ``reference``'s with ``scene``'s instrument
+    (built here unless given); a ValueError naming the file when either does not match the
+    scene's protocol."""
+    proto = scene_protocol(scene)
+    for f in (frames, reference):
+        check_patterns(f, proto.stim, proto.meas, proto.n_meas)
+    inst = Instrument.build(scene) if instrument is None else instrument
+    try:
+        v_ref = reference.voltages.mean(axis=0)
+        dv = frames.voltages - v_ref
+        images, fields = [], []
+        for d in dv:
+            image, _, metrics = inst.imager.image(d)
+            images.append(image)
+            fields.append(metric_fields(metrics))
+    finally:
+        if instrument is None:
+            inst.free()
+    col = {k: np.array([f[k] for f in fields]) for k in fields[0]}
+    return MeasuredImages(frames.voltages, dv, v_ref, np.array(images), col["com"], col["sum_sigma"], col["diameter"],
+                          col["extent_xy"], col["cluster_cells"])
