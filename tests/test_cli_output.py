@@ -53,7 +53,12 @@ def test_frames_reads_measured_frames_and_writes_their_images(tmp_path, capsys):
     pressed = v * (1 - 1e-3 * (np.arange(len(v)) % 16 == 3))
     frames.write_text("\n".join(",".join(f"{x:.17g}" for x in row) for row in (v, pressed)) + "\n")
     out = tmp_path / "out"
-    assert main(["frames", "--mesh", "test", "--frames", str(frames), "--reference", str(ref), "--out", str(out)]) == 0
+    assert main(["frames", "--mesh", "test", "--frames", str(frames), "--reference", str(ref), "--out", str(out),
+                 "--fit-reference"]) == 0
+    import json
+
+    fitted = json.loads((out / "summary.json").read_text())["fitted_sensor"]  # the nominal sensor's own frame
+    assert fitted["misfit_before"] < 1e-12 and fitted["conductivity_s_per_m"] == pytest.approx(0.37, rel=1e-9)
     rows = (out / "frames.csv").read_text().splitlines()
     assert rows[0].startswith("frame,com_x,com_y,com_z,sum_sigma,diameter,rms_dv") and len(rows) == 3
     assert (out / "images.vtu").is_file() and (out / "summary.json").is_file()

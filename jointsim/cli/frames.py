@@ -1,7 +1,9 @@
 """Measured frames in: voltages from a real sensor (or another simulator) in CSV, HDF5 or
 EIDORS .mat, imaged with the scene's instrument against the mean of reference frames of the
 untouched sensor, with the paper's image metrics per frame and, given a calibration map, its
-estimates (position, depth, size; flagged outside the map's trained region). The channel order
+estimates (position, depth, size; flagged outside the map's trained region); --fit-reference
+fits the sensor's conductivity, contact impedances and electrode positions to the reference
+frames. The channel order
 is voltages[s * n_meas_per_stim + m] (measurement m of injection s); patterns carried by the
 files are checked against the scene's protocol first. Writes OUT/frames.csv, OUT/images.vtu
 (the first frames' images) and OUT/summary.json."""
@@ -27,6 +29,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="frames of the untouched sensor (.csv, .h5, .mat): their mean is the reference")
     p.add_argument("--calibration", type=Path, metavar="MAP", help="calibration map (jointsim calibrate) to apply")
     p.add_argument("--out", type=Path, default=Path("out/frames"), help="output folder (default out/frames)")
+    p.add_argument("--fit-reference", action="store_true",
+                   help="fit the sensor's conductivity, contact impedances and electrode positions to the mean reference "
+                        "frame and report them (summary.json)")
 
 
 def _sha256(path: Path) -> str:
@@ -56,6 +61,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         res = image_frames(scene, frames, reference, instrument=inst)
         grid = inst.grid
+        fit = _fit(scene, inst, res.reference, len(reference)) if args.fit_reference else None
     finally:
         inst.free()
     out: Path = args.out
@@ -74,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
     summary = {"scene": scene.name, "units": "SI (m, S/m, V)", "frames": {"path": str(args.frames), "sha256": _sha256(args.frames),
                "n": len(frames)}, "reference": {"path": str(args.reference), "sha256": _sha256(args.reference), "n": len(reference)},
                "calibration": None if cmap is None else {"map": str(args.calibration), "trained_region": cmap.region},
-               "channel_order": "voltages[s * n_meas_per_stim + m] = measurement m of injection s"}
+               "channel_order": "voltages[s * n_meas_per_stim + m] = measurement m of injection s",
+               "fitted_sensor": fit}
     with atomic_path(out / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=2))
     written.append(out / "summary.json")
@@ -86,5 +93,27 @@ def run(args: argparse.Namespace) -> int:
                      f"{table['direct_depth'][i] * 1e3:.2f} mm" + (f" ({table['outside'][i]} outside the map's region)"
                                                                    if table["outside"][i] else ""))
         print(line)
+    if fit is not None:
+        print(f"  fitted to the reference: saline {fit['conductivity_s_per_m']:.4g} S/m, contact impedance "
+              f"{min(fit['contact_impedance_ohm_m2']):.3g}-{max(fit['contact_impedance_ohm_m2']):.3g} ohm m^2, electrodes moved "
+              f"up to {fit['largest_move_mm']:.3f} mm; misfit {fit['misfit_before']:.2e} -> {fit['misfit_after']:.2e} of the frame")
     print(f"  wrote {', '.join(p.name for p in written)} to {out}")
     return 0
+
+
+def _fit(scene, inst, v_ref, n_frames: int) -> dict:
+    """The sensor fitted to the mean reference frame (jointsim.eit.fit), JSON-ready (mm, SI)."""
+    import numpy as np
+
+    from ..eit.fit import fit_reference
+    from ..eit.protocol import scene_protocol
+
+    ch, e = inst.reference, scene.electrodes
+    z0 = np.append(np.asarray(e.contact_impedance), e.ground_contact_impedance)
+    f = fit_reference(ch.mesh, ch.layout.centres, ch.layout.radii, ch.ground, scene_protocol(scene), v_ref,
+                      scene.saline.conductivity, z0, inst.readout.noise_std / np.sqrt(n_frames),
+                      order=scene.mesh.element_order)
+    move = np.linalg.norm(f.centres[:, :2] - ch.layout.centres[:, :2], axis=1)
+    return {"conductivity_s_per_m": f.conductivity, "contact_impedance_ohm_m2": f.contact_impedance.tolist(),
+            "centres_mm": np.round(f.centres * 1e3, 6).tolist(), "largest_move_mm": float(move.max() * 1e3),
+            "misfit_before": f.before, "misfit_after": f.after, "iterations": f.iterations}
