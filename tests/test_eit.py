@@ -400,15 +400,17 @@ def test_repeated_solves_do_not_leak_the_factor():
     mesh = box_mesh((1.0, 1.0, 1.0), (34, 34, 34))
     model = ForwardModel(mesh, [plane_face_patch(mesh, 2, 1.0), plane_face_patch(mesh, 2, 0.0)], 1, 1e-3)
     assert default_backend(mesh.n_nodes + 1) == "pardiso"
-    model.solve(1.0)
+    for _ in range(2):  # the allocator's pools warmed up
+        model.solve(1.0)
     page = os.sysconf("SC_PAGE_SIZE")
     rss0 = int(open("/proc/self/statm").read().split()[1]) * page
-    for _ in range(4):
+    for _ in range(6):
         model.solve(1.0)
     grown = int(open("/proc/self/statm").read().split()[1]) * page - rss0
     # a factor of this matrix held open grows the RSS by ~70 MB (five held: +356 MB, measured
-    # once); allow 20 MB of allocator noise
-    assert grown < 20e6, f"{default_backend()} grew {grown / 1e6:.0f} MB over 4 solves"
+    # once), so six leaked would be ~420 MB; the allocator's noise reached 24 MB over 4 solves
+    # once (fresh CI, the machine loaded), hence 50 MB: less than one leaked factor
+    assert grown < 50e6, f"{default_backend()} grew {grown / 1e6:.0f} MB over 6 solves"
 
 
 def _grid_laplacian(m: int) -> tuple[sp.csr_matrix, np.ndarray]:
