@@ -15,6 +15,7 @@ from pathlib import Path
 from .common import float_list
 
 OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
+STAGES = 4  # what calibrate() announces: size curves, CoM map, direct regression, stiffness
 HELP = "build calibration maps (size, CoM, direct regression, stiffness) from a dataset, evaluated on held-out presses"
 
 
@@ -31,6 +32,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-com-points", type=int, default=3000, help="CoM map points fitted at most (default 3000)")
     p.add_argument("--noise-copies", type=int, default=30,
                    help="fresh noise draws of each training sample for the direct regression, 0-1000 (default 30; 0: stored samples only)")
+    p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                   help="show a progress bar (default: when the output is a terminal)")
     p.add_argument("--symmetry", action="store_true",
                    help="move the noise draws about the electrode ring by the sensor's turns and mirrors (default: off)")
 
@@ -72,9 +75,22 @@ def run(args: argparse.Namespace) -> int:
     command = _command(args)
     samples = load_samples(args.dataset)
     print(f"jointsim calibrate: {args.dataset}, {len(samples)} samples of {len(set(samples.group.tolist()))} presses -> {args.out}")
-    cal = calibrate(samples, settings, progress=lambda s: print(f"  {s}", flush=True))
-    path = save_map(cal.map, args.out / "calibration_map.h5")
-    files = write_report(args.out, cal, command)
+    from tqdm import tqdm
+
+    # the fit's stages (size curves, CoM map, direct regression, stiffness) and the report
+    with tqdm(total=STAGES + 1, unit="stage", desc="calibrate", disable=None if args.progress is None else not args.progress) as bar:
+        def stage(name: str) -> None:
+            if bar.n or bar.disable:
+                bar.update(1)
+            bar.set_postfix_str(name.split(" (")[0], refresh=True)
+            if bar.disable:
+                print(f"  {name}", flush=True)
+
+        cal = calibrate(samples, settings, progress=stage)
+        stage("report")
+        path = save_map(cal.map, args.out / "calibration_map.h5")
+        files = write_report(args.out, cal, command)
+        bar.update(bar.total - bar.n)
     for g in cal.evaluation["goals"]:
         v = g["value"]
         print(f"  goal {g['goal']} ({g['route']}) {g['statistic']} <= {g['limit']:g} {g['unit']}: "
