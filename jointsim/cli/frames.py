@@ -57,9 +57,12 @@ def run(args: argparse.Namespace) -> int:
         cmap.check_scene(scene, f"calibration map {args.calibration}")
     print(f"jointsim frames: scene {scene.name}, {len(frames)} frame(s) of {frames.voltages.shape[1]} channels, "
           f"reference the mean of {len(reference)} -> {args.out}")
+    from tqdm import tqdm
+
     inst = Instrument.build(scene)
     try:
-        res = image_frames(scene, frames, reference, instrument=inst)
+        with tqdm(total=len(frames), unit="frame", desc="frames", disable=None) as bar:
+            res = image_frames(scene, frames, reference, instrument=inst, progress=bar.update)
         grid = inst.grid
         fit = _fit(scene, inst, res.reference, len(reference)) if args.fit_reference else None
     finally:

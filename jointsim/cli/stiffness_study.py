@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     height = scene.chamber.dome_height * 1e3
     depths = float_list("--depths-mm", args.depths_mm, 0.0, height * (1 - 1e-9), increasing=True)
     print(f"jointsim stiffness-study: scene {scene.name}, target r = {radius:g} mm")
-    with tqdm(unit="press", disable=None) as bar:
+    with tqdm(unit="press", desc="stiffness study", disable=None) as bar:
 
         def progress(done: int, total: int) -> None:
             bar.total = total

@@ -12,6 +12,7 @@ metrics. A calibration map is applied to the result by the caller
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -43,10 +44,10 @@ class MeasuredImages:
 
 
 def image_frames(scene: Scene, frames: MeasuredFrames, reference: MeasuredFrames,
-                 instrument: Instrument | None = None) -> MeasuredImages:
+                 instrument: Instrument | None = None, progress: Callable[[int], None] | None = None) -> MeasuredImages:
     """Image ``frames`` against the mean of ``reference``'s with ``scene``'s instrument
-    (built here unless given); a ValueError naming the file when either does not match the
-    scene's protocol."""
+    (built here unless given; ``progress(1)`` after each frame); a ValueError naming the file
+    when either does not match the scene's protocol."""
     proto = scene_protocol(scene)
     for f in (frames, reference):
         check_patterns(f, proto.stim, proto.meas, proto.n_meas)
@@ -59,6 +60,8 @@ def image_frames(scene: Scene, frames: MeasuredFrames, reference: MeasuredFrames
             image, _, metrics = inst.imager.image(d)
             images.append(image)
             fields.append(metric_fields(metrics))
+            if progress is not None:
+                progress(1)
     finally:
         if instrument is None:
             inst.free()
