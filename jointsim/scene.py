@@ -860,6 +860,7 @@ def load_scene(path: str | Path) -> Scene:
 PALPATION_MODES = ("position", "force", "compliant")
 MESH_UPDATES = ("auto", "morph", "remesh")
 LAMBDA_METHODS = ("kfold", "loo", "gcv", "lcurve")
+IMAGE_PRIORS = ("tikhonov", "noser", "laplacian")  # as jointsim.reconstruction.tikhonov.PRIORS (tested)
 
 
 # --------------------------------------------------------------------------------------------
@@ -868,8 +869,9 @@ LAMBDA_METHODS = ("kfold", "loo", "gcv", "lcurve")
 
 @dataclass(frozen=True)
 class ReconstructionSpec:
-    """The instrument's reconstruction (SI): zeroth-order Tikhonov images on ``cells`` voxels
-    of the reference chamber, λ chosen once by ``lambda_method`` cross-validation on the noisy
+    """The instrument's reconstruction (SI): Tikhonov images on ``cells`` voxels of the
+    reference chamber with the ``prior`` (zeroth order "tikhonov", the paper's; "noser";
+    "laplacian": jointsim.reconstruction.tikhonov.PRIORS), λ chosen once by ``lambda_method`` cross-validation on the noisy
     δV of a representative press: a geometric indentation of the untouched sensor by a sphere
     of ``lambda_radius`` m, ``lambda_depth`` m past first contact, at ``lambda_xy`` (m). Every
     job on the sensor (palpation, datasets, ``forward``) images with it, as a real instrument
@@ -880,6 +882,7 @@ class ReconstructionSpec:
     lambda_radius: float = 7.5 * MM
     lambda_depth: float = 3 * MM
     lambda_xy: tuple[float, float] = (0.0, 0.0)
+    prior: str = "tikhonov"
 
 
 def _reconstruction(data: dict[str, Any], base_r: float, height: float, thick: float) -> ReconstructionSpec:
@@ -887,13 +890,14 @@ def _reconstruction(data: dict[str, Any], base_r: float, height: float, thick: f
     t = _Table(data, "reconstruction")
     cells = t.integer("cells", 7000, 100, 200_000)
     lam = t.choice("lambda_method", "kfold", LAMBDA_METHODS)
+    prior = t.choice("prior", "tikhonov", IMAGE_PRIORS)
     radius = _sphere_radius(t, "lambda_target_radius_mm", "lambda_target_diameter_mm", 7.5, base_r)
     depth = t.number("lambda_depth_mm", min(3.0, height / 2), 0.0, height + thick, lo_open=True)
     xy = _number_list("reconstruction.lambda_xy_mm", t.raw("lambda_xy_mm", [0.0, 0.0]), 2, -base_r, base_r, True)
     if math.hypot(*xy) >= base_r:
         raise SceneError(f"reconstruction.lambda_xy_mm = {list(xy)}: must lie within the base radius {base_r:g} mm of the axis")
     t.finish()
-    return ReconstructionSpec(cells, lam, radius * MM, depth * MM, (xy[0] * MM, xy[1] * MM))
+    return ReconstructionSpec(cells, lam, radius * MM, depth * MM, (xy[0] * MM, xy[1] * MM), prior)
 
 
 # keys that moved to another section: (old section, key) -> (new section, key). Scenes written

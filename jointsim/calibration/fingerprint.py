@@ -45,7 +45,7 @@ SENSOR_KEYS: dict[str, tuple[str, ...]] = {
 OPTIONAL_KEYS: dict[str, Any] = {
     "mesh.element_order": 1, "membrane.moulding": "cap", "electrodes.discs": [], "electrodes.reference": True,
     "drive.measure": "reference", "drive.stim": None, "drive.meas": None, "reconstruction.lambda_radius": 7.5e-3,
-    "reconstruction.lambda_depth": 3e-3, "reconstruction.lambda_xy": [0.0, 0.0],
+    "reconstruction.lambda_depth": 3e-3, "reconstruction.lambda_xy": [0.0, 0.0], "reconstruction.prior": "tikhonov",
 }
 # sections values were recorded in before they moved (scene.MOVED_KEYS): read there when a
 # record has no section of their own

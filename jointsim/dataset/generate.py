@@ -221,7 +221,8 @@ def dataset_schema(n_electrodes: int, n_meas: int, n_cells: int | None) -> Schem
 LATER_KEYS: dict[tuple[str, str], object] = {("membrane", "moulding"): "cap", ("membrane", "element"): UNRECORDED_ELEMENT,
                                              ("mesh", "update"): "auto", ("electrodes", "discs"): (),
                                              ("electrodes", "reference"): True, ("drive", "measure"): "reference",
-                                             ("drive", "stim"): None, ("drive", "meas"): None}
+                                             ("drive", "stim"): None, ("drive", "meas"): None,
+                                             ("reconstruction", "prior"): "tikhonov"}
 
 
 def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str, presses: PressList | None = None) -> dict[str, Any]:

@@ -322,7 +322,8 @@ def program_params(scene: Scene, spec: PalpationSpec | None = None, rig_path: st
     return {
         "palpation": d,
         "mesh": asdict(scene.mesh),
-        "reconstruction": asdict(scene.reconstruction),
+        # the prior recorded only where it is not the zeroth order all runs had before it existed
+        "reconstruction": {k: v for k, v in asdict(scene.reconstruction).items() if not (k == "prior" and v == "tikhonov")},
         "membrane": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(scene.membrane).items()
                      if not (k == "element" and v == UNRECORDED_ELEMENT)},
         "noise": asdict(scene.noise),

@@ -149,6 +149,28 @@ class ChamberGrid:
     def n_cells(self) -> int:
         return len(self.active)
 
+    def laplacian(self) -> sp.csr_matrix:
+        """The graph Laplacian (n, n) of the saline cells, edges between face neighbours:
+        xᵀLx = Σ over neighbouring cells of (x_i − x_j)², the smoothness prior's form."""
+        shape = self.grid.shape
+        ijk = np.stack(np.unravel_index(self.active, shape), axis=1)
+        local = np.full(int(np.prod(shape)), -1, np.int64)
+        local[self.active] = np.arange(self.n_cells)
+        rows, cols = [], []
+        for a in range(3):
+            nb = ijk.copy()
+            nb[:, a] += 1
+            inside = nb[:, a] < shape[a]
+            j = np.full(self.n_cells, -1)
+            j[inside] = local[np.ravel_multi_index(nb[inside].T, shape)]
+            ok = j >= 0
+            rows.append(np.flatnonzero(ok))
+            cols.append(j[ok])
+        i, j = np.concatenate(rows), np.concatenate(cols)
+        A = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(self.n_cells, self.n_cells))
+        A = (A + A.T).tocsr()
+        return (sp.diags(np.asarray(A.sum(axis=1)).ravel()) - A).tocsr()
+
     @property
     def voxel_volume(self) -> float:
         return float(np.prod(self.grid.spacing))

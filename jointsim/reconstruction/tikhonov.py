@@ -1,4 +1,5 @@
-"""Zeroth-order Tikhonov difference imaging with the regularisation chosen from one SVD.
+"""Tikhonov difference imaging with the regularisation chosen from one SVD: zeroth order, or a
+prior ‖x‖²_P (NOSER, a smoothness Laplacian) through the generalized factors (:meth:`SVD.generalized`).
 
     x_λ = argmin ‖J x − δv‖² + λ²‖x‖² = V diag(s / (s² + λ²)) Uᵀ δv,   J = U S Vᵀ.
 
@@ -19,10 +20,31 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
-__all__ = ["SVD", "LambdaChoice", "Reconstructor", "choose_lambda", "lambda_grid", "tikhonov_solve"]
+__all__ = ["PRIORS", "prior_matrix", "SVD", "LambdaChoice", "Reconstructor", "choose_lambda", "lambda_grid", "tikhonov_solve"]
 
 METHODS = ("kfold", "loo", "gcv", "lcurve")
+# the image's prior ‖x‖²_P: "tikhonov" P = I (zeroth order, the paper's); "noser" P = diag(JᵀJ)
+# (Cheney et al. 1990: each cell weighed by its sensitivity, which undoes the zeroth order's
+# pull of the image towards the electrodes); "laplacian" P = L + εI, L the voxel graph
+# Laplacian (first-order smoothness; ε = 1e-3 × its mean diagonal keeps P definite)
+PRIORS = ("tikhonov", "noser", "laplacian")
+
+
+def prior_matrix(name: str, J: np.ndarray, laplacian: sp.spmatrix | None = None) -> sp.csr_matrix | None:
+    """P of the prior ``name`` (:data:`PRIORS`; None for "tikhonov", the identity) for the
+    Jacobian ``J`` (n_meas, n_cells) on cells with graph Laplacian ``laplacian``."""
+    if name == "tikhonov":
+        return None
+    if name == "noser":
+        return sp.diags(np.einsum("ij,ij->j", J, J)).tocsr()
+    if name == "laplacian":
+        if laplacian is None:
+            raise ValueError("prior 'laplacian': the cells' graph Laplacian is needed")
+        eps = 1e-3 * float(laplacian.diagonal().mean())
+        return (laplacian + eps * sp.identity(laplacian.shape[0])).tocsr()
+    raise ValueError(f"prior = {name!r}: one of {', '.join(PRIORS)}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -40,6 +62,26 @@ class SVD:
             raise ValueError("J: expected a finite 2-D Jacobian (n_meas, n_cells)")
         U, s, Vt = np.linalg.svd(J, full_matrices=False)
         return cls(U, s, Vt)
+
+    @classmethod
+    def generalized(cls, J: np.ndarray, P: sp.spmatrix, rtol: float = 1e-13) -> "SVD":
+        """The factors for the prior xᵀPx (P (n_cells, n_cells) sparse, symmetric positive
+        definite): with Y = P⁻¹Jᵀ and JY = U S² Uᵀ, Vt = S⁻¹UᵀYᵀ makes
+        :meth:`reconstruction_matrix` R = P⁻¹Jᵀ(JP⁻¹Jᵀ + λ²I)⁻¹ = argmin ‖Jx − δv‖² + λ²xᵀPx,
+        and the data-space quantities (U, s) every λ score needs are those of J P^{-1/2}.
+        Singular values below ``rtol`` × the largest are dropped."""
+        from scipy.sparse.linalg import splu
+
+        J = np.asarray(J, float)
+        Y = splu(sp.csc_matrix(P)).solve(np.ascontiguousarray(J.T))
+        M = J @ Y
+        w, U = np.linalg.eigh(0.5 * (M + M.T))
+        order = np.argsort(w)[::-1]
+        w, U = w[order], U[:, order]
+        keep = w > rtol * w[0]
+        s = np.sqrt(w[keep])
+        U = U[:, keep]
+        return cls(U, s, ((Y @ U) / s).T)
 
     def filters(self, lam: np.ndarray) -> np.ndarray:
         """Filter factors f = s²/(s² + λ²), shape (n_lambda, r)."""
