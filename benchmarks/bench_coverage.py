@@ -13,14 +13,13 @@ on presses that never reached the ring errs there, and says so only if it record
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from _machine import atomic_write, cpu_name
+from _machine import cpu_name, write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -84,9 +83,7 @@ def main() -> int:
             L.append(f"| {span} | {row['n']} | {f(row['median_mm'])} | {f(row['p95_mm'])} | {row['n_band']} | "
                      f"{f(row['median_band_mm'])} | {f(row['p95_band_mm'])} |")
         L.append("")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(args.out, "\n".join(L))
-    atomic_write(args.out.with_suffix(".json"), json.dumps(result, indent=2))
+    write_pair(args.out.with_suffix(""), result, "\n".join(L) + "\n")
     print("\n".join(L))
     return 0
 

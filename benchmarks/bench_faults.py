@@ -14,7 +14,6 @@ what the resume recomputed, and whether the finished data's SHA-256 is the unint
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import shutil
@@ -27,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _machine import atomic_write, cpu_name
+from _machine import cpu_name, write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -110,9 +109,7 @@ def main() -> int:
     n_same = sum(r["same_data"] for r in rows)
     L += ["", f"{n_same} of {len(rows)} resumed runs gave the uninterrupted run's data (data_sha256, every record "
           "read back against it)."]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(args.out.with_suffix(".md"), "\n".join(L) + "\n")
-    atomic_write(args.out.with_suffix(".json"), json.dumps(result, indent=2))
+    write_pair(args.out, result, "\n".join(L) + "\n")
     print("\n".join(L))
     return 0 if n_same == len(rows) else 1
 

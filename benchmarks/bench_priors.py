@@ -14,7 +14,6 @@ the CoM's height minus the centroid's (the 3-D bias), Σσ and the cluster's equ
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import sys
 import time
@@ -23,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _machine import atomic_write, cpu_name
+from _machine import cpu_name, write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -82,9 +81,7 @@ def main() -> int:
         sel = [r for r in rows if r["prior"] == prior]
         L.append(f"| {prior} | {np.mean([r['com_xy_error_mm'] for r in sel]):.2f} | "
                  f"{np.mean([abs(r['com_z_bias_mm']) for r in sel]):.2f} | {timings[prior]:.0f} |")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(args.out.with_suffix(".md"), "\n".join(L) + "\n")
-    atomic_write(args.out.with_suffix(".json"), json.dumps(result, indent=2))
+    write_pair(args.out, result, "\n".join(L) + "\n")
     print("\n".join(L))
     return 0
 

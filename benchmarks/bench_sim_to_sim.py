@@ -16,7 +16,6 @@ against P2): the gap a map trained on this simulator carries to that one.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import sys
 import time
@@ -24,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _machine import atomic_write, cpu_name
+from _machine import cpu_name, write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -108,9 +107,7 @@ def main() -> int:
     L += ["", f"Fit on the instrument's model: {t_fit:.0f} s. The first row is the gap a map trained on this simulator "
           "carries to a sensor like the measured one once the sensor is fitted; the second, fitted on the measuring "
           "simulator's own model, how well a reference frame pins the sensor's parameters when the model is right."]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(args.out.with_suffix(".md"), "\n".join(L) + "\n")
-    atomic_write(args.out.with_suffix(".json"), json.dumps(result, indent=2))
+    write_pair(args.out, result, "\n".join(L) + "\n")
     print("\n".join(L))
     return 0
 
