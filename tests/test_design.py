@@ -234,3 +234,22 @@ def test_the_calibration_goals_are_read_in_either_csv_form(tmp_path):
         assert got.keys() == want.keys()
         for q, v in want["direct (mlp)"].items():
             assert got["direct (mlp)"][q] == pytest.approx(v)
+
+
+def test_a_press_the_mechanics_cannot_take_is_stored_and_said(test_chamber, tmp_path, monkeypatch):
+    """A press that raises UnreachablePose is stored as not reached (NaN) and its reason reaches
+    the caller (on_missed), not dropped."""
+    import jointsim.design.study as study
+    from jointsim.io.records import open_records
+    from jointsim.mechanics.dome import UnreachablePose
+
+    def refuse(*a, **k):
+        raise UnreachablePose("beyond what the dome can take (a test)")
+
+    monkeypatch.setattr(study, "press_sensitivity", refuse)
+    scene, _ = test_chamber
+    missed = []
+    h5 = study.run_design(scene, study.Plan(diameters=(15e-3,), depths=(1e-3,), r_max=0.0), tmp_path / "s.h5", workers=1,
+                          on_missed=lambda i, why: missed.append((i, why)))
+    assert missed == [(0, "UnreachablePose: beyond what the dome can take (a test)")]
+    assert open_records(h5)["reached"].tolist() == [0]

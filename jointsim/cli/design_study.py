@@ -85,8 +85,12 @@ def run(args: argparse.Namespace) -> int:
                 bar.update(done)
                 todo[0] = left
             overwrite(args, args.out / scene.name / "sensitivities.h5")
+            missed: list[str] = []
             h5 = run_design(scene, plan, args.out / scene.name / "sensitivities.h5", workers=args.workers,
-                            scene_toml=scene_toml(path), progress=bar.update, on_start=started)
+                            scene_toml=scene_toml(path), progress=bar.update, on_start=started,
+                            on_missed=lambda i, why: missed.append(f"press {i}: {why}"))
+        if missed:
+            print(f"  {len(missed)} press(es) the mechanics could not take, stored as not reached; the first: {missed[0]}")
         workers = min(args.workers or available_cores(), max(todo[0], 1))
         wall = time.perf_counter() - t0
         study = open_records(h5)  # read once: every table and SNR below is computed from it

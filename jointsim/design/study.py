@@ -172,9 +172,12 @@ def _run_press(path: str, scene: Scene, plan: Plan, index: int, diameter: float,
 
 
 def run_design(scene: Scene, plan: Plan, out: str | Path, *, workers: int | None = None, scene_toml: str | None = None,
-               progress: Callable[[int], None] | None = None, on_start: Callable[[int, int], None] | None = None) -> Path:
+               progress: Callable[[int], None] | None = None, on_start: Callable[[int, int], None] | None = None,
+               on_missed: Callable[[int, str], None] | None = None) -> Path:
     """Compute (or resume, or find finished) the sensitivities of ``scene`` over ``plan``'s
-    presses into ``out`` (.h5); the file's path. ``workers``: local processes (default: one per core)."""
+    presses into ``out`` (.h5); the file's path. ``workers``: local processes (default: one per
+    core); ``on_missed(index, why)`` told of each press the mechanics could not take (stored
+    as not reached)."""
     presses = plan_presses(scene, plan)
     n = len(presses)
     inst_meas = _n_meas(scene)
@@ -203,7 +206,12 @@ def run_design(scene: Scene, plan: Plan, out: str | Path, *, workers: int | None
         tasks = [(str(final), scene, plan, int(i), presses[i][0], presses[i][1]) for i in missing]
         if tasks:
             w = min(available_cores() if workers is None else workers, len(tasks))
-            tick = (lambda r: progress(1)) if progress is not None else (lambda r: None)
+            def tick(result: tuple[int, bool, str]) -> None:
+                if progress is not None:
+                    progress(1)
+                if not result[1] and on_missed is not None:
+                    on_missed(result[0], result[2])
+
             if w == 1:
                 for t in tasks:
                     tick(_run_press(*t))
