@@ -502,6 +502,8 @@ PATTERN_KEYS = ("stim_ua", "meas")  # [drive]: a protocol as data, instead of sk
 def _patterns(t: "_Table", n: int, reference: bool) -> tuple[tuple | None, tuple | None]:
     """[drive] stim_ua (n_stim, n) µA and meas ((n_meas, n) for every injection, or (n_stim,
     n_meas, n)) over the ``n`` active electrodes, as SI tuples; (None, None) when not given."""
+    # read by scene_data before the parse (the file's arrays stand in as stim_ua, meas)
+    _read("drive", "patterns_file", "value", None, ".npz (stim_ua or stim_A, meas) or EIDORS .mat, relative to the scene file")
     if not any(k in t.data for k in PATTERN_KEYS):
         return None, None
     if not all(k in t.data for k in PATTERN_KEYS):
@@ -529,6 +531,41 @@ def _patterns(t: "_Table", n: int, reference: bool) -> tuple[tuple | None, tuple
         if np.abs(meas.sum(axis=2)).max() > 1e-9 * np.abs(meas).max():
             raise SceneError("drive.meas: with a floating reference every measurement's weights must sum to zero")
     return tuple(map(tuple, stim.tolist())), tuple(tuple(map(tuple, m)) for m in meas.tolist())
+
+
+def _patterns_from_file(drive: dict[str, Any], scene_path: Path) -> dict[str, Any]:
+    """[drive] with ``patterns_file`` (relative to the scene file) read into stim_ua and meas:
+    an .npz holding ``stim_ua`` (n_stim, n) µA (or ``stim_A`` in A) and ``meas``, or an
+    EIDORS-style .mat (``fwd_model.stimulation(s).stim_pattern`` A, ``.meas_pattern``; what
+    ``jointsim forward`` writes). The arrays then stand in the scene as if written inline, and
+    are checked as such."""
+    drive = dict(drive)
+    name = drive.pop("patterns_file")
+    if not isinstance(name, str):
+        raise SceneError(f"drive.patterns_file = {name!r}: must be the path of an .npz or .mat file")
+    f = (scene_path.parent / name).resolve()
+    if not f.is_file():
+        raise SceneError(f"drive.patterns_file = {name!r}: no such file ({f})")
+    for k in PATTERN_KEYS:
+        if k in drive:
+            raise SceneError(f"drive.{k}: give the patterns inline or in drive.patterns_file, not both")
+    try:
+        if f.suffix == ".npz":
+            with np.load(f) as z:
+                stim = z["stim_ua"] if "stim_ua" in z else z["stim_A"] * 1e6
+                meas = z["meas"]
+        elif f.suffix == ".mat":
+            from scipy.io import loadmat
+
+            st = np.atleast_1d(loadmat(f, squeeze_me=True, struct_as_record=False)["fwd_model"].stimulation)
+            stim = np.array([np.ravel(x.stim_pattern) for x in st], float) * 1e6
+            meas = np.array([np.atleast_2d(x.meas_pattern) for x in st], float)
+        else:
+            raise SceneError(f"drive.patterns_file = {name!r}: an .npz (stim_ua or stim_A, meas) or an EIDORS .mat file")
+    except (KeyError, AttributeError, ValueError, OSError) as e:
+        raise SceneError(f"drive.patterns_file = {name!r}: cannot read its patterns ({type(e).__name__}: {e})") from None
+    drive["stim_ua"], drive["meas"] = np.asarray(stim, float).tolist(), np.asarray(meas, float).tolist()
+    return drive
 
 
 def _edge_gaps(centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
@@ -748,6 +785,9 @@ def scene_data(path: str | Path, _chain: tuple[Path, ...] = ()) -> dict[str, Any
         raise SceneError(f"{path}: not valid TOML: {e}") from None
     base = data.pop("extends", None)
     data = _moved_keys(data)
+    drive = data.get("drive")
+    if isinstance(drive, dict) and "patterns_file" in drive:
+        data["drive"] = _patterns_from_file(drive, path)
     if base is None:
         return data
     if not isinstance(base, str):

@@ -225,3 +225,28 @@ def test_stores_record_the_patterns_and_the_channel_order(paper_scene):
             np.testing.assert_array_equal(got.stim, want.stim)
             np.testing.assert_array_equal(got.meas, want.meas)
             assert rec["channels"] == CHANNEL_ORDER
+
+
+def test_patterns_read_from_a_file_are_the_inline_ones(tmp_path):
+    """[drive] patterns_file: an .npz (stim_ua or stim_A, meas) and an EIDORS-style .mat (as
+    jointsim forward writes its fwd_model.stimulation) give the protocol the same patterns
+    inline give; a missing file or another kind is one error naming the key."""
+    from scipy.io import savemat
+
+    p8 = skip_protocol(16, 9, 120e-6)  # not the paper's skip: the file decides
+    np.savez(tmp_path / "p.npz", stim_A=p8.stim, meas=p8.meas)
+    # as io.export.write_mat lays out fwd_model.stimulation (one column pattern per injection)
+    st = np.zeros(p8.n_stim, dtype=[("stim_pattern", object), ("meas_pattern", object)])
+    for k in range(p8.n_stim):
+        st[k] = (p8.stim[k][:, None], p8.meas[k])
+    savemat(tmp_path / "p.mat", {"fwd_model": {"stimulation": st}})
+    for name in ("p.npz", "p.mat"):
+        (tmp_path / "s.toml").write_text(f'extends = "paper_sensor"\n[drive]\npatterns_file = "{name}"\n')
+        got = scene_protocol(load_scene(tmp_path / "s.toml"))
+        np.testing.assert_allclose(got.stim, p8.stim, rtol=1e-12, atol=0)
+        np.testing.assert_array_equal(got.meas, p8.meas)
+    for text, match in (('patterns_file = "none.npz"', r"drive.patterns_file = 'none.npz': no such file"),
+                        ('patterns_file = "s.toml"', r"drive.patterns_file = 's.toml': an .npz")):
+        (tmp_path / "bad.toml").write_text(f'extends = "paper_sensor"\n[drive]\n{text}\n')
+        with pytest.raises(SceneError, match=match):
+            load_scene(tmp_path / "bad.toml")
