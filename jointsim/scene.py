@@ -308,11 +308,21 @@ class Scene:
         return asdict(self)
 
     def digest(self, *sections: str) -> str:
-        """Content hash of the named sections (all when none), for caches and provenance."""
+        """Content hash of the named sections (all when none), for caches and provenance; a
+        value added to the scene format later (:data:`LATER_DEFAULTS`) counts only where it
+        differs from the behaviour before it, so what was stored before it still matches."""
         d = self.to_dict()
+        for (section, key), before in LATER_DEFAULTS.items():
+            if d.get(section, {}).get(key) == before:
+                d[section] = {k: v for k, v in d[section].items() if k != key}
         if sections:
             d = {k: d[k] for k in sections}
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
+# scene values added to the format after stores, maps and studies were first written, with the
+# behaviour before they existed: identities leave them out at that value
+LATER_DEFAULTS: dict[tuple[str, str], Any] = {("reconstruction", "prior"): "tikhonov"}
 
 
 # --------------------------------------------------------------------------------------------

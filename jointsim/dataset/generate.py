@@ -70,7 +70,7 @@ from ..mechanics.touch import centre_touching, depth_reach, point_touched
 from ..mesh.chamber import ChamberMesh
 from ..mesh.morph import MeshInversionError
 from ..metrics import metric_fields
-from ..scene import UNRECORDED_ELEMENT, DatasetSpec, Scene
+from ..scene import LATER_DEFAULTS, UNRECORDED_ELEMENT, DatasetSpec, Scene
 from ..timing import timed
 from .presses import PressList
 
@@ -221,8 +221,7 @@ def dataset_schema(n_electrodes: int, n_meas: int, n_cells: int | None) -> Schem
 LATER_KEYS: dict[tuple[str, str], object] = {("membrane", "moulding"): "cap", ("membrane", "element"): UNRECORDED_ELEMENT,
                                              ("mesh", "update"): "auto", ("electrodes", "discs"): (),
                                              ("electrodes", "reference"): True, ("drive", "measure"): "reference",
-                                             ("drive", "stim"): None, ("drive", "meas"): None,
-                                             ("reconstruction", "prior"): "tikhonov"}
+                                             ("drive", "stim"): None, ("drive", "meas"): None, **LATER_DEFAULTS}
 
 
 def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str, presses: PressList | None = None) -> dict[str, Any]:

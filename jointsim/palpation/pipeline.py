@@ -47,7 +47,7 @@ from ..mechanics.fem import warp_device
 from ..mesh.chamber import ChamberMesh
 from ..mesh.tetmesh import TetMesh
 from ..metrics import metric_fields, rms
-from ..scene import UNRECORDED_ELEMENT, PalpationSpec, Scene
+from ..scene import LATER_DEFAULTS, UNRECORDED_ELEMENT, PalpationSpec, Scene
 from ..timing import timed
 from .rig import Controller, Rig, RigFrame, load_rig, press_hold_retract
 
@@ -322,8 +322,9 @@ def program_params(scene: Scene, spec: PalpationSpec | None = None, rig_path: st
     return {
         "palpation": d,
         "mesh": asdict(scene.mesh),
-        # the prior recorded only where it is not the zeroth order all runs had before it existed
-        "reconstruction": {k: v for k, v in asdict(scene.reconstruction).items() if not (k == "prior" and v == "tikhonov")},
+        # values added to the format later recorded only where they change what was done before
+        "reconstruction": {k: v for k, v in asdict(scene.reconstruction).items()
+                           if LATER_DEFAULTS.get(("reconstruction", k), object()) != v},
         "membrane": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(scene.membrane).items()
                      if not (k == "element" and v == UNRECORDED_ELEMENT)},
         "noise": asdict(scene.noise),
