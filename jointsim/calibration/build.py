@@ -244,6 +244,9 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
         "position": ("the contact's centre of pressure (the FEM's, in the dataset)" if test.contact_known
                      else "the target's centre (the dataset has no contact centre: schema version 1)"),
     }
+    # every sample's place, depth, size and signal: what the dataset covers (the report's figure)
+    tables["samples"] = {"x": samples.position[:, 0], "y": samples.position[:, 1], "depth": samples.depth,
+                         "diameter": samples.size, "rms_dv": samples.rms_dv, "held_out": test_m}
     tables["com"] = {"group": test.group, "x": test.position[:, 0], "y": test.position[:, 1], "depth": test.depth,
                      "target_x": test.xy[:, 0], "target_y": test.xy[:, 1],
                      "snr_db": test.snr_db, "com_x": test.com[:, 0], "com_y": test.com[:, 1], "com_z": test.com[:, 2],

@@ -167,6 +167,53 @@ def _com_figure(out: Path, grids: dict[str, dict[str, np.ndarray]]) -> Path:
     return _save(fig, out / "com_error_map.png")
 
 
+def _coverage_figure(out: Path, t: Mapping[str, np.ndarray]) -> Path:
+    """What the dataset covers: every sample's contact centre coloured by depth, with the
+    electrode ring's radius; RMS δV against depth coloured by the target's diameter."""
+    plt = pyplot()
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2), gridspec_kw={"wspace": 0.45})
+    sc = a.scatter(t["x"] * 1e3, t["y"] * 1e3, c=t["depth"] * 1e3, s=4, cmap="viridis")
+    a.add_patch(plt.Circle((0, 0), SENSING_RADIUS * 1e3, fill=False, ls="--", color="0.5"))
+    a.set_aspect("equal")
+    a.set_xlabel("x (mm)")
+    a.set_ylabel("y (mm)")
+    a.set_title(f"{len(t['x'])} samples: contact centres (dashed: r = {SENSING_RADIUS * 1e3:g} mm)", fontsize=9)
+    fig.colorbar(sc, ax=a, shrink=0.8, label="depth past first contact (mm)")
+    sc = b.scatter(t["depth"] * 1e3, t["rms_dv"] * 1e6, c=t["diameter"] * 1e3, s=4, cmap="plasma")
+    b.set_yscale("log")
+    b.set_xlabel("depth past first contact (mm)")
+    b.set_ylabel("RMS δV, noisy (µV)")
+    b.set_title("signal against depth", fontsize=9)
+    fig.colorbar(sc, ax=b, shrink=0.8, label="target diameter (mm)")
+    return _save(fig, out / "dataset_coverage.png")
+
+
+def _position_figure(out: Path, reg: Mapping[str, np.ndarray], kind: str) -> Path:
+    """The direct regression's held-out in-plane error against the true position's distance
+    from the axis: every sample, and the median per 1.5 mm."""
+    plt = pyplot()
+
+    r = np.hypot(reg["true_x"], reg["true_y"]) * 1e3
+    e = np.hypot(reg[f"{kind}_x"] - reg["true_x"], reg[f"{kind}_y"] - reg["true_y"]) * 1e3
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    ax.semilogy(r, e, ".", ms=3, alpha=0.5, color="tab:blue", label="held-out samples")
+    edges = np.arange(0, max(16.5, r.max() + 1.5), 1.5)
+    mid, med = [], []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (r >= lo) & (r < hi)
+        if sel.any():
+            mid.append((lo + hi) / 2)
+            med.append(np.median(e[sel]))
+    ax.plot(mid, med, "k-o", ms=3, label="median per 1.5 mm")
+    ax.axvline(SENSING_RADIUS * 1e3, color="0.5", ls="--", lw=0.8)
+    ax.set_xlabel("contact centre's distance from the axis (mm)")
+    ax.set_ylabel(f"|position error| ({kind}, mm)")
+    ax.set_title("held-out position error over the sensor (all SNRs)", fontsize=9)
+    ax.legend(fontsize=7)
+    return _save(fig, out / "position_by_radius.png")
+
+
 def _stiffness_figure(out: Path, t: Mapping[str, np.ndarray]) -> Path:
     plt = pyplot()
 
@@ -296,6 +343,9 @@ def write_report(out: str | Path, cal: Calibration, command: str) -> list[Path]:
     g = cal.evaluation["goals"]
     written.append(write_csv(out / "goals.csv", {k: [r.get(k, "image" if k == "route" else None) for r in g] for k in ("goal", "route", "statistic", "limit", "value", "unit", "met", "verdict")}))
     written += [_size_figure(out, cal, "depth"), _size_figure(out, cal, "force"), _com_figure(out, grids)]
+    if "samples" in t:
+        written.append(_coverage_figure(out, t["samples"]))
+    written.append(_position_figure(out, t["regression"], cal.evaluation["regression"]["kind"]))
     if "stiffness" in t:
         written.append(write_csv(out / "stiffness.csv", t["stiffness"]))
         written.append(_stiffness_figure(out, t["stiffness"]))
