@@ -72,20 +72,22 @@ def fit_reference(mesh: TetMesh, centres: np.ndarray, radii: np.ndarray, ground:
         c[moving, :2] += theta[1 + n_el:].reshape(-1, 2)
         return float(np.exp(theta[0])), np.exp(theta[1:1 + n_el]), c
 
-    def evaluate(theta: np.ndarray, jac: bool):
+    def solve(theta: np.ndarray):
+        """(residual, the fields it came from, the centres) at ``theta``: one factorisation."""
         sigma, z, c = unpack(theta)
         model = ForwardModel(mesh, disc_patches(mesh, c, radii, quadratic=order == 2), ground, z, "auto", order)
         fields = model.solve(sigma)
-        r = fields.voltages(protocol) - v_meas
-        if not jac:
-            return r, None
+        return fields.voltages(protocol) - v_meas, fields, c
+
+    def jacobian(fields, c: np.ndarray) -> np.ndarray:
+        """∂V/∂θ on solved ``fields`` (no further solve)."""
         dz = contact_impedance_sensitivity(fields, protocol)
         cols = [conductivity_sensitivity(fields, protocol, dz)[:, None], dz.T]
         if moving:  # every disc moved (in the model's patch order), the moving ones kept
             moved = moved_discs(mesh, c, radii, POSITION_STEP, quadratic=order == 2)
             dc = electrode_position_sensitivity(fields, protocol, moved, POSITION_STEP)[moving]  # (k, 2, n_meas)
-            cols.append(dc.reshape(-1, len(r)).T)
-        return r, np.hstack(cols)
+            cols.append(dc.reshape(-1, protocol.n_meas).T)
+        return np.hstack(cols)
 
     scale = float(noise_std) ** 2  # the prior's weight against the squared residual (V²)
 
@@ -94,7 +96,8 @@ def fit_reference(mesh: TetMesh, centres: np.ndarray, radii: np.ndarray, ground:
         return float(r @ r + scale * d @ (prior * d))
 
     theta = theta0.copy()
-    r, J = evaluate(theta, True)
+    r, fields, c = solve(theta)
+    J = jacobian(fields, c)
     before = float(np.linalg.norm(r) / np.linalg.norm(v_meas))
     mu, it = 1e-3, 0
     for it in range(1, max_iterations + 1):
@@ -111,7 +114,7 @@ def fit_reference(mesh: TetMesh, centres: np.ndarray, radii: np.ndarray, ground:
                         *([0.5 * np.min(np.asarray(radii)[moving]) / max(np.abs(step[1 + n_el:]).max(), 1e-300)]
                           if moving else []))
             trial = theta + step
-            r_new, _ = evaluate(trial, False)
+            r_new, fields, c = solve(trial)
             if cost(r_new, trial) < cost(r, theta):
                 mu = max(mu / 2, 1e-9)
                 break
@@ -121,8 +124,9 @@ def fit_reference(mesh: TetMesh, centres: np.ndarray, radii: np.ndarray, ground:
                 break
         if not step.any():
             break
-        theta = trial
-        r, J = evaluate(theta, True)
+        # the accepted trial's fields serve its Jacobian: no second solve
+        theta, r = trial, r_new
+        J = jacobian(fields, c)
         size = np.abs(step) / np.concatenate([np.ones(1 + n_el), np.repeat(np.asarray(radii)[moving], 2)])
         if size.max() < rtol:
             break
