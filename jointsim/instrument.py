@@ -294,12 +294,13 @@ def dent_centroid(reference: DomeSurface, dome: DomeSurface) -> np.ndarray:
     def area_vectors(x: np.ndarray) -> np.ndarray:
         return 0.5 * np.cross(x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]])
 
-    S = 0.5 * (area_vectors(a) + area_vectors(b))
+    Sa = area_vectors(a)
     ca, cb = a[f].mean(axis=1), b[f].mean(axis=1)
-    S *= np.sign(np.einsum("ij,ij->", area_vectors(a), ca))  # outward: the enclosed volume Σ S·c/3 > 0
+    volume = np.einsum("ij,ij->", Sa, ca) / 3  # the enclosed volume, signed by the faces' orientation
+    S = 0.5 * (Sa + area_vectors(b)) * np.sign(volume)  # outward
     swept = -np.einsum("ij,ij->i", cb - ca, S)
     w = np.where(swept > 0, swept, 0.0)
-    if w.sum() <= 1e-12 * abs(np.einsum("ij,ij->", area_vectors(a), ca)) / 3:
+    if w.sum() <= 1e-12 * abs(volume):
         return np.full(3, np.nan)
     return w @ (0.5 * (ca + cb)) / w.sum()
 
