@@ -17,7 +17,7 @@ import tomllib
 from dataclasses import fields, replace
 from typing import Any, Mapping
 
-from ..scene import MeshSpec, ReconstructionSpec, Scene, scene_from_dict
+from ..scene import LATER_DEFAULTS, MeshSpec, ReconstructionSpec, Scene, scene_from_dict
 
 __all__ = [
     "SENSOR_KEYS",
@@ -45,7 +45,8 @@ SENSOR_KEYS: dict[str, tuple[str, ...]] = {
 OPTIONAL_KEYS: dict[str, Any] = {
     "mesh.element_order": 1, "membrane.moulding": "cap", "electrodes.discs": [], "electrodes.reference": True,
     "drive.measure": "reference", "drive.stim": None, "drive.meas": None, "reconstruction.lambda_radius": 7.5e-3,
-    "reconstruction.lambda_depth": 3e-3, "reconstruction.lambda_xy": [0.0, 0.0], "reconstruction.prior": "tikhonov",
+    "reconstruction.lambda_depth": 3e-3, "reconstruction.lambda_xy": [0.0, 0.0],
+    **{f"{section}.{key}": before for (section, key), before in LATER_DEFAULTS.items()},
 }
 # sections values were recorded in before they moved (scene.MOVED_KEYS): read there when a
 # record has no section of their own

@@ -290,7 +290,7 @@ class DatasetSetup:
         t: dict[str, float] = {}
         with timed(t, "group_setup"):
             model = self._membrane(draw)
-            draw, levels = self._placed(draw, model)
+            draw, levels, contact_z = self._placed(draw, model)
             ref_dome = inst.dome(model.u)
             ref_chamber = inst.deform(ref_dome).chamber
             rng = _rng(self.seed, draw.group, draw.attempt, 1)
@@ -299,7 +299,6 @@ class DatasetSetup:
             readout = Readout.on(ref_chamber, self.scene, inst.protocol, rng=rng, reference_frames=self.spec.reference_frames,
                                  conductivity=draw.conductivity, contact_impedance=draw.contact_impedance,
                                  offsets=draw.jitter, snr_db=draw.snr_db)
-            contact_z = model.first_contact_height(draw.xy)
         share = t["group_setup"] / n_samples
         records, depth_done = [], 0.0
         for level in levels[:n_samples]:
@@ -334,21 +333,22 @@ class DatasetSetup:
         readout.free()
         return records
 
-    def _placed(self, draw: GroupDraw, model: MembraneModel) -> tuple[GroupDraw, np.ndarray]:
+    def _placed(self, draw: GroupDraw, model: MembraneModel) -> tuple[GroupDraw, np.ndarray, float]:
         """``draw`` with both its target centre and its contact point on ``model`` (the group's
-        untouched membrane), the other solved from the one given; and its levels, the depths
+        untouched membrane), the other solved from the one given; its levels, the depths
         scaled into what the dome allows there (:func:`~jointsim.mechanics.touch.depth_reach`)
-        where it allows less than the spec's range. UnreachablePose where it allows less than
-        the range's start."""
+        where it allows less than the spec's range; and the height m at which the target
+        touches there. UnreachablePose where the dome allows less than the range's start."""
         if draw.xy is None:
             draw = replace(draw, xy=centre_touching(model, draw.contact_point)[:2])
         elif draw.contact_point is None:
             draw = replace(draw, contact_point=point_touched(model, draw.xy))
         levels = draw.levels
+        contact_z = model.first_contact_height(draw.xy)
         if self.spec.control == "depth":
             lo, hi = self.spec.depth
             # a hair short of the limit: press() refuses the lowest point below it by round-off
-            reach = depth_reach(model, model.first_contact_height(draw.xy)) - REACH_MARGIN
+            reach = depth_reach(model, contact_z) - REACH_MARGIN
             if draw.fixed_levels and reach < levels[-1]:  # a listed depth is the user's: not scaled, not redrawn
                 raise ValueError(f"press {draw.group} ({_where(draw)}, {2 * draw.radius * 1e3:.3g} mm): depth "
                                  f"{levels[-1] * 1e3:.4g} mm is past what the dome allows there ({max(reach, 0) * 1e3:.3g} mm)")
@@ -358,7 +358,7 @@ class DatasetSetup:
                                       f"deep, less than the first depth {levels[0] * 1e3:.3g} mm")
             if reach < hi:  # (then hi > lo: reach ≥ levels[0] ≥ lo)
                 levels = lo + (levels - lo) * (reach - lo) / (hi - lo)
-        return draw, levels
+        return draw, levels, contact_z
 
     def _membrane(self, draw: GroupDraw) -> MembraneModel:
         """The membrane of ``draw`` (moduli scaled, inflated by the reservoir, untouched) with
