@@ -44,11 +44,12 @@ def run(args: argparse.Namespace) -> int:
     from ..io.export import atomic_path, write_voxels_vtu
     from ..io.frames import read_frames
     from ..calibration.report import write_csv
-    from ..studies.measured import image_frames
+    from ..studies.measured import check_frames, image_frames
     from ..instrument import Instrument
 
     scene = scene_from_args(args)
     frames, reference = read_frames(args.frames), read_frames(args.reference)
+    check_frames(scene, frames, reference)  # before the instrument is built (seconds)
     cmap = None
     if args.calibration is not None:  # refused before any work when built for another sensor
         from ..calibration import load_map

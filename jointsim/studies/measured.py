@@ -22,7 +22,7 @@ from ..io.frames import MeasuredFrames, check_patterns
 from ..metrics import metric_fields
 from ..scene import Scene
 
-__all__ = ["MeasuredImages", "image_frames"]
+__all__ = ["MeasuredImages", "check_frames", "image_frames"]
 
 
 @dataclass(frozen=True)
@@ -43,14 +43,20 @@ class MeasuredImages:
     cluster_cells: np.ndarray
 
 
+def check_frames(scene: Scene, *frames: MeasuredFrames) -> None:
+    """Refuse (ValueError naming the file) frames that do not match ``scene``'s protocol: what
+    a caller checks before it builds the instrument."""
+    proto = scene_protocol(scene)
+    for f in frames:
+        check_patterns(f, proto.stim, proto.meas, proto.n_meas)
+
+
 def image_frames(scene: Scene, frames: MeasuredFrames, reference: MeasuredFrames,
                  instrument: Instrument | None = None, progress: Callable[[int], None] | None = None) -> MeasuredImages:
     """Image ``frames`` against the mean of ``reference``'s with ``scene``'s instrument
     (built here unless given; ``progress(1)`` after each frame); a ValueError naming the file
     when either does not match the scene's protocol."""
-    proto = scene_protocol(scene)
-    for f in (frames, reference):
-        check_patterns(f, proto.stim, proto.meas, proto.n_meas)
+    check_frames(scene, frames, reference)
     inst = Instrument.build(scene) if instrument is None else instrument
     try:
         v_ref = reference.voltages.mean(axis=0)
