@@ -195,10 +195,23 @@ MESH_PRESETS: dict[str, dict[str, float]] = {
     # 3.0 / 2.2 / 1.1 / 0.75 mm)
     "test": {"max_edge_mm": 2.6, "electrode_refinement": 4.0},
     "dataset": {"max_edge_mm": 1.9, "electrode_refinement": 6.0},
+    # the dataset's fidelity with the forward within 1 % of its converged limit: P2 elements on a
+    # coarse mesh graded at the electrodes' rims, the dome's dent sampled finer
+    # (results/forward_accuracy.md)
+    "dataset_p2": {"max_edge_mm": 3.0, "electrode_refinement": 1.5, "rim_refinement": 10.0, "grading": 0.6,
+                   "element_order": 2, "dome_rim_vertices": 144},
     "paper": {"max_edge_mm": 0.97, "electrode_refinement": 10.0},
     # convergence checks only (~1 M tets; minutes per mesh and per solve on 2 cores)
     "fine": {"max_edge_mm": 0.66, "electrode_refinement": 10.0},
 }
+GRADING = 0.35  # [mesh] grading: how fast the element size grows away from the electrodes (per unit distance)
+# [mesh] rim_refinement: the element size at the electrodes' outlines is max_edge / rim_refinement
+# (1: no refinement beyond electrode_refinement's); where the complete electrode model's current
+# density peaks, and where a coarse mesh errs most on the current-carrying electrodes
+RIM_REFINEMENT_MAX = 100.0
+# [mesh] dome_rim_vertices: the chamber's dome surface triangulated with this many rim vertices
+# (0: from max_edge, at least geometry.DOME_RIM_VERTICES); the pressed dent is sampled at its
+# vertices, so δV converges with it (results/forward_accuracy.md)
 SNR_RANGE_DB = (0.0, 200.0)  # [noise] snr_db, [dataset] snr_db and the --snr-db flags: dB re the mean standing |V|
 # [mesh] keys of the fTetWild mesher used until 2026-11-27: still read (scenes and stored
 # provenance carry them), warned about and ignored
@@ -226,7 +239,7 @@ WEDGE_MIN_RIM_VERTICES = 48
 # within 2.0 % (0.2 s; results/mechanics_benchmark_wedge15.md). Tetrahedra, two layers: 92 within 2 %,
 # 64 2.4-5.8 % stiff (results/mechanics_benchmark.md). 64 at the dataset fidelity and in tests, 92 at
 # "paper" and finer; "custom" (a chamber tuned by hand) gets the converged one
-MEMBRANE_RIM_VERTICES: dict[str, int] = {"test": 64, "dataset": 64, "paper": 92, "fine": 92, "custom": 92}
+MEMBRANE_RIM_VERTICES: dict[str, int] = {"test": 64, "dataset": 64, "dataset_p2": 64, "paper": 92, "fine": 92, "custom": 92}
 
 
 def membrane_layers(n: int, name: str = "membrane.layers") -> int:
@@ -266,9 +279,11 @@ class MeshSpec:
     max_edge: float = 1.9 * MM
     electrode_refinement: float = 6.0
     refinement_zone: float = 0.8 * MM
-    grading: float = 0.35
+    grading: float = GRADING
     element_order: int = 1
     update: str = "auto"
+    rim_refinement: float = 1.0
+    dome_rim_vertices: int = 0
 
 
 @dataclass(frozen=True)
@@ -299,6 +314,10 @@ class Scene:
                 preset=preset,
                 max_edge=p["max_edge_mm"] * MM,
                 electrode_refinement=p["electrode_refinement"],
+                rim_refinement=p.get("rim_refinement", 1.0),
+                dome_rim_vertices=int(p.get("dome_rim_vertices", 0)),
+                grading=p.get("grading", GRADING),
+                element_order=p.get("element_order", self.mesh.element_order),
             ),
             # a fidelity sets the membrane's mesh with the chamber's (MEMBRANE_RIM_VERTICES)
             membrane=replace(self.membrane, rim_vertices=MEMBRANE_RIM_VERTICES[preset]),
@@ -322,7 +341,8 @@ class Scene:
 
 # scene values added to the format after stores, maps and studies were first written, with the
 # behaviour before they existed: identities leave them out at that value
-LATER_DEFAULTS: dict[tuple[str, str], Any] = {("reconstruction", "prior"): "tikhonov"}
+LATER_DEFAULTS: dict[tuple[str, str], Any] = {("reconstruction", "prior"): "tikhonov", ("mesh", "rim_refinement"): 1.0,
+                                          ("mesh", "dome_rim_vertices"): 0}
 
 
 # --------------------------------------------------------------------------------------------
@@ -699,17 +719,21 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     max_edge = t.number("max_edge_mm", p["max_edge_mm"], 0.05, base_r)
     refine = t.number("electrode_refinement", p["electrode_refinement"], 1.0, 50.0)
     zone = t.number("refinement_zone_mm", 0.8, 0.0, base_r)
-    grading = t.number("grading", 0.35, 0.05, 2.0)
+    grading = t.number("grading", p.get("grading", GRADING), 0.05, 2.0)
+    rim = t.number("rim_refinement", p.get("rim_refinement", 1.0), 1.0, RIM_REFINEMENT_MAX)
+    dome_rim = t.integer("dome_rim_vertices", int(p.get("dome_rim_vertices", 0)), 0, MEMBRANE_RIM_RANGE[1])
+    if 0 < dome_rim < MEMBRANE_RIM_RANGE[0]:
+        raise SceneError(f"mesh.dome_rim_vertices = {dome_rim}: must be 0 (from max_edge_mm) or in [{MEMBRANE_RIM_RANGE[0]}, {MEMBRANE_RIM_RANGE[1]}]")
     retired = [k for k in RETIRED_MESH_KEYS if k in t.data]
     for k in retired:
         t.raw(k, None)
     if retired:
         warnings.warn(f"mesh.{', mesh.'.join(retired)}: settings of the fTetWild mesher, which jointsim no longer uses "
                       "(the chamber is meshed by gmsh): ignored; remove them from the scene", UserWarning, stacklevel=2)
-    element_order = t.integer("element_order", 1, 1, 2)
+    element_order = t.integer("element_order", p.get("element_order", 1), 1, 2)
     update = t.choice("update", "auto", MESH_UPDATES)
     t.finish()
-    if preset != "custom" and ("max_edge_mm" in data.get("mesh", {}) or "electrode_refinement" in data.get("mesh", {})):
+    if preset != "custom" and any(k in data.get("mesh", {}) for k in ("max_edge_mm", "electrode_refinement", "rim_refinement", "dome_rim_vertices")):
         preset = "custom"
 
     t = _Table(data.get("membrane", {}), "membrane")
@@ -741,7 +765,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         saline=Saline(sigma),
         drive=Drive(current * 1e-6, freqs, skip, measure, stim, meas),
         noise=Noise(snr, seed, drift, rate),
-        mesh=MeshSpec(preset, max_edge * MM, refine, zone * MM, grading, element_order, update),
+        mesh=MeshSpec(preset, max_edge * MM, refine, zone * MM, grading, element_order, update, rim, dome_rim),
         membrane=Membrane(law, mu * 1e3, tuple(c * 1e3 for c in yc), bulk_ratio, layers, p_res, closed, rim_vertices, volumetric, moulding, element),
         target=target,
         reconstruction=_reconstruction(data.get("reconstruction", {}), base_r, height, thick),

@@ -89,12 +89,20 @@ def cache_dir() -> Path:
 
 def _size_expression(layout: ElectrodeLayout, spec: MeshSpec) -> str:
     """The size field h(x) = min(h_max, h_min + grading · d(x)) (module docstring) as a gmsh
-    MathEval expression in x, y, z."""
-    d = None
+    MathEval expression in x, y, z; with ``rim_refinement`` > 1 also
+    min(·, h_max / rim_refinement + grading · d_rim(x)), d_rim the distance to the nearest
+    electrode's outline (its rim circle)."""
+    d = d_rim = None
     for (x0, y0, _), r in zip(layout.centres, layout.radii):
-        term = f"Sqrt(Max(Sqrt((x-({x0:.17g}))^2+(y-({y0:.17g}))^2)-{r + spec.refinement_zone:.17g},0)^2+z^2)"
+        rho = f"Sqrt((x-({x0:.17g}))^2+(y-({y0:.17g}))^2)"
+        term = f"Sqrt(Max({rho}-{r + spec.refinement_zone:.17g},0)^2+z^2)"
         d = term if d is None else f"Min({d},{term})"
-    return f"Min({spec.max_edge:.17g},{spec.max_edge / spec.electrode_refinement:.17g}+{spec.grading:.17g}*{d})"
+        rim = f"Sqrt(Abs({rho}-{r:.17g})^2+z^2)"
+        d_rim = rim if d_rim is None else f"Min({d_rim},{rim})"
+    h = f"Min({spec.max_edge:.17g},{spec.max_edge / spec.electrode_refinement:.17g}+{spec.grading:.17g}*{d})"
+    if spec.rim_refinement > 1.0:
+        h = f"Min({h},{spec.max_edge / spec.rim_refinement:.17g}+{spec.grading:.17g}*{d_rim})"
+    return h
 
 
 def mesh_chamber(
@@ -133,9 +141,12 @@ def chamber_mesh(scene: Scene, **kw) -> ChamberMesh:
 
 def reference_surface(scene: Scene) -> trimesh.Trimesh:
     """The undeformed chamber surface given to the mesher: the dome as near-equilateral
-    triangles of edge ≤ max_edge, at least ``DOME_RIM_VERTICES`` on the rim (kept by the
-    mesher: they bound the saline volume)."""
+    triangles with ``[mesh] dome_rim_vertices`` on the rim, or where that is 0 of edge ≤
+    max_edge, at least ``DOME_RIM_VERTICES`` on the rim (kept by the mesher: they bound the
+    saline volume)."""
     c = scene.chamber
+    if scene.mesh.dome_rim_vertices:
+        return chamber_surface(isotropic_cap(c.base_radius, c.dome_height, scene.mesh.dome_rim_vertices))
     n_rim = 16 * int(np.ceil(2 * np.pi * c.base_radius / scene.mesh.max_edge / 16))
     return chamber_surface(isotropic_cap(c.base_radius, c.dome_height, max(DOME_RIM_VERTICES, n_rim)))
 
@@ -278,6 +289,8 @@ def _hash(surface: trimesh.Trimesh, layout: ElectrodeLayout, spec: MeshSpec) -> 
     for a in (surface.vertices, surface.faces, layout.centres, layout.radii):
         h.update(np.ascontiguousarray(a, dtype=np.float64).tobytes())
     h.update(repr((spec.max_edge, spec.electrode_refinement, spec.refinement_zone, spec.grading)).encode())
+    if spec.rim_refinement > 1.0:  # off, the field and the key are what they were before the rim term
+        h.update(repr(("rim", spec.rim_refinement)).encode())
     return h.hexdigest()[:20]
 
 
