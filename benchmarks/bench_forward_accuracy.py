@@ -46,12 +46,12 @@ CONFIGS: dict[str, tuple] = {
     "test P2": ("test", 2), "dataset P2": ("dataset", 2), "paper P2": ("paper", 2),
     "rim P1 2.6/2/40": (2.6, 2.0, 40.0, 0.35, 1, 0), "rim P1 1.9/2/40 dome 144": (1.9, 2.0, 40.0, 0.35, 1, 144),
     "rim P2 3.5/1/12 g0.7": (3.5, 1.0, 12.0, 0.7, 2, 0), "rim P2 3.5/1/12 g0.7 dome 144": (3.5, 1.0, 12.0, 0.7, 2, 144),
-    "dataset_p2 (3.0/1.5/10 g0.6 dome 144)": ("dataset_p2", 2),
-    "rim P2 2.6/2/10 g0.6 dome 144": (2.6, 2.0, 10.0, 0.6, 2, 144),
+    "rim P2 3.0/1.5/10 g0.6 dome 144": (3.0, 1.5, 10.0, 0.6, 2, 144),
+    "dataset_p2 (2.6/2/10 g0.6 dome 144)": ("dataset_p2", 2),
     "rim P2 3.0/1.5/10 g0.6 dome 192": (3.0, 1.5, 10.0, 0.6, 2, 192),
     "rim P2 1.9/6/20 dome 192": (1.9, 6.0, 20.0, 0.35, 2, 192),
 }
-REFERENCE = ("limit: rim P2 1.9/6/20 dome 256", (1.9, 6.0, 20.0, 0.35, 2, 256))
+REFERENCE = ("rim P2 1.9/6/20 dome 256", (1.9, 6.0, 20.0, 0.35, 2, 256))
 
 def scene_of(config) -> object:
     from jointsim.scene import MM, SCENES_DIR, load_scene
@@ -160,7 +160,7 @@ def markdown(r: dict) -> str:
         "",
         __doc__.split("\n\n", 2)[2].strip().replace("\n", " "),
         "",
-        f"Limit: {ref['name']} (max edge mm / electrode refinement / rim refinement, grading, dome rim vertices), "
+        f"Limit ({ref['name']}; max edge mm / electrode refinement / rim refinement, grading, dome rim vertices): "
         f"{ref['tets']:,} tets, {ref['dofs']:,} unknowns. Errors: relative 2-norm against it; δV per press "
         "(x, y, depth mm) " + ", ".join(f"({x:g}, {y:g}, {d:g})" for x, y, d in PRESSES) + "; `carrying`: the "
         "32 of 256 measurements on the two current-carrying electrodes of their injection, `other`: the rest.",

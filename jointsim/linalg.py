@@ -3,11 +3,13 @@ symmetric systems (the SPD CEM matrix, the symmetric indefinite Newton Hessians 
 mechanics, the morph's Laplacian), factorised once and solved for many right-hand sides, and
 the CSR pattern helper their assemblies share.
 
-"auto" picks by size, from results/eit_forward_benchmark.md (2-core machine): scipy's SuperLU
-for systems below 40 k unknowns (0.25 s against PARDISO's 0.48 s at 21 k nodes, where MKL's
-set-up dominates), PARDISO (pypardiso) above (0.81 s against SuperLU's 1.74 s at 68 k nodes,
-2.6 s against 22.8 s at 211 k: SuperLU's fill-in grows fastest on 3-D meshes). CHOLMOD
-(scikit-sparse < 0.5, optional, needs SuiteSparse from the system) is used when asked for.
+"auto" picks by size, from results/solver_choice.md (the CEM matrices of the paper's chamber,
+one thread, analysis included on both sides, MKL's loading apart): scipy's SuperLU for systems
+of fewer than 150 k stored entries, where the two tie (0.019 / 0.020 s at 44 k entries, 0.065 /
+0.060 s at 115 k: the dataset preset's P1), PARDISO (pypardiso) above (P2 at 573 k entries:
+0.27 s against SuperLU's 0.62 s; 1.5 M: 0.94 against 3.2 s; SuperLU's fill-in grows fastest on
+3-D meshes). CHOLMOD (scikit-sparse < 0.5, optional, needs SuiteSparse from the system) is used
+when asked for.
 """
 
 from __future__ import annotations
@@ -47,16 +49,16 @@ def available_backends() -> list[str]:
     return out
 
 
-SUPERLU_MAX_UNKNOWNS = 40_000
-# P2 rows hold ~25 entries against P1's ~12, and fill in faster: at 26 k unknowns (670 k entries)
-# PARDISO factorises and solves in half SuperLU's time; every P1 system under 40 k stays under this
-SUPERLU_MAX_NNZ = 600_000
+SUPERLU_MAX_NNZ = 150_000
+# without the entries' count: a P1 CEM row holds ~12.5 entries (150 k / 12.5)
+SUPERLU_MAX_UNKNOWNS = 12_000
 
 
 def default_backend(n_unknowns: int | None = None, nnz: int | None = None) -> str:
     """The backend "auto" resolves to for a system of ``n_unknowns`` with ``nnz`` stored entries
     (large when not given)."""
-    if n_unknowns is not None and n_unknowns < SUPERLU_MAX_UNKNOWNS and (nnz is None or nnz < SUPERLU_MAX_NNZ):
+    small = nnz < SUPERLU_MAX_NNZ if nnz is not None else n_unknowns is not None and n_unknowns < SUPERLU_MAX_UNKNOWNS
+    if small:
         return "superlu"
     return "pardiso" if "pardiso" in available_backends() else "superlu"
 

@@ -198,7 +198,7 @@ MESH_PRESETS: dict[str, dict[str, float]] = {
     # the dataset's fidelity with the forward within 1 % of its converged limit: P2 elements on a
     # coarse mesh graded at the electrodes' rims, the dome's dent sampled finer
     # (results/forward_accuracy.md)
-    "dataset_p2": {"max_edge_mm": 3.0, "electrode_refinement": 1.5, "rim_refinement": 10.0, "grading": 0.6,
+    "dataset_p2": {"max_edge_mm": 2.6, "electrode_refinement": 2.0, "rim_refinement": 10.0, "grading": 0.6,
                    "element_order": 2, "dome_rim_vertices": 144},
     "paper": {"max_edge_mm": 0.97, "electrode_refinement": 10.0},
     # convergence checks only (~1 M tets; minutes per mesh and per solve on 2 cores)

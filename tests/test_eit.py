@@ -402,7 +402,7 @@ from jointsim.linalg import default_backend
 from jointsim.mesh.electrodes import plane_face_patch
 from jointsim.mesh.shapes import box_mesh
 
-# 34^3 cells: 42 875 nodes, just past SuperLU's range (SUPERLU_MAX_UNKNOWNS): PARDISO's path
+# 34^3 cells: 42 875 nodes, past SuperLU's range (SUPERLU_MAX_UNKNOWNS): PARDISO's path
 mesh = box_mesh((1.0, 1.0, 1.0), (34, 34, 34))
 model = ForwardModel(mesh, [plane_face_patch(mesh, 2, 1.0), plane_face_patch(mesh, 2, 0.0)], 1, 1e-3)
 assert default_backend(mesh.n_nodes + 1) == "pardiso"

@@ -62,7 +62,7 @@ def test_the_current_carrying_electrodes_converge_as_the_rims_are_refined(paper_
 def test_dataset_p2_preset_and_the_new_mesh_keys():
     s = scene_from_dict({"mesh": {"preset": "dataset_p2"}})
     assert (s.mesh.element_order, s.mesh.rim_refinement, s.mesh.dome_rim_vertices) == (2, 10.0, 144)
-    assert s.mesh.max_edge == pytest.approx(3.0 * MM) and s.mesh.grading == pytest.approx(0.6)
+    assert s.mesh.max_edge == pytest.approx(2.6 * MM) and s.mesh.grading == pytest.approx(0.6)
     # another preset resets the sizes; the element order a scene chose stays where the preset names none
     t = s.with_mesh_preset("test")
     assert (t.mesh.rim_refinement, t.mesh.dome_rim_vertices, t.mesh.grading, t.mesh.element_order) == (1.0, 0, 0.35, 2)
