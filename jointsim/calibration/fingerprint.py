@@ -35,7 +35,7 @@ SENSOR_KEYS: dict[str, tuple[str, ...]] = {
     "chamber": ("base_radius", "dome_height", "membrane_thickness"),
     "electrodes": ("count", "ring_radius", "diameter", "ground_diameter", "first_angle_deg"),
     "drive": ("current", "skip"),
-    "mesh": ("preset", "max_edge", "electrode_refinement", "refinement_zone", "rim_refinement", "dome_rim_vertices"),
+    "mesh": ("preset", "max_edge", "electrode_refinement", "refinement_zone"),
     "membrane": ("law", "shear_modulus", "yeoh_c", "reservoir_pressure", "chamber"),
     "reconstruction": ("cells", "lambda_method"),
 }
