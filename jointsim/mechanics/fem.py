@@ -44,7 +44,7 @@ from threadpoolctl import threadpool_limits
 
 from .._cores import available_cores
 from .._warp import wp
-from ..linalg import csr_pattern
+from ..linalg import element_pattern
 from ..mesh.tetmesh import KEAST_POINTS, TET_EDGES, TetMesh, unique_edges
 from .materials import (
     Material,
@@ -220,9 +220,7 @@ class P2Mesh:
         """(indptr, indices, slot) of the 3n × 3n Hessian: element entry (e, r, c) adds into
         data[slot[e*900 + r*30 + c]]."""
         dof = (3 * self.tets[:, :, None] + np.arange(3)).reshape(-1, 30).astype(np.int64)
-        rows = np.repeat(dof, 30, axis=1).ravel()
-        cols = np.tile(dof, (1, 30)).ravel()
-        return csr_pattern(rows, cols, 3 * self.n_nodes)
+        return element_pattern(dof, 3 * self.n_nodes)
 
 
 _Mat30 = wp.types.matrix(shape=(30, 30), dtype=wp.float64)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..linalg import csr_pattern
+from ..linalg import element_pattern
 
 __all__ = ["PressureTerm", "linear_subtriangles", "enclosed_volume"]
 
@@ -51,10 +51,8 @@ class PressureTerm:
         n = 3 * len(X)
         t = self.tris
         dof = (3 * t[:, :, None] + np.arange(3)).reshape(-1, 9)
-        rows = np.repeat(dof, 9, axis=1).ravel()
-        cols = np.tile(dof, (1, 9)).ravel()
         # the Hessian's pattern is fixed by the triangles
-        indptr, self._indices, slot = csr_pattern(rows, cols, n)
+        indptr, self._indices, slot = element_pattern(dof, n)
         self._indptr = indptr.astype(np.int32)
         self._n = n
         self._gradient_dof = dof.ravel()

@@ -33,7 +33,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._warp import wp
-from ..linalg import csr_pattern
+from ..linalg import element_pattern
 from ..mesh.tetmesh import TetMesh
 from . import fem
 from .fem import (
@@ -212,7 +212,7 @@ class WedgeMesh:
         """(indptr, indices, slot) of the 3n × 3n Hessian: element entry (e, r, c) adds into
         data[slot[e·2025 + 45 r + c]]."""
         dof = (3 * self.elements[:, :, None] + np.arange(3)).reshape(-1, _DOFS).astype(np.int64)
-        return csr_pattern(np.repeat(dof, _DOFS, axis=1).ravel(), np.tile(dof, (1, _DOFS)).ravel(), 3 * self.n_nodes)
+        return element_pattern(dof, 3 * self.n_nodes)
 
 
 _Mat15x3 = wp.types.matrix(shape=(15, 3), dtype=wp.float64)

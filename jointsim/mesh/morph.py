@@ -233,7 +233,7 @@ class ChamberMorpher:
                 "remesh this deformation"
             )
         key = f"{self.chamber.key}-morph-{_digest(deformed.vertices)}{UNTANGLED_KEY if untangled else ''}"
-        return replace(self.chamber, mesh=TetMesh(nodes, mesh.tets), key=key), q
+        return replace(self.chamber, mesh=mesh.moved(nodes), key=key), q
 
     def __call__(self, deformed: DomeSurface) -> ChamberMesh:
         """The morphed chamber (see :meth:`morph`)."""

@@ -79,9 +79,22 @@ class TetMesh:
     def boundary_faces(self) -> np.ndarray:
         """Faces that belong to one tetrahedron only, (k, 3), oriented outward."""
         f = self.tets[:, _FACES].reshape(-1, 3)
-        key = np.sort(f, axis=1)
+        s = np.sort(f, axis=1)
+        n = np.int64(self.n_nodes)
+        # one integer per face (its sorted corners in base n) where that fits, rows otherwise:
+        # a 1-D unique is ~5x faster than one over rows
+        key = (s[:, 0] * n + s[:, 1]) * n + s[:, 2] if self.n_nodes < 2**21 else s
         _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
         return f[cnt[inv.ravel()] == 1]
+
+    def moved(self, nodes: np.ndarray) -> "TetMesh":
+        """This mesh with its nodes at ``nodes`` (a morph: the same tetrahedra), sharing what
+        depends on the connectivity alone (the boundary faces; their outward orientation holds
+        while no element inverts, which a morph checks)."""
+        moved = TetMesh(nodes, self.tets)
+        if "boundary_faces" in self.__dict__:
+            moved.__dict__["boundary_faces"] = self.boundary_faces
+        return moved
 
     def oriented(self) -> "TetMesh":
         """A copy with negatively oriented elements flipped."""
