@@ -431,3 +431,31 @@ def test_a_second_dataset_on_one_output_is_refused_before_any_work(tmp_path):
     with exclusive(tmp_path / "ds.h5"), pytest.raises(ValueError, match="another jointsim run is writing it"):
         generate_dataset(scene_from_dict({"mesh": {"preset": "test"}}), 3, tmp_path / "ds.h5", seed=0, workers=1)
     assert not (tmp_path / "ds.partial").exists()
+
+
+def test_a_full_disk_names_the_folder_and_says_the_stored_records_are_kept(tmp_path, monkeypatch):
+    store = _open(tmp_path / "run")
+
+    def full(f, **arrays):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "savez", full)
+    with pytest.raises(OSError, match=r"No space left on device \(writing records 0-0; the records stored before are kept") as e:
+        store.put(0, _record(0))
+    assert e.value.errno == 28 and Path(e.value.filename).parent == tmp_path / "run.partial" / "records"
+
+
+def test_a_damaged_record_file_is_set_aside_and_its_records_count_as_missing(tmp_path):
+    store = _open(tmp_path / "run")
+    for i in range(3):
+        store.put(i, _record(i))
+    files = sorted((tmp_path / "run.partial" / "records").rglob("r*.npz"))
+    data = bytearray(files[1].read_bytes())
+    data[len(data) // 2: len(data) // 2 + 4] = bytes(b ^ 0xFF for b in data[len(data) // 2: len(data) // 2 + 4])
+    files[1].write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="unreadable record file"):
+        store.get(1)  # read where it lies: refused, not a wrong array
+    aside = store.set_aside_unreadable()
+    assert aside == [files[1].with_name(files[1].name + ".damaged")] and aside[0].exists()  # kept, not deleted
+    assert store.missing().tolist() == [1, 3, 4, 5]  # n = 6; 0 and 2 are still stored
+    assert store.set_aside_unreadable() == []  # the sound files are left where they are

@@ -41,6 +41,7 @@ import os
 import tempfile
 import threading
 import time
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -114,6 +115,8 @@ def _save_chamber_once(partial: Path, chamber: ChamberMesh) -> None:
             os.link(tmp, target)  # fails if it exists, unlike a rename
         except FileExistsError:
             pass
+    except OSError as e:  # a full disk: say where
+        raise OSError(e.errno, f"{e.strerror or e} (writing the run's chamber mesh; make room and run again)", str(target)) from None
     finally:
         Path(tmp).unlink(missing_ok=True)
 
@@ -293,6 +296,11 @@ def generate_dataset(
         store = open_store(final, schema, scene_toml=scene_toml if scene_toml is not None else f'name = "{scene.name}"\n',
                            seed=int(seed), n_records=int(n_samples), params=dataset_params(scene, n_samples, sha, presses),
                            command=command)
+        # a record file damaged since it was written (a flipped byte, a truncated copy) is found
+        # here, set aside and its group computed again: the run still ends with the whole data
+        if damaged := store.set_aside_unreadable():
+            warnings.warn(f"{len(damaged)} stored record file(s) could not be read back: set aside as {damaged[0]}"
+                          f"{' and others' if len(damaged) > 1 else ''}; their samples are computed again", UserWarning, stacklevel=2)
         missing = store.missing()
         todo = np.unique(missing // k)
         if on_start is not None:

@@ -323,15 +323,19 @@ class RecordStore:
         for j, (_, _, ck) in enumerate(self._buffer):
             arrays |= {f"c{j}/{k}": v for k, v in (ck or {}).items()}
         target = self.partial / "records" / f"{start // _FANOUT:08d}" / f"r{start:012d}_{step}x{count}.{secrets.token_hex(8)}.npz"
-        with atomic_path(target) as tmp:
-            with open(tmp, "wb") as f:
-                np.savez(f, **arrays)
-                if self.fsync:
-                    f.flush()
-                    os.fsync(f.fileno())
-            os.chmod(tmp, _FILE_MODE)
-        if self.fsync:
-            _fsync_dir(target.parent)
+        try:
+            with atomic_path(target) as tmp:
+                with open(tmp, "wb") as f:
+                    np.savez(f, **arrays)
+                    if self.fsync:
+                        f.flush()
+                        os.fsync(f.fileno())
+                os.chmod(tmp, _FILE_MODE)
+            if self.fsync:
+                _fsync_dir(target.parent)
+        except OSError as e:  # a full disk, a quota: say where, and that nothing stored is lost
+            raise OSError(e.errno, f"{e.strerror or e} (writing records {start}-{idx[-1]}; the records stored before "
+                          "are kept: make room and run again)", str(target.parent)) from None
         self._buffer.clear()
 
     def close(self) -> None:
@@ -343,6 +347,20 @@ class RecordStore:
         """Sorted indices of the records stored so far by any writer, (n_done,) int64;
         buffered, not yet flushed records are not included."""
         return np.unique(_Files.scan(self.partial).expand()[0])
+
+    def set_aside_unreadable(self) -> list[Path]:
+        """Read every stored record file back (all its arrays: the zip's CRC-32 checks each);
+        a file that cannot be read is renamed NAME.damaged (kept, but no longer a record), so
+        that its records count as missing and are computed again. The files set aside."""
+        aside = []
+        for path in _Files.scan(self.partial).paths:
+            try:
+                _load(path)
+            except ValueError:
+                target = path.with_name(path.name + ".damaged")
+                os.replace(path, target)
+                aside.append(target)
+        return aside
 
     def missing(self, n_records: int | None = None) -> np.ndarray:
         """Sorted indices in 0 … N−1 not stored yet, (n_missing,) int64."""
