@@ -34,30 +34,45 @@ def csr_pattern(rows: np.ndarray, cols: np.ndarray, n: int) -> tuple[np.ndarray,
     return np.searchsorted(uniq // n, np.arange(n + 1)), (uniq % n).astype(np.int32), slot.ravel()
 
 
-# the last few element patterns (element_pattern): a dataset worker builds the same membrane for
-# every press, and its Hessian's pattern (a sort of ~8 M entries) took ~0.16 s each time
-_PATTERNS: OrderedDict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
-_PATTERNS_KEPT = 2
+# the last few element patterns (element_pattern): a dataset worker builds the same membrane and
+# chamber for every press, and the membrane Hessian's pattern alone (a sort of ~8 M entries) took
+# ~0.16 s each time
+_PATTERNS: OrderedDict[tuple, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+_PATTERNS_KEPT = 4  # a dataset worker's: the membrane's elastic and pressure terms, the chamber's CEM
 
 
-def element_pattern(dof: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def element_pattern(dof: np.ndarray, n: int, rows: np.ndarray | None = None,
+                    cols: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`csr_pattern` of the n × n matrix assembled from dense blocks on the element dofs
-    ``dof`` (m, k): entry (e, a, b) lands in slot[e·k² + a·k + b]. Remembered by content for
-    the next call with the same dofs; the arrays returned are read-only (they are shared)."""
+    ``dof`` (m, k), entry (e, a, b) in slot[e·k² + a·k + b], and, after them, the entries at
+    (``rows``, ``cols``) (a few, such as the electrodes' terms). The blocks' part is remembered
+    by content for the next call with the same dofs: the pattern is then the union of its keys
+    with the few others', the same arrays as a sort of all the entries would give. The arrays
+    returned are read-only where they are shared."""
     dof = np.ascontiguousarray(dof, np.int64)
     key = (int(n), dof.shape, hashlib.sha1(dof.data).hexdigest())
-    pattern = _PATTERNS.get(key)
-    if pattern is None:
+    blocks = _PATTERNS.get(key)
+    if blocks is None:
         k = dof.shape[1]
-        pattern = csr_pattern(np.repeat(dof, k, axis=1).ravel(), np.tile(dof, (1, k)).ravel(), n)
-        for a in pattern:
+        uniq, slot = np.unique((np.repeat(dof, k, axis=1) * n + np.tile(dof, (1, k))).ravel(), return_inverse=True)
+        blocks = (uniq, slot.ravel())
+        for a in blocks:
             a.flags.writeable = False
-        _PATTERNS[key] = pattern
+        _PATTERNS[key] = blocks
         while len(_PATTERNS) > _PATTERNS_KEPT:
             _PATTERNS.popitem(last=False)
     else:
         _PATTERNS.move_to_end(key)
-    return pattern
+    uniq, slot = blocks
+    if rows is not None and len(rows):
+        extra = np.asarray(rows, np.int64) * n + np.asarray(cols, np.int64)
+        wanted = np.unique(extra)
+        at = np.minimum(np.searchsorted(uniq, wanted), len(uniq) - 1)
+        new = wanted[uniq[at] != wanted]  # sorted, unique, none of the blocks' keys
+        slot = (np.arange(len(uniq)) + np.searchsorted(new, uniq))[slot]  # the blocks' keys, moved up past the new ones
+        uniq = np.insert(uniq, np.searchsorted(uniq, new), new)
+        slot = np.concatenate([slot, np.searchsorted(uniq, extra)])
+    return np.searchsorted(uniq // n, np.arange(n + 1)), (uniq % n).astype(np.int32), slot
 
 
 def available_backends() -> list[str]:

@@ -546,3 +546,24 @@ def test_without_pardiso_superlu_reports_the_inertia_and_stands_in_for_cholesky(
     data = upper.data.copy()
     data[upper.indptr[0] : upper.indptr[1]] = 0.0  # row 0 of the upper triangle: the first row and column zero, singular
     assert cholesky.try_factor(data) is False
+
+
+def test_element_pattern_with_extra_entries_is_the_pattern_of_all_entries():
+    # the remembered blocks' keys merged with a few others' must give the arrays a sort of every
+    # entry gives (csr_pattern), on the first call and on a later one that finds the blocks
+    from jointsim.linalg import csr_pattern, element_pattern
+
+    rng = np.random.default_rng(3)
+    n = 60
+    dof = rng.integers(0, 50, size=(40, 4))
+    for _ in range(2):
+        rows = rng.integers(0, n, 30)
+        cols = rng.integers(0, n, 30)
+        k = dof.shape[1]
+        want = csr_pattern(np.concatenate([np.repeat(dof, k, axis=1).ravel(), rows]),
+                           np.concatenate([np.tile(dof, (1, k)).ravel(), cols]), n)
+        got = element_pattern(dof, n, rows, cols)
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(element_pattern(dof, n)[2], csr_pattern(np.repeat(dof, 4, axis=1).ravel(),
+                                                                           np.tile(dof, (1, 4)).ravel(), n)[2])

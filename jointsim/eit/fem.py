@@ -29,7 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._warp import wp
-from ..linalg import csr_pattern
+from ..linalg import element_pattern
 from ..mesh.electrodes import FACE_EDGES, ElectrodePatch
 from ..mesh.kernels import p1_stiffness
 from ..mesh.tetmesh import KEAST_POINTS, TET_EDGES, TetMesh, unique_edges
@@ -137,10 +137,9 @@ class CEMAssembler:
         if self.order == 2 and any(e.q1 is None for e in self.electrodes):
             raise ValueError("electrodes: order 2 needs the P2 moments of every patch (disc_patches(..., quadratic=True))")
         d = dofs(self.mesh, self.order)
-        n, nl = d.n, d.elements.shape[1]
+        n = d.n
         el = d.elements
-        rows = [np.repeat(el, nl, axis=1).ravel()]
-        cols = [np.tile(el, (1, nl)).ravel()]
+        rows, cols = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]  # the electrodes' entries, after the elements'
         face_dofs = tuple(d.faces(e.faces) for e in self.electrodes)
         for l, f in enumerate(face_dofs):
             nf = f.shape[1]
@@ -150,9 +149,10 @@ class CEMAssembler:
             if j is not None:
                 rows += [f.ravel(), np.full(f.size, n + j), [n + j]]
                 cols += [np.full(f.size, n + j), f.ravel(), [n + j]]
-        r, c = np.concatenate(rows), np.concatenate(cols)
         N = n + L
-        indptr, indices, slot = csr_pattern(r, c, N)
+        # the elements' part is remembered (a dataset's groups share the chamber's topology and
+        # differ in their electrodes' faces), so a new electrode set sorts only its own entries
+        indptr, indices, slot = element_pattern(el, N, np.concatenate(rows), np.concatenate(cols))
         object.__setattr__(self, "dofs", d)
         object.__setattr__(self, "_face_dofs", face_dofs)
         object.__setattr__(self, "_shape", (N, N))

@@ -164,9 +164,12 @@ def _circumradius(p: np.ndarray) -> np.ndarray:
 def unique_edges(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
     """The mesh's k unique edges (k, 2) (node pairs, sorted), and for each element the index
     (m, 6) of each of its edges, in the order of ``TET_EDGES``."""
-    key = np.sort(mesh.tets[:, TET_EDGES].reshape(-1, 2), axis=1)
-    uniq, inv = np.unique(key, axis=0, return_inverse=True)
-    return uniq, inv.reshape(-1, 6)
+    pair = np.sort(mesh.tets[:, TET_EDGES].reshape(-1, 2), axis=1)
+    n = np.int64(mesh.n_nodes)
+    # one integer per edge, a·n + b (b < n): its order is the pairs' lexicographic one, and a 1-D
+    # unique is ~5x faster than one over rows
+    uniq, inv = np.unique(pair[:, 0] * n + pair[:, 1], return_inverse=True)
+    return np.column_stack([uniq // n, uniq % n]), inv.reshape(-1, 6)
 
 
 def edge_midpoints(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
