@@ -68,8 +68,12 @@ class Tmpfs:
 
     def __init__(self, size: int):
         self.path = Path(tempfile.mkdtemp(prefix="jointsim-small-fs-"))
-        r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(self.path)], capture_output=True, text=True)
+        try:
+            r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(self.path)], capture_output=True, text=True)
+        except OSError as e:  # no mount command
+            raise PermissionError(str(e)) from None
         if r.returncode != 0:
+            shutil.rmtree(self.path, ignore_errors=True)
             raise PermissionError(r.stderr.strip() or "mount failed")
 
     def grow(self, size: int) -> None:
@@ -87,7 +91,8 @@ def run() -> dict:
     try:
         ref = work / "ref.h5"
         t = time.perf_counter()
-        proc = subprocess.Popen(_cmd(ref), env=env, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        log = open(work / "ref.log", "w+")  # not a pipe: nobody reads it while the run goes on
+        proc = subprocess.Popen(_cmd(ref), env=env, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=log, text=True)
         records_size = chamber_size = 0  # the run's folder at its largest, and its chamber, watched while it runs
         while proc.poll() is None:
             if ref.with_suffix(".partial").exists():
@@ -97,8 +102,10 @@ def run() -> dict:
                 except FileNotFoundError:  # not written yet, or removed as the run finalised
                     pass
             time.sleep(0.02)
+        log.seek(0)
         if proc.returncode != 0:
-            raise RuntimeError(proc.stderr.read()[-1500:])
+            raise RuntimeError(log.read()[-1500:])
+        log.close()
         wall = time.perf_counter() - t
         reference = _sha(ref)
         final_size = ref.stat().st_size
