@@ -59,6 +59,20 @@ def test_the_studies_write_under_out_by_default():
         assert out.parts[0] == "out", (command, out)
 
 
+def test_every_command_with_a_progress_bar_takes_the_progress_flag():
+    # one convention: the bar shows on a terminal unless --no-progress, and --progress forces it
+    from jointsim.cli.common import progress_off
+    from jointsim.cli.main import build_parser
+
+    p = build_parser()
+    needs = {"design-study": ["a.toml"], "frames": ["--frames", "f.csv", "--reference", "r.csv"], "calibrate": ["d.h5"]}
+    for command in ("calibrate", "dataset", "palpate", "design-study", "frames", "indent", "protocol-study", "stiffness-study"):
+        base = [command, *needs.get(command, [])]
+        assert progress_off(p.parse_args(base)) is None, command
+        assert progress_off(p.parse_args([*base, "--no-progress"])) is True, command
+        assert progress_off(p.parse_args([*base, "--progress"])) is False, command
+
+
 def test_indent_refuses_a_contact_off_the_base_naming_the_flags(tmp_path, capsys):
     out = tmp_path / "i"
     assert main(["indent", "--x-mm", "25", "--out", str(out)]) == 2

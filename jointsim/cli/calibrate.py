@@ -12,7 +12,7 @@ import argparse
 import shlex
 from pathlib import Path
 
-from .common import float_list
+from .common import add_progress_argument, float_list, progress_off
 
 OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
 STAGES = 4  # what calibrate() announces: size curves, CoM map, direct regression, stiffness
@@ -32,8 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-com-points", type=int, default=3000, help="CoM map points fitted at most (default 3000)")
     p.add_argument("--noise-copies", type=int, default=30,
                    help="fresh noise draws of each training sample for the direct regression, 0-1000 (default 30; 0: stored samples only)")
-    p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
-                   help="show a progress bar (default: when the output is a terminal)")
+    add_progress_argument(p)
     p.add_argument("--symmetry", action="store_true",
                    help="move the noise draws about the electrode ring by the sensor's turns and mirrors (default: off)")
 
@@ -78,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     # the fit's stages (size curves, CoM map, direct regression, stiffness) and the report
-    with tqdm(total=STAGES + 1, unit="stage", desc="calibrate", disable=None if args.progress is None else not args.progress) as bar:
+    with tqdm(total=STAGES + 1, unit="stage", desc="calibrate", disable=progress_off(args)) as bar:
         def stage(name: str) -> None:
             if bar.n or bar.disable:
                 bar.update(1)

@@ -49,6 +49,16 @@ def target_radius_mm(args: argparse.Namespace, default: float) -> float:
     return radius
 
 
+def add_progress_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                   help="show a progress bar (default: when the output is a terminal)")
+
+
+def progress_off(args: argparse.Namespace) -> bool | None:
+    """tqdm's ``disable`` for :func:`add_progress_argument`'s flag: None (a terminal decides) unless given."""
+    return None if args.progress is None else not args.progress
+
+
 def add_overwrite_argument(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help=f"discard what --out holds ({what}, finished or in progress, of any settings) and start afresh "

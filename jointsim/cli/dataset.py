@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from .._cores import available_cores
 from ..scene import scene_toml
-from .common import add_overwrite_argument, add_scene_arguments, overwrite, scene_from_args
+from .common import add_overwrite_argument, add_progress_argument, add_scene_arguments, overwrite, progress_off, scene_from_args
 
 OUTPUT = "file"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "synthetic labelled dataset (voltages, labels, force, image metrics) in one resumable HDF5 file"
@@ -40,8 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="Dask distributed scheduler address (e.g. tcp://host:8786): run the groups on that cluster")
     p.add_argument("--images", action=argparse.BooleanOptionalAction, default=None,
                    help="store each reconstructed image (default: the scene's [dataset] images)")
-    p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
-                   help="show a progress bar (default: when the output is a terminal)")
+    add_progress_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -81,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
             f"contact points r <= {d.r_max * 1e3:g} mm")
     print(f"jointsim dataset: scene {scene.name}, mesh {scene.mesh.preset} P{scene.mesh.element_order}, {args.n} samples "
           f"({-(-args.n // k)} presses x {k} depths), {what}, {where} -> {args.out}")
-    bar = tqdm(total=args.n, unit="sample", desc="dataset", disable=None if args.progress is None else not args.progress, smoothing=0.1)
+    bar = tqdm(total=args.n, unit="sample", desc="dataset", disable=progress_off(args), smoothing=0.1)
 
     def start(done: int, todo: int) -> None:
         if done:

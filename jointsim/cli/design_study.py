@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from .._cores import available_cores
 from ..scene import SNR_RANGE_DB
-from .common import DEFAULT_SCENE, add_overwrite_argument, float_list, overwrite
+from .common import DEFAULT_SCENE, add_overwrite_argument, add_progress_argument, float_list, overwrite, progress_off
 
 OUTPUT = "folder"
 HELP = "what each design can measure: Cramer-Rao bounds of position, depth and size, designs side by side"
@@ -36,6 +36,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, help="local worker processes (default: one per core)")
     p.add_argument("--estimators", type=Path, metavar="GOALS_CSV",
                    help="a calibration's goals.csv (jointsim calibrate) to set its estimators beside the first design's bound")
+    add_progress_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -80,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"jointsim design-study: {scene.name} (mesh {scene.mesh.preset}), {n} presses x {len(depths)} depths")
         todo = [0]  # presses this run computes (the rest were stored)
         t0 = time.perf_counter()
-        with tqdm(total=n, unit="press", desc=f"design study {scene.name}", disable=None) as bar:
+        with tqdm(total=n, unit="press", desc=f"design study {scene.name}", disable=progress_off(args)) as bar:
             def started(done: int, left: int) -> None:
                 bar.update(done)
                 todo[0] = left

@@ -15,7 +15,7 @@ import hashlib
 import json
 from pathlib import Path
 
-from .common import add_scene_arguments, scene_from_args
+from .common import add_progress_argument, add_scene_arguments, progress_off, scene_from_args
 
 OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "image measured frames (CSV, HDF5, EIDORS .mat) with the scene's instrument; apply a calibration map"
@@ -32,6 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fit-reference", action="store_true",
                    help="fit the sensor's conductivity, contact impedances and electrode positions to the mean reference "
                         "frame and report them (summary.json)")
+    add_progress_argument(p)
 
 
 def _sha256(path: Path) -> str:
@@ -62,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
 
     inst = Instrument.build(scene)
     try:
-        with tqdm(total=len(frames), unit="frame", desc="frames", disable=None) as bar:
+        with tqdm(total=len(frames), unit="frame", desc="frames", disable=progress_off(args)) as bar:
             res = image_frames(scene, frames, reference, instrument=inst, progress=bar.update)
         grid = inst.grid
         fit = _fit(scene, inst, res.reference, len(reference)) if args.fit_reference else None

@@ -13,10 +13,7 @@ from tqdm import tqdm
 
 from ..scene import membrane_layers, membrane_rim_vertices
 from .common import (
-    add_scene_arguments,
-    add_target_size_arguments,
-    scene_from_args,
-    target_radius_mm,
+    add_progress_argument, add_scene_arguments, add_target_size_arguments, progress_off, scene_from_args, target_radius_mm,
 )
 
 OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
@@ -34,6 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rim-vertices", type=int, help="membrane resolution: vertices on the rim (default: the scene's membrane.rim_vertices)")
     p.add_argument("--layers", type=int, help="element layers through the thickness (default: the scene's)")
     p.add_argument("--device", default="cpu", help="Warp device of the element kernel: cpu (default) or cuda / cuda:N where a GPU is")
+    add_progress_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -57,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
         scene = replace(scene, membrane=replace(scene.membrane, layers=membrane_layers(args.layers, "--layers")))
     out: Path = args.out
     steps = int(round(args.depth_mm / args.step_mm))
-    with tqdm(total=steps, unit="step", desc="indentation", disable=None) as bar:
+    with tqdm(total=steps, unit="step", desc="indentation", disable=progress_off(args)) as bar:
         rows = indentation_sweep(scene, radius, (args.x_mm, args.y_mm), args.depth_mm, args.step_mm, out, device=device,
                                  progress=bar.update, announce=lambda s: print(f"jointsim indent: scene {scene.name}, {s}"))
     for r in rows:

@@ -18,7 +18,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..scene import PALPATION_MODES, membrane_layers, membrane_rim_vertices, scene_toml
-from .common import add_overwrite_argument, add_scene_arguments, float_list, overwrite, scene_from_args
+from .common import add_overwrite_argument, add_progress_argument, add_scene_arguments, float_list, overwrite, progress_off, scene_from_args
 
 OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "virtual palpation with the MuJoCo rig (paper Fig. 4): HDF5 frames, VTU series, PNG, summary"
@@ -44,8 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--calibration", type=Path, metavar="MAP",
                    help="calibration map (jointsim calibrate): adds calibrated position, depth, size and stiffness per frame "
                         "(OUT/calibrated.csv, summary.json); refused when built for another sensor")
-    p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
-                   help="show a progress bar (default: when the output is a terminal)")
+    add_progress_argument(p)
 
 
 def configure(args: argparse.Namespace):
@@ -121,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"jointsim palpate: scene {scene.name}, mesh {scene.mesh.preset} P{scene.mesh.element_order}, {spec.mode} mode, targets {diam} mm, "
           f"{n} frames at {scene.noise.frame_rate_hz:g} Hz -> {out}")
     overwrite(args, out / "palpation.h5")
-    with tqdm(total=n, unit="frame", desc="palpation", disable=None if args.progress is None else not args.progress) as bar:
+    with tqdm(total=n, unit="frame", desc="palpation", disable=progress_off(args)) as bar:
         def progress(k, f):
             bar.update(k)
             if f is not None:

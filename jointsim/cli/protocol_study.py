@@ -12,7 +12,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..scene import SNR_RANGE_DB
-from .common import add_scene_arguments, add_target_size_arguments, scene_from_args, target_radius_mm
+from .common import add_progress_argument, add_scene_arguments, add_target_size_arguments, progress_off, scene_from_args, target_radius_mm
 
 OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "the paper's protocol study (Fig. 2 G-H): skip-0..8 metrics and images"
@@ -29,6 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lambda-method", choices=["kfold", "loo", "gcv", "lcurve"], default="kfold")
     p.add_argument("--skips", help="skip-N protocols to compare, comma-separated (default: 0 to n/2 for the layout's n electrodes)")
     p.add_argument("--no-mesh-floor", action="store_true", help="skip the mesh-noise floor (two extra meshings)")
+    add_progress_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -65,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     )
     steps = 2 + len(cfg.positions) + len(cfg.skips) + int(cfg.mesh_floor)
     print(f"jointsim protocol-study: scene {scene.name}, mesh {scene.mesh.preset}, target r = {radius:g} mm, depth {args.depth_mm:g} mm")
-    with tqdm(total=steps, unit="step", desc="protocol study (mesh, fields, positions, skips, floor)", disable=None) as bar:
+    with tqdm(total=steps, unit="step", desc="protocol study (mesh, fields, positions, skips, floor)", disable=progress_off(args)) as bar:
         result = run_protocol_study(scene, cfg, progress=bar.update)
     command = "jointsim protocol-study " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["protocol-study"] else "jointsim protocol-study"
     written = write_study(result, args.out, command)

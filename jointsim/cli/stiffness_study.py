@@ -13,7 +13,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..studies.stiffness_sensitivity import DEFAULT_DEPTHS_MM, DEFAULT_MODULI_KPA, run_study, write_report
-from .common import add_scene_arguments, add_target_size_arguments, float_list, scene_from_args, target_radius_mm
+from .common import add_progress_argument, add_scene_arguments, add_target_size_arguments, float_list, progress_off, scene_from_args, target_radius_mm
 
 OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "stiffness identifiability: force sensitivity to target and membrane moduli"
@@ -28,6 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--depths-mm", metavar="D,D,...", default=",".join(f"{v:g}" for v in DEFAULT_DEPTHS_MM),
                    help="stage depths past first contact, comma-separated")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
+    add_progress_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -39,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     height = scene.chamber.dome_height * 1e3
     depths = float_list("--depths-mm", args.depths_mm, 0.0, height * (1 - 1e-9), increasing=True)
     print(f"jointsim stiffness-study: scene {scene.name}, target r = {radius:g} mm")
-    with tqdm(unit="press", desc="stiffness study", disable=None) as bar:
+    with tqdm(unit="press", desc="stiffness study", disable=progress_off(args)) as bar:
 
         def progress(done: int, total: int) -> None:
             bar.total = total
