@@ -72,11 +72,9 @@ def measure(scene) -> dict:
     from jointsim.eit.protocol import skip_protocol
     from jointsim.geometry import dome_from_scene
     from jointsim.mechanics.geometric import indent_dome
-    from jointsim.mesh.chamber import chamber_mesh, reference_surface
+    from jointsim.mesh.chamber import chamber_mesh
     from jointsim.mesh.morph import ChamberMorpher, deform_chamber
-    from jointsim.studies.protocol_study import jitter_surface
-    from jointsim.mesh.chamber import mesh_chamber
-    from jointsim.geometry import electrode_layout
+    from jointsim.studies.protocol_study import mesh_noise_floor
 
     n = scene.electrodes.count
     order = scene.mesh.element_order
@@ -103,18 +101,10 @@ def measure(scene) -> dict:
             frame_s.append(time.perf_counter() - t)
             dv.append(v1 - v)
     model.free()
-
-    def volts(chamber, s) -> np.ndarray:
-        f = ForwardModel.from_chamber(chamber, s).solve(sigma)
-        return f.voltages(skip_protocol(n, 8, s.drive.current))
-
-    turned = replace(scene, electrodes=replace(scene.electrodes, first_angle_deg=scene.electrodes.first_angle_deg + 360.0 / n))
-    # electrode l of the turned ring sits where l + 1 was (bench_mesher.py)
-    v_turned = np.roll(np.roll(volts(chamber_mesh(turned), turned).reshape(n, n), 1, axis=0), 1, axis=1).ravel()
-    v_jitter = volts(mesh_chamber(jitter_surface(reference_surface(scene), 1e-6), electrode_layout(scene), scene.mesh), scene)
+    floor = mesh_noise_floor(scene, fields, {8: protocol})  # the ring turned by one pitch; the dome jittered by 1 µm
     return {"tets": ch.mesh.n_tets, "dofs": dofs, "mesh_s": mesh_s, "setup_s": setup_s,
             "frame_forward_s": float(np.median(frame_s)), "v": v.tolist(), "dv": [d.tolist() for d in dv],
-            "floor_rotate_db": floor_db(v, v_turned), "floor_jitter_db": floor_db(v, v_jitter)}
+            "floor_rotate_db": floor["rotate"][8], "floor_jitter_db": floor["jitter"][8]}
 
 
 def floor_db(v: np.ndarray, other: np.ndarray) -> float:

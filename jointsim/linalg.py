@@ -31,7 +31,12 @@ def csr_pattern(rows: np.ndarray, cols: np.ndarray, n: int) -> tuple[np.ndarray,
     merged: (indptr (int64), indices (int32), slot), ``slot`` the position of each given entry in
     it, so that the values are ``np.bincount(slot, weights=entries, minlength=len(indices))``."""
     uniq, slot = np.unique(np.asarray(rows, np.int64) * n + np.asarray(cols, np.int64), return_inverse=True)
-    return np.searchsorted(uniq // n, np.arange(n + 1)), (uniq % n).astype(np.int32), slot.ravel()
+    return _csr_of_keys(uniq, slot.ravel(), n)
+
+
+def _csr_of_keys(uniq: np.ndarray, slot: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(indptr, indices, slot) of the sorted unique entry keys row·n + col ``uniq``."""
+    return np.searchsorted(uniq // n, np.arange(n + 1)), (uniq % n).astype(np.int32), slot
 
 
 # the last few element patterns (element_pattern): a dataset worker builds the same membrane and
@@ -72,7 +77,7 @@ def element_pattern(dof: np.ndarray, n: int, rows: np.ndarray | None = None,
         slot = (np.arange(len(uniq)) + np.searchsorted(new, uniq))[slot]  # the blocks' keys, moved up past the new ones
         uniq = np.insert(uniq, np.searchsorted(uniq, new), new)
         slot = np.concatenate([slot, np.searchsorted(uniq, extra)])
-    return np.searchsorted(uniq // n, np.arange(n + 1)), (uniq % n).astype(np.int32), slot
+    return _csr_of_keys(uniq, slot, n)
 
 
 def available_backends() -> list[str]:
