@@ -9,12 +9,18 @@ of fewer than 150 k stored entries, where the two tie (0.019 / 0.020 s at 44 k e
 0.060 s at 115 k: the dataset preset's P1), PARDISO (pypardiso) above (P2 at 573 k entries:
 0.27 s against SuperLU's 0.62 s; 1.5 M: 0.94 against 3.2 s; SuperLU's fill-in grows fastest on
 3-D meshes). CHOLMOD (scikit-sparse < 0.5, optional, needs SuiteSparse from the system) is used
-when asked for.
+when asked for. "cudss" factorises on an NVIDIA GPU (cuDSS through nvmath-python, where both are
+installed: :mod:`jointsim._cudss`), its analysis kept across the factorisations of one pattern.
+
+The environment variable ``JOINTSIM_SOLVER`` (auto, superlu, pardiso, cholmod, cudss) sets the
+backend "auto" resolves to in this process and in the worker processes it starts (the commands'
+``--solver``): every factorisation, the CEM forward's and Newton's alike, then uses it.
 """
 
 from __future__ import annotations
 
 import hashlib
+import os
 import weakref
 from collections import OrderedDict
 from typing import Callable
@@ -23,7 +29,10 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-__all__ = ["Factorization", "PatternSolver", "factorize", "available_backends", "default_backend", "csr_pattern", "element_pattern"]
+__all__ = [
+    "Factorization", "PatternSolver", "factorize", "available_backends", "default_backend", "large_backend",
+    "preferred_backend", "require_backend", "csr_pattern", "element_pattern", "SOLVERS", "SOLVER_VARIABLE",
+]
 
 
 def csr_pattern(rows: np.ndarray, cols: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -94,7 +103,45 @@ def available_backends() -> list[str]:
         out.append("pardiso")
     except ImportError:
         pass
+    from ._cudss import unavailable
+
+    if unavailable() is None:
+        out.append("cudss")
     return out
+
+
+SOLVER_VARIABLE = "JOINTSIM_SOLVER"
+SOLVERS = ("auto", "superlu", "pardiso", "cholmod", "cudss")
+
+
+def require_backend(name: str, what: str = "--solver") -> str:
+    """``name`` when it is a backend this machine can run ("auto" always is), else a ValueError
+    naming ``what`` (the flag or variable it came from), why and what is available here."""
+    if name == "auto" or name in (here := available_backends()):
+        return name
+    if name == "cudss":
+        from ._cudss import unavailable
+
+        why = unavailable()
+    else:
+        why = "not installed here" if name in SOLVERS else "not a solver jointsim knows"
+    raise ValueError(f"{what} = {name!r}: {why}; available here: auto, {', '.join(here)}")
+
+
+def preferred_backend() -> str:
+    """The backend "auto" resolves to in this process: ``JOINTSIM_SOLVER``'s (checked), or
+    "auto" (chosen by each system's size) where it is unset."""
+    name = os.environ.get(SOLVER_VARIABLE, "").strip().lower() or "auto"
+    return require_backend(name, SOLVER_VARIABLE)
+
+
+def large_backend() -> str:
+    """The backend for large or fill-heavy systems (elasticity Hessians): the preferred one, else
+    PARDISO where installed, else SuperLU."""
+    chosen = preferred_backend()
+    if chosen != "auto":
+        return chosen
+    return "pardiso" if "pardiso" in available_backends() else "superlu"
 
 
 SUPERLU_MAX_NNZ = 150_000
@@ -104,7 +151,10 @@ SUPERLU_MAX_UNKNOWNS = 12_000
 
 def default_backend(n_unknowns: int | None = None, nnz: int | None = None) -> str:
     """The backend "auto" resolves to for a system of ``n_unknowns`` with ``nnz`` stored entries
-    (large when not given)."""
+    (large when not given): the process's preferred backend where one is set."""
+    chosen = preferred_backend()
+    if chosen != "auto":
+        return chosen
     small = nnz < SUPERLU_MAX_NNZ if nnz is not None else n_unknowns is not None and n_unknowns < SUPERLU_MAX_UNKNOWNS
     if small:
         return "superlu"
@@ -209,6 +259,16 @@ def factorize(A: sp.spmatrix, backend: str = "auto", spd: bool = True) -> Factor
             return x.reshape(np.shape(b))
 
         return Factorization(solve, lambda: _release_pardiso(solver))
+    if backend == "cudss":
+        from ._cudss import CudssPattern, upper
+
+        indptr, indices, data = upper(A)
+        gpu = CudssPattern(indptr, indices, "cholesky" if spd else "inertia")
+        gpu.factor(data)
+        if spd and not gpu.positive_definite:
+            gpu.free()
+            raise RuntimeError(f"cuDSS: the matrix is not positive definite (info {gpu.info})")
+        return Factorization(gpu.solve, gpu.free)
     raise ValueError(f"backend = {backend!r}: allowed values are {available_backends()}")
 
 
@@ -256,11 +316,16 @@ class PatternSolver:
     membrane's Hessian — for Newton directions, which need no more (the press's forces agree
     with double to four digits).
     ``two_by_two=False``: 1×1 pivots only; measured no faster there (0.97).
-    ``two_level``: PARDISO's two-level factorisation (None: PARDISO_TWO_LEVEL's, when made)."""
+    ``two_level``: PARDISO's two-level factorisation (None: PARDISO_TWO_LEVEL's, when made).
+
+    On "cudss" (the GPU) factorisations are in double precision, the analysis kept likewise;
+    ``spd`` matrices are factored by LDLᵀ and tested by its inertia, unless the caller knows them
+    positive definite (``known_definite``: the CEM matrix), then by Cholesky. ``columns``: the
+    right-hand sides a solve takes at once there (others are solved a column at a time)."""
 
     def __init__(
         self, indptr: np.ndarray, indices: np.ndarray, spd: bool, backend: str = "auto", refinement: int = PARDISO_REFINEMENT, single: bool = False,
-        two_by_two: bool = True, two_level: bool | None = None,
+        two_by_two: bool = True, two_level: bool | None = None, known_definite: bool = False, columns: int = 1,
     ):
         self.refinement = int(refinement)
         self.single = bool(single)
@@ -270,6 +335,10 @@ class PatternSolver:
         self.indices = np.asarray(indices, np.int64)
         self.n = len(self.indptr) - 1
         self.spd = spd
+        self.known_definite = bool(known_definite)
+        self.columns = int(columns)
+        if backend == "auto" and (chosen := preferred_backend()) in ("superlu", "pardiso", "cudss"):
+            backend = chosen
         if backend == "auto":
             # with the analysis reused, PARDISO's numerical factorisation beats a fresh SuperLU
             # from a few thousand unknowns of P2 elasticity (its fill-in grows fastest)
@@ -283,11 +352,17 @@ class PatternSolver:
         self._analysed = False
         self._A: sp.csr_matrix | None = None
         self._lu = None
+        self._gpu = None
         self._definite = False
 
     def factor(self, data: np.ndarray) -> None:
         A = sp.csr_matrix((np.asarray(data, self._dtype), self.indices, self.indptr), shape=(self.n, self.n))
         self._A = A
+        if self.backend == "cudss":
+            self._factor_cudss(data)
+            if self.spd and not self._definite:
+                raise RuntimeError(f"cuDSS: the matrix is not positive definite (info {self._gpu.info})")
+            return
         if self.backend != "pardiso":
             self._factor_superlu(A)
             return
@@ -318,6 +393,17 @@ class PatternSolver:
         self._definite = known and bool(np.all(pivots > 0))
         self.negative_eigenvalues = None if self.spd or not known else int((pivots < 0).sum())
 
+    def _factor_cudss(self, data: np.ndarray) -> None:
+        if self._gpu is None:
+            from ._cudss import CudssPattern
+
+            mode = "cholesky" if self.spd and self.known_definite else "inertia"
+            self._gpu = CudssPattern(self.indptr, self.indices, mode, self.columns)
+        self._gpu.factor(data)
+        self._definite = self._gpu.positive_definite
+        inertia = self._gpu.inertia
+        self.negative_eigenvalues = None if self.spd or inertia is None or self._gpu.info != 0 else inertia[1]
+
     def try_factor(self, data: np.ndarray) -> bool:
         """:meth:`factor` a matrix that may not be positive definite (``spd`` solvers):
         False where Cholesky meets a non-positive pivot (PARDISO error −4; SuperLU's diagonal
@@ -325,6 +411,10 @@ class PatternSolver:
         positive definite."""
         if not self.spd:
             raise ValueError("try_factor: for Cholesky solvers (spd=True) only")
+        if self.backend == "cudss":
+            self._factor_cudss(data)
+            self._A = True if self._definite else None  # a factor to solve with, or none
+            return self._definite
         if self.backend != "pardiso":
             try:
                 self.factor(data)
@@ -345,6 +435,8 @@ class PatternSolver:
     def solve(self, b: np.ndarray) -> np.ndarray:
         if self._A is None:
             raise RuntimeError("factor() first")
+        if self.backend == "cudss":
+            return self._gpu.solve(b)
         if self.backend != "pardiso":
             return self._lu.solve(np.asarray(b, float))
         self._solver.set_phase(33)
@@ -355,6 +447,9 @@ class PatternSolver:
         if self._solver is not None:
             _release_pardiso(self._solver)
             self._solver = None
+        if self._gpu is not None:
+            self._gpu.free()
+            self._gpu = None
         self._analysed = False
         self._lu = None
 

@@ -232,7 +232,7 @@ def test_cholesky_first_reaches_the_equilibrium_ldlt_reaches(monkeypatch):
     from jointsim.geometry import isotropic_cap
     from jointsim.mechanics.dome import MembraneModel
 
-    if newton._BACKEND != "pardiso":
+    if newton.large_backend() != "pardiso":
         pytest.skip("Cholesky-first needs PARDISO")
     forces = {}
     for cholesky in (True, False):

@@ -59,6 +59,24 @@ def progress_off(args: argparse.Namespace) -> bool | None:
     return None if args.progress is None else not args.progress
 
 
+def add_solver_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--solver", choices=("auto", "superlu", "pardiso", "cudss"), default=None,
+                   help="sparse direct solver of every factorisation, the mechanics' and the forward's (default: "
+                        "$JOINTSIM_SOLVER, else auto: by size, PARDISO where installed); cudss: on an NVIDIA GPU")
+
+
+def use_solver(args: argparse.Namespace) -> None:
+    """``--solver``, checked here, made this process's preferred backend and its workers' (they
+    inherit the environment: linalg.preferred_backend)."""
+    import os
+
+    from ..linalg import SOLVER_VARIABLE, preferred_backend, require_backend
+
+    if args.solver is not None:
+        os.environ[SOLVER_VARIABLE] = require_backend(args.solver, "--solver")
+    preferred_backend()  # a bad $JOINTSIM_SOLVER stops here, naming it
+
+
 def add_overwrite_argument(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help=f"discard what --out holds ({what}, finished or in progress, of any settings) and start afresh "

@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from .._cores import available_cores
 from ..scene import scene_toml
-from .common import add_overwrite_argument, add_progress_argument, add_scene_arguments, overwrite, progress_off, scene_from_args
+from .common import add_overwrite_argument, add_progress_argument, add_solver_argument, add_scene_arguments, overwrite, progress_off, scene_from_args, use_solver
 
 OUTPUT = "file"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "synthetic labelled dataset (voltages, labels, force, image metrics) in one resumable HDF5 file"
@@ -41,11 +41,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--images", action=argparse.BooleanOptionalAction, default=None,
                    help="store each reconstructed image (default: the scene's [dataset] images)")
     add_progress_argument(p)
+    add_solver_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
     from ..dataset import generate_dataset
 
+    use_solver(args)
     scene = scene_from_args(args)
     if args.images is not None:
         scene = replace(scene, dataset=replace(scene.dataset, images=args.images))

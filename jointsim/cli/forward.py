@@ -23,20 +23,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--skip", type=int, help="override the scene's skip-N injection protocol")
     p.add_argument("--voxels", type=int, help="reconstruction voxels in the chamber (default: the scene's [reconstruction] cells, 7000)")
     p.add_argument("--no-jacobian", action="store_true", help="skip the Jacobian and the reconstruction matrix")
-    p.add_argument("--solver", default="auto", help="sparse direct backend: auto (default: pardiso if installed), pardiso, cholmod, superlu")
+    p.add_argument("--solver", default="auto", help="sparse direct backend: auto (default: $JOINTSIM_SOLVER, else pardiso if installed), pardiso, cholmod, superlu, cudss (an NVIDIA GPU)")
 
 
 def run(args: argparse.Namespace) -> int:
     from ..eit.protocol import scene_protocol
     from ..studies.rest import read_at_rest, write_at_rest
 
-    from ..linalg import available_backends
+    from ..linalg import preferred_backend, require_backend
 
     scene = scene_from_args(args)
-    if args.solver != "auto" and args.solver not in (here := available_backends()):
-        known = ("superlu", "cholmod", "pardiso")
-        why = "not installed here" if args.solver in known else "not a solver jointsim knows"
-        raise ValueError(f"--solver = {args.solver!r}: {why}; available here: auto, {', '.join(here)}")
+    require_backend(args.solver, "--solver")
+    preferred_backend()
     skip = scene.drive.skip if args.skip is None else args.skip
     n = scene.electrodes.n_active
     if not 0 <= skip <= n // 2:

@@ -18,7 +18,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..scene import PALPATION_MODES, membrane_layers, membrane_rim_vertices, scene_toml
-from .common import add_overwrite_argument, add_progress_argument, add_scene_arguments, float_list, overwrite, progress_off, scene_from_args
+from .common import add_overwrite_argument, add_progress_argument, add_solver_argument, add_scene_arguments, float_list, overwrite, progress_off, scene_from_args, use_solver
 
 OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "virtual palpation with the MuJoCo rig (paper Fig. 4): HDF5 frames, VTU series, PNG, summary"
@@ -45,6 +45,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="calibration map (jointsim calibrate): adds calibrated position, depth, size and stiffness per frame "
                         "(OUT/calibrated.csv, summary.json); refused when built for another sensor")
     add_progress_argument(p)
+    add_solver_argument(p)
 
 
 def configure(args: argparse.Namespace):
@@ -97,6 +98,7 @@ def run(args: argparse.Namespace) -> int:
     # to run unless its conditional numerical reproducibility is on; a resumed run must give the
     # frames an uninterrupted one gives. Read by MKL when it first runs, i.e. after this line.
     os.environ.setdefault("MKL_CBWR", "AUTO")
+    use_solver(args)
     from ..mechanics.fem import warp_device
     from ..palpation.job import palpate
     from ..palpation.pipeline import program_params

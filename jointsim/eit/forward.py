@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..linalg import SPD_REFINEMENT, PatternSolver, available_backends, factorize
+from ..linalg import SPD_REFINEMENT, PatternSolver, available_backends, factorize, preferred_backend
 from ..mesh.chamber import ChamberMesh
 from ..mesh.electrodes import ElectrodePatch
 from ..mesh.tetmesh import TetMesh
@@ -125,9 +125,14 @@ class ForwardModel:
         """This model, from now on solving with a PARDISO solver whose ordering and symbolic
         analysis are kept, and shared with the models made :meth:`on` it of the same topology
         (so that all of them solve alike, to the last bit; they hold one factor, so one solve at
-        a time). Without PARDISO, or with another backend asked for, the model is left as it is."""
-        if self._shared is None and self.backend in ("auto", "pardiso") and "pardiso" in available_backends():
-            self._shared = _SharedSolver(self.assembler)
+        a time). The same on the GPU where cuDSS is asked for (the model's backend, or the
+        process's preferred one). Without PARDISO, or with another backend asked for, the model is
+        left as it is."""
+        backend = preferred_backend() if self.backend == "auto" else self.backend
+        if backend == "auto" and "pardiso" in available_backends():
+            backend = "pardiso"
+        if self._shared is None and backend in ("pardiso", "cudss"):
+            self._shared = _SharedSolver(self.assembler, backend, self.n_driven)
         return self
 
     def free(self) -> None:
@@ -189,16 +194,17 @@ def _contact_impedances(z: np.ndarray | float, n: int) -> np.ndarray:
 
 
 class _SharedSolver:
-    """PARDISO Cholesky on one CEM pattern, its ordering and symbolic analysis done on the first
-    factorisation and kept: the models of a morphed chamber share it."""
+    """PARDISO's (or cuDSS's) Cholesky on one CEM pattern, its ordering and symbolic analysis done
+    on the first factorisation and kept: the models of a morphed chamber share it."""
 
-    def __init__(self, assembler: CEMAssembler):
+    def __init__(self, assembler: CEMAssembler, backend: str = "pardiso", columns: int = 1):
         indptr, indices = assembler.pattern
         n = len(indptr) - 1
         rows = np.repeat(np.arange(n), np.diff(indptr))
         self._upper = indices >= rows  # the upper triangle, in the order of the assembled values
         upper_indptr = np.concatenate([[0], np.cumsum(np.bincount(rows[self._upper], minlength=n))])
-        self._solver = PatternSolver(upper_indptr, indices[self._upper], spd=True, backend="pardiso", refinement=SPD_REFINEMENT)
+        self._solver = PatternSolver(upper_indptr, indices[self._upper], spd=True, backend=backend, refinement=SPD_REFINEMENT,
+                                     known_definite=True, columns=columns)
 
     def solve(self, A, rhs: np.ndarray) -> np.ndarray:
         self._solver.factor(A.data[self._upper])

@@ -20,7 +20,7 @@ from typing import Protocol
 import numpy as np
 import scipy.sparse as sp
 
-from ..linalg import PatternSolver, available_backends, factorize
+from ..linalg import PatternSolver, factorize, large_backend
 
 __all__ = ["EnergyTerm", "SystemValues", "NodalForce", "NewtonResult", "NewtonError", "NewtonSystem", "minimize_energy", "step_to"]
 
@@ -68,8 +68,8 @@ class NewtonResult:
 
 
 # elasticity Hessians (3 dofs per node, P2 coupling) fill in far more than the EIT matrix:
-# PARDISO beats SuperLU already at ~30 k unknowns (0.8 s against 2.3 s for a 5 k-tet P2 shell)
-_BACKEND = "pardiso" if "pardiso" in available_backends() else "superlu"
+# PARDISO beats SuperLU already at ~30 k unknowns (0.8 s against 2.3 s for a 5 k-tet P2 shell),
+# so the one-off factorisations below take linalg.large_backend() (the preferred one where set)
 
 
 # Newton's linear systems factored in single precision (PARDISO only). A solve's relative residual
@@ -272,7 +272,7 @@ def _full_step(u, Hs, free, g, system, data=None) -> tuple[np.ndarray | None, bo
             spd = system.factor_hessian(system.data(Hs) if data is None else data, u)
             d = system.solve(-g[free])
         else:
-            with factorize(_summed(Hs)[free][:, free], _BACKEND, spd=False) as solve:
+            with factorize(_summed(Hs)[free][:, free], large_backend(), spd=False) as solve:
                 d = solve(-g[free])
             spd = False
     except Exception:  # singular or the factorisation broke down
@@ -326,7 +326,7 @@ def _projected_step(terms, u, free, g, system) -> np.ndarray:
         system.projected.factor(system.data(Hs))
         system.tangent_ready = False
         return -system.projected.solve(g[free])
-    with factorize(_summed(Hs)[free][:, free], _BACKEND) as solve:
+    with factorize(_summed(Hs)[free][:, free], large_backend()) as solve:
         return -solve(g[free])
 
 
@@ -532,7 +532,7 @@ def _predict(terms, u_eq, fixed, target) -> np.ndarray:
     _, _, Hs, _ = _total(terms, u_eq, True)
     H = _summed(Hs)
     try:
-        with factorize(H[free][:, free], _BACKEND, spd=False) as solve:
+        with factorize(H[free][:, free], large_backend(), spd=False) as solve:
             du[free] = solve(-(H[free][:, ~free] @ du[~free]))
     except Exception:
         du[free] = 0.0
