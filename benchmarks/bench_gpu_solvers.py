@@ -24,7 +24,6 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from dataclasses import replace  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -45,7 +44,6 @@ def _upper(A):
 def export(folder: Path) -> None:
     """The CEM matrices (two conductivities each) and a press's membrane Hessians, as upper
     triangles sharing one pattern per system, with their right-hand sides."""
-    import scipy.sparse as sp
 
     from jointsim import linalg
     from jointsim.eit.forward import ForwardModel
