@@ -216,6 +216,103 @@ def test_resume_after_kill_gives_the_uninterrupted_data(scene, scene_file, refer
     assert not out.with_suffix(".partial").exists()
 
 
+def _children(pid: int) -> list[int]:
+    """The live processes whose parent is ``pid``, from /proc."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _first_record(proc: subprocess.Popen, records: Path) -> None:
+    t0 = time.monotonic()
+    while not list(records.rglob("r*.npz")):
+        assert proc.poll() is None, proc.stderr.read()[-2000:]
+        assert time.monotonic() - t0 < 180, "no record stored within 3 min"
+        time.sleep(0.02)
+
+
+def test_a_killed_worker_stops_the_run_in_one_line_and_the_rerun_has_the_data(scene, scene_file, reference, tmp_path):
+    """One of `jointsim dataset`'s two local workers killed with SIGKILL once a press is stored:
+    the run stops with one line (exit 2) saying to run it again, and the rerun ends with the
+    uninterrupted run's data."""
+    out = tmp_path / "worker_killed"
+    cmd = [sys.executable, "-m", "jointsim", "dataset", str(scene_file), "--n", str(N), "--seed", str(SEED),
+           "--out", str(out), "--workers", "2", "--no-progress"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        _first_record(proc, out.with_suffix(".partial") / "records")
+        workers = [p for p in _children(proc.pid) if "resource_tracker" not in Path(f"/proc/{p}/cmdline").read_bytes().decode(errors="replace")]
+        assert workers, "no worker process found"
+        os.kill(workers[0], signal.SIGKILL)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if _group_alive(proc.pid):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    if proc.returncode == 0:  # the worker had finished its last press before it was killed: nothing to resume
+        assert open_records(out).data_sha256 == reference[0].data_sha256
+        return
+    lines = [x for x in err.strip().splitlines() if ": warning: " not in x]
+    assert proc.returncode == 2 and len(lines) == 1 and "run the same command again to resume" in lines[0], err
+    run = _generate(scene, scene_file, out, workers=2)
+    assert run.groups_run >= 1 and run.data_sha256 == reference[0].data_sha256
+
+
+def test_a_dask_worker_killed_mid_run_loses_nothing(scene, scene_file, reference, tmp_path):
+    """A Dask cluster as a user starts one (a scheduler and two worker processes, each with its
+    nanny), one worker's process group killed with SIGKILL once a press is stored: the scheduler
+    hands its task to the other, and the run ends with the uninterrupted run's data."""
+    pytest.importorskip("distributed")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    procs = []
+
+    def start(*args):
+        procs.append(subprocess.Popen([sys.executable, "-m", "dask", *args], env=env, cwd=tmp_path, stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.DEVNULL, start_new_session=True))
+        return procs[-1]
+
+    sched = tmp_path / "scheduler.json"
+    try:
+        start("scheduler", "--scheduler-file", str(sched), "--no-dashboard", "--port", "0")
+        t0 = time.monotonic()
+        while not sched.exists():
+            assert time.monotonic() - t0 < 60, "the scheduler did not start in 60 s"
+            time.sleep(0.1)
+        workers = [start("worker", "--scheduler-file", str(sched), "--nthreads", "1", "--no-dashboard", "--name", f"w{i}")
+                   for i in range(2)]
+        import json
+
+        from distributed import Client
+
+        with Client(scheduler_file=str(sched), timeout=60) as c:
+            c.wait_for_workers(2, timeout=120)
+        address = json.loads(sched.read_text())["address"]
+        out = tmp_path / "dask_killed"
+        proc = subprocess.Popen([sys.executable, "-m", "jointsim", "dataset", str(scene_file), "--n", str(N), "--seed", str(SEED),
+                                 "--out", str(out), "--scheduler", address, "--no-progress"], env=env, cwd=ROOT,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        procs.append(proc)
+        _first_record(proc, out.with_suffix(".partial") / "records")
+        os.killpg(workers[1].pid, signal.SIGKILL)
+        _, err = proc.communicate(timeout=300)
+        assert proc.returncode == 0, err[-2000:]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                try:
+                    os.killpg(p.pid, signal.SIGKILL)
+                except (ProcessLookupError, PermissionError):
+                    p.kill()
+            p.wait()
+    assert open_records(out).data_sha256 == reference[0].data_sha256
+
+
 def test_a_finished_file_is_not_recomputed(scene, scene_file, reference):
     run = _generate(scene, scene_file, reference[0].path, workers=1)
     assert run.groups_run == 0 and run.data_sha256 == reference[0].data_sha256
