@@ -313,6 +313,30 @@ def test_a_dask_worker_killed_mid_run_loses_nothing(scene, scene_file, reference
     assert open_records(out).data_sha256 == reference[0].data_sha256
 
 
+class _Stop(Exception):
+    pass
+
+
+@pytest.mark.parametrize("stored", [1, 2])
+def test_a_run_stopped_after_any_press_resumes_to_the_uninterrupted_data(scene, scene_file, reference, tmp_path, stored):
+    """Stopped after each of its presses in turn (the driver's progress callback raising, as a
+    Ctrl-C there would) and run again, the store ends with the uninterrupted run's data: resume
+    is per press (a press's samples are stored together), from any of them."""
+    out = tmp_path / f"stopped{stored}"
+    seen = []
+
+    def stop(n):
+        seen.append(n)
+        if len(seen) == stored:
+            raise _Stop()
+
+    with pytest.raises(_Stop):
+        _generate(scene, scene_file, out, workers=1, progress=stop)
+    run = _generate(scene, scene_file, out, workers=1)
+    assert run.samples_resumed >= stored * K and run.groups_run <= 3 - stored
+    assert run.data_sha256 == reference[0].data_sha256
+
+
 def test_a_finished_file_is_not_recomputed(scene, scene_file, reference):
     run = _generate(scene, scene_file, reference[0].path, workers=1)
     assert run.groups_run == 0 and run.data_sha256 == reference[0].data_sha256
