@@ -494,6 +494,38 @@ def test_the_command_line_rejects_bad_input_with_exit_2(tmp_path, capsys):
     assert not (tmp_path / "y.h5").exists() and not (tmp_path / "y.partial").exists()
 
 
+def test_an_output_holding_something_else_is_refused_naming_it_and_left_alone(scene, scene_file, reference, tmp_path, capsys):
+    """--out on a text file (the store would go beside it, to NAME.h5), a truncated store, a
+    store of another kind: each refused in one line naming the file, which is left as it was."""
+    import shutil
+
+    from jointsim.cli.main import main
+    from jointsim.io.store import Field, Schema, open_store
+
+    text = tmp_path / "notes.txt"
+    text.write_text("my notes\n")
+    assert main(["dataset", str(scene_file), "--n", str(N), "--out", str(text)]) == 2
+    assert f"--out {text}: an existing file that is not an HDF5 store" in capsys.readouterr().err
+    assert text.read_text() == "my notes\n" and not text.with_name("notes.txt.h5").exists()
+
+    cut = tmp_path / "cut.h5"
+    shutil.copy(reference[0].path, cut)
+    with open(cut, "r+b") as f:
+        f.truncate(cut.stat().st_size // 2)
+    size = cut.stat().st_size
+    with pytest.raises(ValueError, match=f"{cut}: exists and is not a readable jointsim store"):
+        _generate(scene, scene_file, cut, workers=1)
+    assert cut.stat().st_size == size
+
+    other = open_store(tmp_path / "pal", Schema((Field("force", ()),), name="palpation", version=1), scene_toml="", seed=0,
+                       n_records=1)
+    other.put(0, {"force": 1.0})
+    path = other.finalize()
+    with pytest.raises(ValueError, match="holds a 'palpation' store, not a dataset"):
+        _generate(scene, scene_file, path, workers=1)
+    assert open_records(path)["force"][0] == 1.0
+
+
 def test_a_worker_that_dies_ends_the_run_with_one_clear_error():
     """A local worker killed mid-task (here it exits at once) ends the run with a
     ChildProcessError that says nothing stored is lost and to rerun, not a BrokenProcessPool

@@ -48,6 +48,11 @@ def run(args: argparse.Namespace) -> int:
     from ..dataset import generate_dataset
 
     use_solver(args)
+    from ..io.records import final_path
+
+    if args.out.is_file() and final_path(args.out) != args.out:
+        raise ValueError(f"--out {args.out}: an existing file that is not an HDF5 store (.h5); the store would be written "
+                         f"to {final_path(args.out)}: give that name, or another")
     scene = scene_from_args(args)
     if args.images is not None:
         scene = replace(scene, dataset=replace(scene.dataset, images=args.images))
@@ -88,8 +93,6 @@ def run(args: argparse.Namespace) -> int:
         if done:
             print(f"  resuming: {done} of {args.n} samples already stored", flush=True)
         bar.update(done)
-
-    from ..io.records import final_path
 
     overwrite(args, final_path(args.out))
     command = ["jointsim", "dataset", *(sys.argv[2:] if sys.argv[1:2] == ["dataset"] else [])]

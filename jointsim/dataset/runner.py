@@ -263,9 +263,15 @@ def generate_dataset(
     final, partial = _paths(out)
     with exclusive(final):  # a second driver on this output is refused now, not at finalize
         if final.exists():
-            rec = open_records(final, fields=["group"], verify=False)
+            try:
+                rec = open_records(final, fields=[], verify=False)
+            except (OSError, KeyError, ValueError) as e:  # not HDF5, truncated, or HDF5 of another kind
+                raise ValueError(f"{final}: exists and is not a readable jointsim store ({e}); move it away, or write to "
+                                 "another path") from None
             prov = rec.provenance
-            same = prov["schema"]["name"] == "dataset" and prov["n_records"] == n_samples and prov["seed"] == seed
+            if prov["schema"]["name"] != "dataset":
+                raise ValueError(f"{final} holds a {prov['schema']['name']!r} store, not a dataset; write to another path")
+            same = prov["n_records"] == n_samples and prov["seed"] == seed
             if same:
                 want = dataset_params(scene, n_samples, prov["params"].get("chamber_sha256", ""), presses)
                 same = json.loads(json.dumps(want)) == prov["params"]

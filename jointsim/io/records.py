@@ -41,11 +41,12 @@ class Records:
 
 
 def open_records(path: str | Path, fields: Sequence[str] | None = None, *, verify: bool = True) -> Records:
-    """Read a file written by :meth:`RecordStore.finalize`: the named ``fields`` (all when None)
+    """Read a file written by :meth:`RecordStore.finalize` (``path`` itself where it is a file,
+    else the store it finalises to, NAME.h5): the named ``fields`` (all when None)
     as arrays; with ``verify``, recompute ``data_sha256`` from all fields and refuse a mismatch."""
     import h5py
 
-    path = final_path(path)
+    path = Path(path) if Path(path).is_file() else final_path(path)  # a file named as it is, else NAME.h5
     with h5py.File(path, "r") as h5:
         prov = json.loads(h5["provenance/identity"].asstr()[()])
         run = json.loads(h5["run/info"].asstr()[()])
