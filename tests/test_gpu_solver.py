@@ -154,6 +154,18 @@ def test_the_process_solver_is_what_auto_resolves_to(monkeypatch):
         linalg.preferred_backend()
 
 
+def test_a_chosen_solver_is_part_of_a_stores_identity(monkeypatch, paper_scene):
+    """Another solver gives other bits (round-off): a store started with one resumes only with it.
+    Left to "auto", the identity is what it was before solvers could be chosen."""
+    from jointsim.dataset.generate import dataset_params
+    from jointsim.palpation.pipeline import program_params
+
+    monkeypatch.delenv(linalg.SOLVER_VARIABLE, raising=False)
+    assert "solver" not in dataset_params(paper_scene, 6, "x") and "solver" not in program_params(paper_scene)
+    monkeypatch.setenv(linalg.SOLVER_VARIABLE, "superlu")
+    assert dataset_params(paper_scene, 6, "x")["solver"] == program_params(paper_scene)["solver"] == "superlu"
+
+
 @pytest.mark.skipif(_cudss.unavailable() is None, reason="this machine has cuDSS: the refusal is not shown")
 def test_cudss_without_a_gpu_is_refused_in_one_line_naming_the_flag(tmp_path):
     p = subprocess.run([sys.executable, "-m", "jointsim", "dataset", "--mesh", "test", "--n", "2", "--solver", "cudss",

@@ -63,6 +63,7 @@ import numpy as np
 from ..eit.protocol import scene_protocol
 from ..instrument import Instrument, Readout
 from ..io.schema import Field, Schema
+from ..linalg import preferred_backend
 from ..mechanics.build import membrane_from_scene
 from ..mechanics.dome import MembraneModel, UnreachablePose
 from ..mechanics.newton import NewtonError
@@ -228,8 +229,8 @@ def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str, presses: P
     """What shapes the data beyond the scene file's text: the effective scene (after
     command-line overrides: sampling spec, mesh, membrane, noise, reconstruction settings; not
     the palpation program, which a dataset does not use), N, the stimulation and measurement
-    patterns with the voltages' channel order, the press list when one is given, and the
-    chamber mesh used (a
+    patterns with the voltages' channel order, the press list when one is given, the sparse
+    solver when one is chosen (``--solver``: its bits differ at round-off), and the chamber mesh used (a
     resumed run continues on the mesh it started with, whatever mesher version the machine
     has). JSON-ready; the store's identity."""
     d = scene.to_dict()
@@ -242,6 +243,8 @@ def dataset_params(scene: Scene, n_samples: int, chamber_sha256: str, presses: P
               "protocol": scene_protocol(scene).to_record()}
     if presses is not None:  # recorded only when given: a store of drawn presses keeps its identity
         params["presses"] = presses.to_record()
+    if (solver := preferred_backend()) != "auto":  # another solver gives other bits: resume only with it
+        params["solver"] = solver
     return params
 
 

@@ -41,6 +41,7 @@ from ..instrument import STAGES as FRAME_STAGES
 from ..instrument import Instrument, Reading, stream
 from ..io.schema import Field, Schema
 from ..io.store import RecordStore
+from ..linalg import preferred_backend
 from ..mechanics.build import membrane_from_scene
 from ..mechanics.dome import MembraneModel, MembraneState
 from ..mechanics.fem import warp_device
@@ -312,14 +313,15 @@ def program_params(scene: Scene, spec: PalpationSpec | None = None, rig_path: st
     """The run settings that shape a palpation's data beyond the scene file's text: the
     effective program (after command-line overrides), the mesh and membrane resolution, the
     noise, the rig model, the stimulation and measurement patterns with the voltages' channel
-    order, and the number of frames. JSON-ready; the store's identity uses it,
+    order, the number of frames, and the sparse solver where one is chosen (JOINTSIM_SOLVER,
+    ``--solver``). JSON-ready; the store's identity uses it,
     so a run resumes only with the same settings."""
     spec = scene.palpation if spec is None else spec
     d = asdict(spec)
     d["target_radii"] = list(d["target_radii"])
     d["xy"] = list(d["xy"])
     segs = _segments(spec, scene.noise.frame_rate_hz)
-    return {
+    params = {
         "palpation": d,
         "mesh": asdict(scene.mesh),
         # values added to the format later recorded only where they change what was done before
@@ -333,6 +335,9 @@ def program_params(scene: Scene, spec: PalpationSpec | None = None, rig_path: st
         "n_records": segs[-1].start + segs[-1].n_frames,
         "frames_per_target": [sg.n_frames for sg in segs],
     }
+    if (solver := preferred_backend()) != "auto":  # chosen (--solver): its bits differ at round-off; resume only with it
+        params["solver"] = solver
+    return params
 
 
 _MEMBRANE_KEYS = ("u", "hist_centre", "hist_u", "centre", "pressure", "compliance", "tangent_u", "friction_nodes", "friction_anchors",
