@@ -264,6 +264,37 @@ def test_a_killed_worker_stops_the_run_in_one_line_and_the_rerun_has_the_data(sc
     assert run.groups_run >= 1 and run.data_sha256 == reference[0].data_sha256
 
 
+@pytest.mark.parametrize("victim, seed", [("driver", 11), ("worker", 12)])
+def test_a_kill_at_a_random_moment_loses_nothing(scene, scene_file, reference, tmp_path, victim, seed):
+    """`jointsim dataset` (two local workers) with its driver or one of its workers killed with
+    SIGKILL at a moment drawn uniformly over the uninterrupted run's wall time (from its start,
+    the interpreter's start-up included): run again until it finishes, the store is the
+    uninterrupted run's, whatever had been stored."""
+    out = tmp_path / f"kill_{victim}"
+    cmd = [sys.executable, "-m", "jointsim", "dataset", str(scene_file), "--n", str(N), "--seed", str(SEED),
+           "--out", str(out), "--workers", "2", "--no-progress"]
+    at = np.random.default_rng(seed).uniform(0.05, 0.95) * (reference[0].wall_s + 3.0)  # + the interpreter's start-up
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        time.sleep(at)
+        if proc.poll() is None:
+            kids = [p for p in _children(proc.pid)
+                    if "resource_tracker" not in Path(f"/proc/{p}/cmdline").read_bytes().decode(errors="replace")]
+            target = proc.pid if victim == "driver" or not kids else kids[0]
+            try:
+                os.kill(target, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        proc.communicate(timeout=300)
+    finally:
+        if _group_alive(proc.pid):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    run = _generate(scene, scene_file, out, workers=2)
+    assert run.data_sha256 == reference[0].data_sha256
+    assert not out.with_suffix(".partial").exists()
+
+
 def test_a_dask_worker_killed_mid_run_loses_nothing(scene, scene_file, reference, tmp_path):
     """A Dask cluster as a user starts one (a scheduler and two worker processes, each with its
     nanny), one worker's process group killed with SIGKILL once a press is stored: the scheduler
