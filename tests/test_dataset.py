@@ -170,16 +170,22 @@ def test_dask_cluster_writes_the_same_data(scene, scene_file, reference, tmp_pat
     assert run.data_sha256 == reference[0].data_sha256
 
 
-def _group_alive(pgid: int) -> bool:
-    """Whether a live (not zombie) process of process group ``pgid`` remains, read from /proc."""
+def _live_processes() -> list[tuple[int, int, int]]:
+    """(pid, parent pid, process group) of every live (not zombie) process, read from /proc."""
+    out = []
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
             fields = stat.read_text().rsplit(")", 1)[1].split()
         except OSError:
             continue
-        if int(fields[2]) == pgid and fields[0] != "Z":
-            return True
-    return False
+        if fields[0] != "Z":
+            out.append((int(stat.parent.name), int(fields[1]), int(fields[2])))
+    return out
+
+
+def _group_alive(pgid: int) -> bool:
+    """Whether a live process of process group ``pgid`` remains."""
+    return any(g == pgid for _, _, g in _live_processes())
 
 
 def test_resume_after_kill_gives_the_uninterrupted_data(scene, scene_file, reference, tmp_path):
@@ -217,16 +223,8 @@ def test_resume_after_kill_gives_the_uninterrupted_data(scene, scene_file, refer
 
 
 def _children(pid: int) -> list[int]:
-    """The live processes whose parent is ``pid``, from /proc."""
-    out = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[1]) == pid and fields[0] != "Z":
-            out.append(int(stat.parent.name))
-    return out
+    """The live processes whose parent is ``pid``."""
+    return [p for p, parent, _ in _live_processes() if parent == pid]
 
 
 def _first_record(proc: subprocess.Popen, records: Path) -> None:
