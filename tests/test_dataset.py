@@ -373,25 +373,68 @@ def test_a_finished_file_is_not_recomputed(scene, scene_file, reference):
         generate_dataset(scene, N + 1, reference[0].path, seed=SEED)
 
 
-def test_a_damaged_finished_file_is_found_by_a_rerun(scene, scene_file, reference, tmp_path):
-    """Four bytes flipped in a chunk of a finished store: the rerun that would say "nothing to
-    do" reads the file back against its data_sha256 and refuses it, naming the file."""
-    import shutil
-
+def _flip(path: Path, field: str, chunk: int) -> None:
+    """Four bytes of chunk ``chunk`` of records/``field`` inverted in place."""
     import h5py
 
-    path = tmp_path / "damaged.h5"
-    shutil.copy(reference[0].path, path)
     with h5py.File(path, "r") as h5:
-        ds = h5["records/voltages"]
-        offset = ds.id.get_chunk_info(0).byte_offset if ds.chunks else ds.id.get_offset()
+        offset = h5[f"records/{field}"].id.get_chunk_info(chunk).byte_offset
     with open(path, "r+b") as f:
         f.seek(offset + 64)
         b = f.read(4)
         f.seek(offset + 64)
         f.write(bytes(x ^ 0xFF for x in b))
-    with pytest.raises(ValueError, match=rf"{path.name}: .*damaged.*move it away and run again"):
-        _generate(scene, scene_file, path, workers=1)
+
+
+def test_a_damaged_finished_file_is_found_by_a_rerun_and_mended(scene, scene_file, reference, tmp_path):
+    """Four bytes flipped in a chunk of a finished store: the rerun that would say "nothing to
+    do" reads the file back against its data_sha256, sets it aside (kept, with a warning naming
+    it), keeps the presses whose chunks still decode (each gzip chunk carries a checksum) and
+    computes the others again: the store ends with the uninterrupted data. Here the file is
+    rewritten one record per chunk, so that the damage is one sample's and one press is
+    recomputed; in the dataset's own 1 MB chunks it is every press sharing the chunk."""
+    import h5py
+
+    path = tmp_path / "damaged.h5"
+    with h5py.File(reference[0].path, "r") as src, h5py.File(path, "w") as dst:
+        dst.attrs.update(src.attrs)
+        for name in ("provenance", "run"):
+            src.copy(name, dst)
+        g = dst.create_group("records")
+        for name, ds in src["records"].items():
+            g.create_dataset(name, data=ds[()], chunks=(1, *ds.shape[1:]), compression="gzip").attrs.update(ds.attrs)
+    assert open_records(path).data_sha256 == reference[0].data_sha256
+    _flip(path, "voltages", 4)  # sample 4: the second press's
+    with pytest.warns(UserWarning, match=r"damaged.*set aside as damaged.h5.damaged; 2 of its presses read back whole"):
+        run = _generate(scene, scene_file, path, workers=1)
+    assert run.groups_run == 1 and run.data_sha256 == reference[0].data_sha256
+    assert path.with_name("damaged.h5.damaged").exists()
+
+    _flip(path, "dv", 0)  # the dataset's own chunks: every press shares it
+    with pytest.warns(UserWarning, match="0 of its presses read back whole"):
+        run = _generate(scene, scene_file, path, workers=1)
+    assert run.groups_run == 3 and run.data_sha256 == reference[0].data_sha256
+    assert path.with_name("damaged.h5.damaged.1").exists()
+
+
+def test_kept_presses_that_do_not_give_the_recorded_data_are_all_computed_again(scene, scene_file, reference, tmp_path, monkeypatch):
+    """Should the presses kept from a damaged file not make the data_sha256 it recorded (here a
+    value read back as if whole but wrong), the mended store is set aside too and every press
+    computed again."""
+    import shutil
+
+    import jointsim.dataset.runner as runner
+
+    path = tmp_path / "wrong.h5"
+    shutil.copy(reference[0].path, path)
+    _flip(path, "dv", 0)
+    wrong = {k: v.copy() for k, v in open_records(reference[0].path).fields.items()}
+    wrong["voltages"][0] += 1e-9
+    monkeypatch.setattr(runner, "readable_records", lambda p: (np.ones(N, bool), wrong, reference[0].data_sha256))
+    with pytest.warns(UserWarning, match="did not give its recorded data_sha256"):
+        run = _generate(scene, scene_file, path, workers=1)
+    assert run.groups_run == 3 and run.data_sha256 == reference[0].data_sha256
+    assert path.with_name("wrong.h5.damaged").exists() and path.with_name("wrong.h5.damaged.1").exists()
 
 
 def test_a_scheduler_that_does_not_answer_is_one_error(scene, scene_file, tmp_path, monkeypatch):

@@ -51,7 +51,7 @@ import numpy as np
 from .._cores import THREAD_VARIABLES, available_cores, run_local
 from ..geometry import electrode_layout
 from ..io.records import open_records
-from ..io.store import RecordStore, attach, exclusive, open_store
+from ..io.store import RecordStore, attach, exclusive, open_store, readable_records, set_aside
 from ..mesh.chamber import ChamberMesh
 from ..mesh.electrodes import disc_patches
 from ..mesh.tetmesh import TetMesh
@@ -261,6 +261,7 @@ def generate_dataset(
     if not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ValueError(f"workers = {workers!r}: must be an integer >= 1")
     final, partial = _paths(out)
+    salvage, kept, aside = None, [], None
     with exclusive(final):  # a second driver on this output is refused now, not at finalize
         if final.exists():
             try:
@@ -278,13 +279,18 @@ def generate_dataset(
             if not same:
                 raise ValueError(f"{final} holds a finished run with other settings; remove it (--overwrite), or write to another path")
             # a rerun reads the whole file back against its digest: damage (a flipped chunk) is
-            # found here, not by the user's analysis later
+            # found here, not by the user's analysis later; the file is set aside (kept) and the
+            # presses it can no longer vouch for are computed again
             try:
                 open_records(final, fields=[], verify=True)
+                return DatasetRun(final, n_samples, rec.data_sha256, 0, n_samples, 0, time.perf_counter() - t0)
             except (ValueError, OSError) as e:  # a digest mismatch, or a chunk HDF5 cannot decode
                 what = str(e) if isinstance(e, ValueError) else f"{final}: damaged ({e})"
-                raise ValueError(f"{what}; move it away and run again to recompute it") from None
-            return DatasetRun(final, n_samples, rec.data_sha256, 0, n_samples, 0, time.perf_counter() - t0)
+                aside = set_aside(final)
+                salvage = readable_records(aside)
+                kept = _whole_groups(salvage[0], scene.dataset.samples_per_press)
+                warnings.warn(f"{what}: set aside as {aside.name}; {len(kept)} of its presses read back whole and are kept, "
+                              "the others are computed again", UserWarning, stacklevel=2)
 
         k = scene.dataset.samples_per_press
         if not (partial / CHAMBER_FILE).exists():
@@ -304,6 +310,8 @@ def generate_dataset(
                            command=command)
         # a record file damaged since it was written (a flipped byte, a truncated copy) is found
         # here, set aside and its group computed again: the run still ends with the whole data
+        if salvage is not None and kept:  # the presses of a damaged finished file that read back whole
+            _put_groups(final, kept, salvage[1], scene.dataset.samples_per_press, n_samples)
         if damaged := store.set_aside_unreadable():
             warnings.warn(f"{len(damaged)} stored record file(s) could not be read back: set aside as {damaged[0]}"
                           f"{' and others' if len(damaged) > 1 else ''}; their samples are computed again", UserWarning, stacklevel=2)
@@ -325,7 +333,33 @@ def generate_dataset(
             else:
                 run_local(tasks, min(workers, len(tasks)), tick, _run_group)
         store.finalize(compression="gzip")
-        rec = open_records(final, fields=["group"], verify=False)
-        return DatasetRun(final, n_samples, rec.data_sha256, len(tasks), n_samples - len(missing), len(rejected),
-                          time.perf_counter() - t0, tuple(rejected))
+        rec = open_records(final, fields=[], verify=False)
+    if salvage is not None and kept and rec.data_sha256 != salvage[2]:
+        # the kept presses and the recomputed ones do not make the data the damaged file
+        # recorded: trust none of it, set this one aside too and compute every press again
+        again = set_aside(final)
+        warnings.warn(f"{final}: the presses kept from {aside.name} did not give its recorded data_sha256; set aside as "
+                      f"{again.name}, every press computed again", UserWarning, stacklevel=2)
+        return generate_dataset(scene, n_samples, out, seed=seed, workers=workers, scheduler=scheduler, scene_toml=scene_toml,
+                                command=command, progress=progress, on_start=on_start, presses=presses)
+    return DatasetRun(final, n_samples, rec.data_sha256, len(tasks), n_samples - len(missing), len(rejected),
+                      time.perf_counter() - t0, tuple(rejected))
+
+
+def _whole_groups(ok: np.ndarray, k: int) -> list[int]:
+    """The groups (presses of ``k`` samples, the last perhaps fewer) whose every record is ``ok``."""
+    if not len(ok):
+        return []
+    groups = np.arange(len(ok)) // k
+    return [int(g) for g in np.unique(groups) if ok[groups == g].all()]
+
+
+def _put_groups(final: Path, groups: list[int], fields: dict[str, np.ndarray], k: int, n_samples: int) -> None:
+    """Store ``groups``' records from ``fields`` (a damaged file's rows that read back), one
+    record file per group as a worker writes it."""
+    writer = attach(final, batch=k)
+    for g in groups:
+        for i in group_indices(g, n_samples, k):
+            writer.put(int(i), {name: a[i] for name, a in fields.items()})
+        writer.flush()
 

@@ -81,6 +81,8 @@ __all__ = [
     "utc_now",
     "exclusive",
     "discard",
+    "set_aside",
+    "readable_records",
 ]
 
 _FILE_RE = re.compile(r"^r(\d+)_(\d+)x(\d+)\.[0-9a-f]+\.npz$")
@@ -148,6 +150,51 @@ def discard(path: str | Path) -> bool:
             os.replace(partial, trash)
             shutil.rmtree(trash, ignore_errors=True)
     return found
+
+
+def set_aside(path: Path) -> Path:
+    """Rename the file ``path`` to NAME.damaged (NAME.damaged.1, … where taken): kept, no longer
+    under its name. The new path."""
+    target = path.with_name(path.name + ".damaged")
+    k = 0
+    while target.exists():
+        k += 1
+        target = path.with_name(f"{path.name}.damaged.{k}")
+    os.replace(path, target)
+    return target
+
+
+def readable_records(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], str | None]:
+    """What can still be trusted of a finished store whose check failed: (``ok`` (n,) bool per
+    record, every field (n, ...) with untrusted rows zero, the ``data_sha256`` it recorded or
+    None). A record is trusted where every field's chunk holding it decodes *and* carries a
+    checksum (gzip's zlib stream, or Fletcher-32): HDF5 then refuses a damaged chunk, which
+    localises the damage. Without a checksum a flipped byte reads back as a wrong value, so no
+    record is trusted; nor where the file cannot be opened."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as h5:
+            expected = str(h5.attrs["data_sha256"])
+            g = h5["records"]
+            n = int(h5.attrs["n_records"])
+            ok = np.ones(n, bool)
+            fields = {}
+            for name in g:
+                ds = g[name]
+                out = np.zeros(ds.shape, ds.dtype)
+                if not (ds.compression == "gzip" or ds.fletcher32) or ds.chunks is None:
+                    return np.zeros(n, bool), {}, expected
+                rows = ds.chunks[0]
+                for a in range(0, n, rows):
+                    try:
+                        out[a:a + rows] = ds[a:a + rows]
+                    except OSError:
+                        ok[a:a + rows] = False
+                fields[name] = out
+    except (OSError, KeyError, ValueError):
+        return np.zeros(0, bool), {}, None
+    return ok, fields, expected
 
 
 def _fsync_dir(d: Path) -> None:
