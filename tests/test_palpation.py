@@ -406,6 +406,21 @@ def test_palpate_command_writes_and_resumes(tmp_path, test_chamber):
     assert again.returncode == 0 and "is complete" in again.stdout
     other = subprocess.run(base + ["--depth-mm", "1"], capture_output=True, text=True)
     assert other.returncode == 2 and "other settings" in other.stderr
+    # four bytes flipped in a chunk of the finished file: the rerun finds it, keeps it aside and
+    # computes the run again, to the same data
+    import h5py
+
+    h5 = out / "palpation.h5"
+    with h5py.File(h5, "r") as f:
+        offset = f["records/voltages"].id.get_chunk_info(0).byte_offset
+    with open(h5, "r+b") as f:
+        f.seek(offset + 64)
+        b = f.read(4)
+        f.seek(offset + 64)
+        f.write(bytes(x ^ 0xFF for x in b))
+    mended = subprocess.run(cmd, capture_output=True, text=True)
+    assert mended.returncode == 0 and "set aside as palpation.h5.damaged, the run is computed again" in mended.stderr, mended.stderr
+    assert open_records(h5).data_sha256 == rec.data_sha256 and (out / "palpation.h5.damaged").exists()
 
 
 def test_a_rerun_from_an_empty_mesh_cache_stores_the_same_arrays(tmp_path, monkeypatch):

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import json
 import shlex
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 from ..io.records import Records, open_records
-from ..io.store import exclusive, open_store
+from ..io.store import exclusive, open_store, set_aside
 from ..scene import Scene
 from .pipeline import Frame, Palpation, program_params, run_palpation
 from .report import VtuSeries, write_pvd, write_report, write_setup
@@ -51,7 +52,15 @@ def palpate(scene: Scene, out: str | Path, *, scene_text: str, command: str, dev
     computed = False
     with exclusive(h5):  # a second palpate on this folder is refused now, not at finalize
         if h5.exists():
-            rec = open_records(h5)
+            try:  # read back whole against its data_sha256: a damaged file is found here
+                rec = open_records(h5)
+            except (ValueError, OSError) as e:
+                # a time series resumes from its checkpoints, which the finished file does not
+                # keep: the damaged file is set aside (kept) and the run computed again
+                aside = set_aside(h5)
+                warnings.warn(f"{h5}: cannot be read back whole ({e}); set aside as {aside.name}, the run is computed again",
+                              UserWarning, stacklevel=2)
+        if h5.exists():
             if rec.provenance["params"] != json.loads(json.dumps(params)):
                 raise ValueError(f"{h5} holds a finished run with other settings; remove it, give --overwrite, or use another --out")
             say(f"  {h5} is complete ({len(rec)} frames): reports rewritten from it")
