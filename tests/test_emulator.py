@@ -1,0 +1,94 @@
+"""Model-based estimation (jointsim.calibration.emulator): the emulator's derivative is its
+function's, the per-frame fit is the maximum-likelihood estimate with the inverse Fisher
+information as its covariance (checked where the model is the emulator itself: the estimates'
+scatter matches the covariance they report), and a press's frames fitted jointly share x, y
+and the diameter, which they then know better than one frame does."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jointsim.calibration.emulator import Emulator, fit_emulator, fit_frames, fit_press
+
+K = 8
+
+
+def _emulator(seed: int = 0, noise: float = 0.05) -> Emulator:
+    """A small smooth-enough perceptron θ → 8 features (θ in mm-ish units), identity whitening."""
+    rng = np.random.default_rng(seed)
+    W = (rng.normal(0, 1, (4, 24)), rng.normal(0, 0.4, (24, K)))
+    b = (rng.normal(0, 0.5, 24), rng.normal(0, 0.1, K))
+    t_mean, t_scale = np.array([0.0, 0.0, 1.5e-3, 15e-3]), np.array([6e-3, 6e-3, 0.8e-3, 6e-3])
+    return Emulator(t_mean, t_scale, W, b, np.zeros(K), np.eye(K), np.ones(K), noise**2 * np.eye(K))
+
+
+def test_the_jacobian_is_the_derivative():
+    emu = _emulator()
+    theta = np.array([[2e-3, -1e-3, 1.2e-3, 12e-3], [-4e-3, 3e-3, 2.0e-3, 20e-3]])
+    _, J = emu.evaluate(theta)
+    h = 1e-9
+    for j in range(4):
+        d = np.zeros(4)
+        d[j] = h
+        fd = (emu(theta + d) - emu(theta - d)) / (2 * h)
+        np.testing.assert_allclose(J[:, j, :], fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
+
+
+def test_frames_fitted_through_the_model_scatter_as_their_reported_covariance():
+    """Frames drawn from the emulator with its Gaussian noise, small enough that the model is
+    linear over the noise's reach (the regime where the inverse Fisher information is the
+    estimator's covariance; at 10× the noise this perceptron's kinks already make 1σ cover 44 %):
+    each fit from a start 0.5 mm off finds the truth within its reported σ as often as a
+    Gaussian does (68 % within 1σ, 95 % within 2σ, ±5 % and ±4 % over 600 draws), and
+    noise-free frames give the truth itself."""
+    emu = _emulator(noise=0.001)
+    rng = np.random.default_rng(1)
+    truth = np.array([1e-3, -2e-3, 1.5e-3, 14e-3])
+    clean = emu(truth[None])[0]
+    start = truth + np.array([0.5e-3, -0.5e-3, 0.3e-3, 0.5e-3])
+    est, cov = fit_frames(emu, clean[None], start[None])
+    np.testing.assert_allclose(est[0], truth, atol=1e-8)
+    n = 600
+    frames = clean + rng.multivariate_normal(np.zeros(K), emu.covariance, n)
+    est, cov = fit_frames(emu, frames, np.tile(start, (n, 1)))
+    z = np.abs(est - truth) / np.sqrt(np.einsum("nii->ni", cov))
+    assert np.all(np.abs((z < 1).mean(axis=0) - 0.683) < 0.05), (z < 1).mean(axis=0)
+    assert np.all(np.abs((z < 2).mean(axis=0) - 0.954) < 0.04), (z < 2).mean(axis=0)
+
+
+def test_a_press_fitted_jointly_shares_position_and_size_and_knows_them_better():
+    """Five frames of one press at five depths: the joint fit returns one x, y and diameter for
+    all, a depth for each, and a σ of x at most the single frames' smallest (it pools them)."""
+    emu = _emulator()
+    rng = np.random.default_rng(2)
+    depths = np.array([0.6e-3, 1.0e-3, 1.5e-3, 2.0e-3, 2.5e-3])
+    truth = np.column_stack([np.full(5, 2e-3), np.full(5, 1e-3), depths, np.full(5, 16e-3)])
+    frames = emu(truth) + rng.multivariate_normal(np.zeros(K), emu.covariance, 5)
+    start = truth + 0.3e-3
+    est, cov = fit_press(emu, frames, start)
+    assert np.ptp(est[:, 0]) == 0 and np.ptp(est[:, 1]) == 0 and np.ptp(est[:, 3]) == 0
+    _, cov1 = fit_frames(emu, frames, start)
+    assert np.sqrt(cov[0, 0, 0]) <= np.sqrt(cov1[:, 0, 0]).min() * (1 + 1e-9)
+    assert np.all(np.abs(est - truth) < 5 * np.sqrt(np.einsum("nii->ni", cov)))
+
+
+def test_an_emulator_learns_a_smooth_model_and_refuses_too_few_samples():
+    """Trained on 600 noise-free samples of a smooth θ → 16 features map, it predicts held-out
+    presses with R² > 0.99 in the whitened space; fewer than 50 samples are refused."""
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(4, 16))
+
+    def model(t):
+        u = (t - [0, 0, 1.5e-3, 15e-3]) / [6e-3, 6e-3, 0.8e-3, 6e-3]
+        return np.tanh(u @ A) + 0.1 * (u @ A) ** 2
+
+    T = np.column_stack([rng.uniform(-10e-3, 10e-3, (700, 2)), rng.uniform(0.3e-3, 3e-3, 700), rng.uniform(8e-3, 30e-3, 700)])
+    groups = np.arange(700) // 3
+    emu = fit_emulator(model(T[:600]), T[:600], groups[:600], n_components=8)
+    Z = emu.whiten(model(T[600:]))
+    r2 = 1 - ((Z - emu(T[600:])) ** 2).sum() / ((Z - Z.mean(axis=0)) ** 2).sum()
+    assert r2 > 0.99
+    assert np.all(np.linalg.eigvalsh(emu.covariance) > 0)
+    with pytest.raises(ValueError, match="at least 50 samples"):
+        fit_emulator(model(T[:40]), T[:40], groups[:40])
