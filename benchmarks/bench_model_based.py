@@ -1,0 +1,154 @@
+"""Model-based estimation against the direct regression, on held-out presses of a dataset:
+an emulator of the coupled model (jointsim.calibration.emulator) fitted per frame and per press
+(a press's frames share x, y and the diameter), with its uncertainty per estimate, beside the
+direct regression it starts from.
+
+    python benchmarks/bench_model_based.py DATASET.h5 [--splits 0,1,2]
+        # writes results/calibration/model_based.{md,json}
+
+Per split (press groups held out as `jointsim calibrate` holds them out, 20 %): the emulator
+trained on the training presses' noise-free features (its covariance from held-out training
+presses' residuals and the noise's draws); the direct regression as `jointsim calibrate` fits
+it on the same training presses (its MLP, 30 fresh noise draws per sample); both evaluated on
+the held-out presses, at the goals' 74.2 dB (their noise-free voltages re-noised) and at the
+dataset's own SNRs (the stored noisy frames). Errors: in-plane position within r ≤ 15 mm,
+depth, diameter (median, P95); the emulator's own error against the simulator (its held-out
+R² in the whitened feature space); the uncertainty's calibration (the share of estimates within
+1σ and 2σ of the truth: 68 % and 95 % if right).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from _machine import machine, write_pair
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from jointsim.calibration.data import load_samples, split_groups, voltage_features  # noqa: E402
+from jointsim.calibration.emulator import fit_emulator, fit_frames, fit_press  # noqa: E402
+from jointsim.calibration.regression import noisy_features  # noqa: E402
+
+COPIES = 3  # fresh noise draws of each held-out sample at the goals' SNR
+GOAL_SNR_DB = 74.2
+
+
+def _stats(e: np.ndarray) -> dict:
+    e = np.abs(e[np.isfinite(e)]) * 1e3
+    return {"n": int(len(e)), "median_mm": float(np.median(e)), "p95_mm": float(np.percentile(e, 95))}
+
+
+def _estimates(emu, reg, F: np.ndarray, groups: np.ndarray) -> dict:
+    """The three estimators' θ (n, 4) and the emulator's covariances on features ``F``."""
+    direct = reg(F)[:, :4]
+    frames, cov_f = fit_frames(emu, F, direct)
+    press, cov_p = np.full_like(frames, np.nan), np.full_like(cov_f, np.nan)
+    for g in np.unique(groups):
+        i = np.flatnonzero(groups == g)
+        press[i], cov_p[i] = fit_press(emu, F[i], direct[i])
+    return {"direct": (direct, None), "emulator_frame": (frames, cov_f), "emulator_press": (press, cov_p)}
+
+
+def _scores(est: dict, T: np.ndarray) -> dict:
+    inside = np.hypot(T[:, 0], T[:, 1]) <= 15e-3
+    out = {}
+    for name, (P, C) in est.items():
+        row = {"xy": _stats(np.hypot(*(P[:, :2] - T[:, :2]).T)[inside]), "depth": _stats(P[:, 2] - T[:, 2]),
+               "diameter": _stats(P[:, 3] - T[:, 3])}
+        if C is not None:
+            sd = np.sqrt(np.einsum("nii->ni", C))
+            z = np.abs(P - T) / sd
+            row["within_1sd"] = {k: float(np.mean(z[:, j] < 1)) for j, k in enumerate(("x", "y", "depth", "diameter"))}
+            row["within_2sd"] = {k: float(np.mean(z[:, j] < 2)) for j, k in enumerate(("x", "y", "depth", "diameter"))}
+            row["median_sd_mm"] = {k: float(np.nanmedian(sd[:, j]) * 1e3) for j, k in enumerate(("x", "y", "depth", "diameter"))}
+        out[name] = row
+    return out
+
+
+def split(samples, seed: int) -> dict:
+    from jointsim.calibration.build import Settings, calibrate
+
+    tr, te = split_groups(samples.group, 0.2, seed)
+    A, B = samples.subset(tr), samples.subset(te)
+    theta = lambda s: np.column_stack([s.position[:, :2], s.depth, s.size])  # noqa: E731
+    clean = lambda s: voltage_features(s.voltages_clean, s.voltages_clean - s.reference_clean)  # noqa: E731
+    rng = np.random.default_rng([seed, 7])
+    snr = (float(A.snr_db.min()), float(A.snr_db.max()))
+    noise = noisy_features(A.voltages_clean, A.reference_clean, snr, A.reference_frames, 1, rng) - clean(A)
+    t0 = time.perf_counter()
+    emu = fit_emulator(clean(A), theta(A), A.group, noise, seed=seed)
+    t_emu = time.perf_counter() - t0
+    Zb, Tb = emu.whiten(clean(B)), theta(B)
+    r2 = 1.0 - float(((Zb - emu(Tb)) ** 2).sum() / ((Zb - Zb.mean(axis=0)) ** 2).sum())
+    t0 = time.perf_counter()
+    cal = calibrate(samples, Settings(seed=seed), progress=lambda _: None)  # the direct regression as `jointsim calibrate` fits it
+    t_cal = time.perf_counter() - t0
+    reg = cal.map.regressor
+    t0 = time.perf_counter()
+    stored = _scores(_estimates(emu, reg, voltage_features(B.voltages, B.dv), B.group), Tb)
+    t_fit = time.perf_counter() - t0
+    # the goals' SNR: every held-out sample re-noised at 74.2 dB, COPIES times (a press's frames one copy each)
+    F = noisy_features(B.voltages_clean, B.reference_clean, (GOAL_SNR_DB, GOAL_SNR_DB), B.reference_frames, COPIES, rng)
+    goal = _scores(_estimates(emu, reg, F, np.tile(B.group, COPIES) + np.repeat(np.arange(COPIES), len(B)) * (B.group.max() + 1)),
+                   np.tile(Tb, (COPIES, 1)))
+    out = {"seed": seed, "train_presses": int(len(np.unique(A.group))), "test_presses": int(len(np.unique(B.group))),
+           "test_frames": int(len(B)), "emulator_r2": r2,
+           "seconds": {"emulator": t_emu, "calibrate": t_cal, "fits_stored_frames": t_fit}, "stored": stored, "goal_snr": goal}
+    print({k: v for k, v in out.items() if k not in ("stored", "goal_snr")},
+          {k: (v["xy"]["median_mm"], v["xy"]["p95_mm"], v["depth"]["median_mm"]) for k, v in goal.items()}, flush=True)
+    return out
+
+
+def markdown(r: dict) -> str:
+    goals = "position median ≤ 0.3 mm and P95 ≤ 0.8 mm over r ≤ 15 mm, depth median ≤ 0.05 mm"
+    lines = ["# Model-based estimation: an emulator of the coupled model, against the direct regression", "",
+             f"Command: `python benchmarks/bench_model_based.py DATASET --splits {','.join(str(s['seed']) for s in r['splits'])}`  ",
+             f"Machine: {r['machine']}. Dataset: {r['n']} samples, data_sha256 `{r['data_sha256'][:16]}…` (the store behind "
+             "results/calibration/paper_sensor; its command in results/calibration/README.md).", "",
+             " ".join(__doc__.split("\n\n")[0].split()), "", " ".join(__doc__.split("\n\n")[2].split()), ""]
+    for key, title in (("goal_snr", f"At the goals' SNR ({GOAL_SNR_DB} dB: each held-out sample re-noised {COPIES}×; goals: {goals})"),
+                       ("stored", "At the dataset's own SNRs (40–80 dB, the stored noisy frames)")):
+        lines += [f"## {title}", "",
+                  "| split | estimator | xy median / P95 mm (r ≤ 15 mm) | depth median / P95 mm | diameter median / P95 mm | within 1σ (x, y, depth, diameter) | within 2σ |",
+                  "|---|---|---|---|---|---|---|"]
+        for s in r["splits"]:
+            for name, label in (("direct", "direct regression (`jointsim calibrate`'s MLP)"), ("emulator_frame", "emulator, per frame"),
+                                ("emulator_press", "emulator, a press's frames jointly")):
+                x = s[key][name]
+                cov = (" / ".join(f"{v:.0%}" for v in x["within_1sd"].values()), " / ".join(f"{v:.0%}" for v in x["within_2sd"].values())) \
+                    if "within_1sd" in x else ("–", "–")
+                lines.append(f"| {s['seed']} | {label} | {x['xy']['median_mm']:.3f} / {x['xy']['p95_mm']:.2f} | "
+                             f"{x['depth']['median_mm']:.3f} / {x['depth']['p95_mm']:.2f} | {x['diameter']['median_mm']:.2f} / "
+                             f"{x['diameter']['p95_mm']:.1f} | {cov[0]} | {cov[1]} |")
+        lines.append("")
+    lines += ["| split | train / test presses | test frames | emulator held-out R² (whitened features) | s: emulator, calibrate, fits of the stored frames |",
+              "|---|---|---:|---:|---|"]
+    for s in r["splits"]:
+        t = s["seconds"]
+        lines.append(f"| {s['seed']} | {s['train_presses']} / {s['test_presses']} | {s['test_frames']} | {s['emulator_r2']:.3f} | "
+                     f"{t['emulator']:.0f}, {t['calibrate']:.0f}, {t['fits_stored_frames']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("dataset", type=Path)
+    ap.add_argument("--splits", default="0,1,2")
+    ap.add_argument("--out", type=Path, default=ROOT / "results" / "calibration" / "model_based")
+    a = ap.parse_args()
+    samples = load_samples(a.dataset)
+    if not samples.has_clean:
+        sys.exit(f"{a.dataset}: the store has no noise-free voltages (the emulator is trained on them)")
+    r = {"machine": machine(), "data_sha256": samples.source.get("data_sha256", ""), "n": len(samples),
+         "splits": [split(samples, int(s)) for s in a.splits.split(",")]}
+    write_pair(a.out, r, markdown(r))
+
+
+if __name__ == "__main__":
+    main()
