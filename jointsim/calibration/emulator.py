@@ -71,19 +71,17 @@ def fit_emulator(features: np.ndarray, theta: np.ndarray, groups: np.ndarray, no
     the held-out presses' residuals (the emulator's error and the nuisances, as a new press
     meets them) plus the covariance of ``noise`` (features' noisy minus clean, (r, m), the
     instrument's), when given."""
-    from sklearn.decomposition import PCA
     from sklearn.neural_network import MLPRegressor
+
+    from .regression import pca_whitening
 
     X, T = np.asarray(features, float), np.asarray(theta, float)
     ok = np.isfinite(X).all(axis=1) & np.isfinite(T).all(axis=1)
     X, T, g = X[ok], T[ok], np.asarray(groups)[ok]
     if len(X) < 50:
         raise ValueError(f"an emulator needs at least 50 samples with finite features and labels, got {len(X)}")
-    k = int(min(n_components, X.shape[1], len(X) - 1))
-    pca = PCA(n_components=k, svd_solver="full").fit(X)
-    x_scale = np.sqrt(pca.explained_variance_)
-    x_scale = np.where(x_scale > 0, x_scale, 1.0)
-    Z = ((X - pca.mean_) @ pca.components_.T) / x_scale
+    x_mean, components, x_scale, Z = pca_whitening(X, n_components)
+    k = len(x_scale)
     ids = np.unique(g)
     out = np.isin(g, np.random.default_rng(seed).permutation(ids)[: max(2, int(round(held_out * len(ids))))])
     t_mean, t_scale = T[~out].mean(axis=0), T[~out].std(axis=0)
@@ -91,11 +89,11 @@ def fit_emulator(features: np.ndarray, theta: np.ndarray, groups: np.ndarray, no
     m = MLPRegressor(hidden_layer_sizes=HIDDEN, alpha=1e-4, learning_rate_init=1e-3, max_iter=3000, early_stopping=True,
                      n_iter_no_change=50, tol=1e-7, random_state=seed).fit((T[~out] - t_mean) / t_scale, Z[~out])
     emu = Emulator(t_mean, t_scale, tuple(w.copy() for w in m.coefs_), tuple(b.copy() for b in m.intercepts_),
-                   pca.mean_.copy(), pca.components_.copy(), x_scale, np.eye(k))
+                   x_mean, components, x_scale, np.eye(k))
     R = Z[out] - emu(T[out])
     C = np.cov(R.T)
     if noise is not None and len(noise):
-        C = C + np.cov((np.asarray(noise, float) @ pca.components_.T / x_scale).T)
+        C = C + np.cov((np.asarray(noise, float) @ components.T / x_scale).T)
     return Emulator(emu.t_mean, emu.t_scale, emu.weights, emu.biases, emu.x_mean, emu.components, emu.x_scale, C)
 
 

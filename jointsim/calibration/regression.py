@@ -21,7 +21,7 @@ import numpy as np
 from ..eit.protocol import RingSymmetry
 from .data import voltage_features
 
-__all__ = ["OUTPUTS", "KINDS", "DirectRegressor", "fit_regressor", "regression_targets", "noisy_features",
+__all__ = ["OUTPUTS", "KINDS", "DirectRegressor", "fit_regressor", "pca_whitening", "regression_targets", "noisy_features",
            "moved_by_symmetry"]
 
 OUTPUTS = ("x", "y", "depth", "diameter", "force")
@@ -122,13 +122,24 @@ def _ridge_alpha(Z: np.ndarray, T: np.ndarray, groups: np.ndarray) -> float:
     return min(err, key=err.get)
 
 
+def pca_whitening(X: np.ndarray, n_components: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The leading principal components of ``X`` (n, m), whitened: (mean (m,), components (k, m),
+    scale (k,), the whitened X (n, k)), k at most ``n_components``."""
+    from sklearn.decomposition import PCA
+
+    k = int(min(n_components, X.shape[1], len(X) - 1))
+    pca = PCA(n_components=k, svd_solver="full").fit(X)
+    x_scale = np.sqrt(pca.explained_variance_)
+    x_scale = np.where(x_scale > 0, x_scale, 1.0)
+    return pca.mean_.copy(), pca.components_.copy(), x_scale, ((X - pca.mean_) @ pca.components_.T) / x_scale
+
+
 def fit_regressor(
     features: np.ndarray, targets: np.ndarray, groups: np.ndarray, *, kind: str = "mlp", seed: int = 0,
     n_components: int = 48,
 ) -> DirectRegressor:
     """Fit on training samples: ``features`` (n, m), ``targets`` (n, 5), ``groups`` (n,) press
     ids (the ridge's penalty is chosen by grouped CV). Rows with non-finite values are dropped."""
-    from sklearn.decomposition import PCA
     from sklearn.linear_model import Ridge
     from sklearn.neural_network import MLPRegressor
 
@@ -138,11 +149,7 @@ def fit_regressor(
     X, T, g = np.asarray(features, float)[ok], np.asarray(targets, float)[ok], groups[ok]
     if len(X) < 10:
         raise ValueError(f"the direct regression needs at least 10 samples with finite voltages and labels, got {len(X)}")
-    k = int(min(n_components, X.shape[1], len(X) - 1))
-    pca = PCA(n_components=k, svd_solver="full").fit(X)
-    x_scale = np.sqrt(pca.explained_variance_)
-    x_scale = np.where(x_scale > 0, x_scale, 1.0)
-    Z = ((X - pca.mean_) @ pca.components_.T) / x_scale
+    x_mean, components, x_scale, Z = pca_whitening(X, n_components)
     y_mean, y_scale = T.mean(axis=0), T.std(axis=0)
     y_scale = np.where(y_scale > 0, y_scale, 1.0)
     S = (T - y_mean) / y_scale
@@ -153,4 +160,4 @@ def fit_regressor(
         m = MLPRegressor(hidden_layer_sizes=HIDDEN, alpha=1e-3, learning_rate_init=1e-3, max_iter=2000,
                          early_stopping=len(X) >= 200, n_iter_no_change=30, tol=1e-6, random_state=seed).fit(Z, S)
         weights, biases = tuple(w.copy() for w in m.coefs_), tuple(b.copy() for b in m.intercepts_)
-    return DirectRegressor(kind, pca.mean_.copy(), pca.components_.copy(), x_scale, weights, biases, y_mean, y_scale)
+    return DirectRegressor(kind, x_mean, components, x_scale, weights, biases, y_mean, y_scale)
