@@ -226,7 +226,7 @@ def test_the_direct_regression_trains_on_fresh_noise_draws(stores):
     assert (lo, hi) == (train.snr_db.min(), train.snr_db.max())
     # each goal on position, depth and size is judged for both routes
     routes = {g["route"] for g in cal.evaluation["goals"] if g["goal"] == "depth"}
-    assert routes == {"image", "direct (ridge)"}
+    assert routes == {"image", "direct (ridge)", "emulator (per frame)", "emulator (press)"}  # the store has clean voltages
     for bad in (-1, 1001, 2.5):
         with pytest.raises(ValueError, match="noise_copies"):
             Settings(noise_copies=bad)
@@ -274,6 +274,7 @@ def test_map_loads_in_a_new_process_with_identical_predictions(built, stores):
     s = load_samples(stores["soft"])
     here = built.map.apply(_frames(s))
     assert np.isfinite(here["modulus"]).any() and np.isfinite(here["cal_diameter"]).any()
+    assert built.map.emulator is not None and np.isfinite(here["model_x"]).all() and np.isfinite(here["press_x"]).any()
     out = stores["dir"] / "applied.npz"
     code = (
         "import numpy as np, sys\n"
@@ -295,7 +296,9 @@ def test_map_loads_in_a_new_process_with_identical_predictions(built, stores):
             # lost or rounded in the file would show at 1e-7 (float32) or worse
             v = np.asarray(v, float)
             scale = np.nanmax(np.abs(v)) if np.isfinite(v).any() else 1.0
-            np.testing.assert_allclose(z[k], v, rtol=1e-10, atol=1e-12 * scale, err_msg=k)
+            # the emulator's fits are iterations stopped at 1 nm steps: they agree to that
+            tol = dict(rtol=1e-6, atol=1e-9) if k.startswith(("model_", "press_")) else dict(rtol=1e-10, atol=1e-12 * scale)
+            np.testing.assert_allclose(z[k], v, err_msg=k, **tol)
 
 
 def test_map_refuses_another_sensor_and_accepts_its_own(built):

@@ -21,7 +21,8 @@ from ..io.provenance import package_versions, utc_now
 from .com import fit_com_map
 from .curves import ALONG, LevelCurves, default_levels, fit_level_curves, value_at
 from .data import Samples, split_groups, voltage_features
-from .maps import VERSION_PACKAGES, CalibrationMap, outside_region, trained_region
+from .emulator import Emulator, fit_emulator, fit_frames, fit_press
+from .maps import PRESS_MIN_DEPTH, VERSION_PACKAGES, CalibrationMap, outside_region, trained_region
 from .regression import KINDS, OUTPUTS, fit_regressor, moved_by_symmetry, noisy_features, regression_targets
 from .stiffness import decades, fit_stiffness, force_sensitivity, group_features
 
@@ -201,6 +202,38 @@ def _size_at_levels(curves: dict[str, LevelCurves], test: Samples) -> tuple[list
     return rows, {k: np.concatenate(v) if v else np.zeros(0) for k, v in tab.items()}
 
 
+def _model_based(train: Samples, test: Samples, start: np.ndarray, inside: np.ndarray, band: np.ndarray,
+                 seed: int) -> tuple[Emulator, dict[str, Any], dict[str, dict[str, Any]]]:
+    """The emulator trained on the training presses' noise-free features (its covariance with the
+    noise's draws at the training SNRs), and its held-out fits from the regression's estimates
+    ``start``: per frame, and each press's frames at least PRESS_MIN_DEPTH deep jointly. (the
+    emulator, the evaluation, the goals' rows by route)."""
+    clean = lambda s: voltage_features(s.voltages_clean, s.voltages_clean - s.reference_clean)  # noqa: E731
+    theta = lambda s: np.column_stack([s.position[:, :2], s.depth, s.size])  # noqa: E731
+    rng = np.random.default_rng([seed, 11])
+    snr = (float(train.snr_db.min()), float(train.snr_db.max()))
+    noise = noisy_features(train.voltages_clean, train.reference_clean, snr, train.reference_frames, 1, rng) - clean(train)
+    emu = fit_emulator(clean(train), theta(train), train.group, noise, seed=seed)
+    Z, T = emu.whiten(clean(test)), theta(test)
+    r2 = 1.0 - float(((Z - emu(T)) ** 2).sum() / ((Z - Z.mean(axis=0)) ** 2).sum())
+    features = voltage_features(test.voltages, test.dv)
+    frame = fit_frames(emu, features, start)[0]
+    press = np.full_like(frame, np.nan)
+    for g in np.unique(test.group):
+        i = np.flatnonzero((test.group == g) & (start[:, 2] >= PRESS_MIN_DEPTH))
+        if len(i):
+            press[i] = fit_press(emu, features[i], start[i])[0]
+    ev, goal = {"emulator_r2": r2, "press_min_depth_m": PRESS_MIN_DEPTH}, {}
+    in_range = (test.size >= SIZE_RANGE[0] - 1e-12) & (test.size <= SIZE_RANGE[1] + 1e-12)
+    for name, P in (("per frame", frame), ("press", press)):
+        e = P - T
+        exy = np.hypot(e[:, 0], e[:, 1])
+        ev[name] = {"xy_r15": err_stats(exy[inside]), "depth": err_stats(e[:, 2]), "size": err_stats(e[:, 3][in_range])}
+        goal[f"emulator ({name})"] = {"com_xy": err_stats(exy[inside & band]), "depth": err_stats(e[band, 2]),
+                                      "size": err_stats(e[in_range & band, 3])}
+    return emu, ev, goal
+
+
 def calibrate(samples: Samples, settings: Settings = Settings(), progress=print) -> Calibration:
     """Fit every part of the calibration on the training presses of ``samples`` and evaluate it
     on the held-out ones. ``progress(str)`` is told of each stage."""
@@ -311,6 +344,12 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
                             **{f"image_{o}": image[:, i] for i, o in enumerate(OUTPUTS)},
                             **{f"{k}_{o}": d[:, i] for k, d in direct.items() for i, o in enumerate(OUTPUTS)}}
 
+    # model-based estimation: an emulator of the coupled model, fitted per frame and per press
+    emulator, model_goal = None, {}
+    if train.has_clean and len(train) >= 50:
+        progress("emulator of the coupled model (model-based estimation)")
+        emulator, ev["model_based"], model_goal = _model_based(train, test, direct[s.regressor][:, :4], inside, band, s.seed)
+
     # stiffness
     progress("stiffness")
     st_levels = levels["depth"][np.unique(np.linspace(len(levels["depth"]) // 3, len(levels["depth"]) - 1, 3).astype(int))]
@@ -343,7 +382,7 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
     # the direct regression, and the stiffness model
     routes = {"image": {"com_xy": ev["com"]["xy_r15_goal_band"], "depth": ev["com"]["depth_goal_band"],
                         "size": frame_rows[route]["range_goal_band"]},
-              f"direct ({s.regressor})": direct_goal,
+              f"direct ({s.regressor})": direct_goal, **model_goal,
               "stiffness model": {"modulus": ev["stiffness"].get("relative")}}
     goals = []
     for name, q, stat, limit in GOALS:
@@ -376,6 +415,6 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
                   "goal_snr_db": s.goal_snr_db, "snr_band_db": s.snr_band_db, "max_com_points": s.max_com_points,
                   "noise_copies": s.noise_copies, "symmetry": s.symmetry},
         evaluation=ev, versions=package_versions(VERSION_PACKAGES), created=utc_now("seconds"),
-        region=region,
+        region=region, emulator=emulator,
     )
     return Calibration(cmap, ev, tables)

@@ -37,6 +37,7 @@ from ..scene import Scene
 from .com import ComMap
 from .curves import LevelCurves, Monotone
 from .data import voltage_features
+from .emulator import PARAMETERS, Emulator, fit_frames, fit_press
 from .fingerprint import check_fingerprint, sensor_fingerprint
 from .regression import OUTPUTS, DirectRegressor
 from .stiffness import StiffnessModel
@@ -48,8 +49,11 @@ FORMAT = "jointsim-calibration"
 FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2)
 VERSION_PACKAGES = ("jointsim", "numpy", "scipy", "scikit-learn", "h5py")
-# what apply() returns per frame (SI): the image route, the direct regression, the modulus
-APPLIED = ("cal_x", "cal_y", "cal_depth", "cal_diameter", *(f"direct_{o}" for o in OUTPUTS), "outside", "modulus")
+# what apply() returns per frame (SI): the image route, the direct regression, the modulus, and
+# the emulator's fits (NaN from a map without one): per frame, and a press's frames jointly
+APPLIED = ("cal_x", "cal_y", "cal_depth", "cal_diameter", *(f"direct_{o}" for o in OUTPUTS), "outside", "modulus",
+           *(f"model_{p}" for p in PARAMETERS), *(f"press_{p}" for p in PARAMETERS))
+PRESS_MIN_DEPTH = 0.3e-3  # m: a press's frames fitted jointly are those the regression puts this deep or more
 
 
 @dataclass(frozen=True)
@@ -73,6 +77,7 @@ class CalibrationMap:
     versions: dict[str, str] = field(default_factory=dict)
     created: str = ""
     region: dict[str, Any] = field(default_factory=dict)
+    emulator: Emulator | None = None  # of the coupled model (model-based estimation); None in maps before it
 
     def check_scene(self, scene: Scene, what: str = "this calibration map") -> None:
         """Refuse (SceneMismatchError naming the values) a scene of another sensor."""
@@ -111,7 +116,25 @@ class CalibrationMap:
                                             metrics["diameter"][press_in])
             lookup = dict(zip(ids.tolist(), E.tolist()))
             out["modulus"] = np.array([lookup.get(i, np.nan) for i in g.tolist()])
+        out.update(self._model_based(voltage_features(frames["voltages"], dv), direct[:, :4], frames.get("group")))
         return out
+
+    def _model_based(self, features: np.ndarray, start: np.ndarray, group: np.ndarray | None) -> dict[str, np.ndarray]:
+        """The emulator's fits (:mod:`.emulator`) from the regression's estimates: each frame's, and
+        with ``group`` each press's frames at least PRESS_MIN_DEPTH deep jointly (x, y and the
+        diameter shared); NaN without an emulator."""
+        n = len(features)
+        model, press = np.full((n, 4), np.nan), np.full((n, 4), np.nan)
+        if self.emulator is not None:
+            model = fit_frames(self.emulator, features, start)[0]
+            if group is not None:
+                g = np.asarray(group)
+                for k in np.unique(g):
+                    i = np.flatnonzero((g == k) & (start[:, 2] >= PRESS_MIN_DEPTH))
+                    if len(i):
+                        press[i] = fit_press(self.emulator, features[i], start[i])[0]
+        return {**{f"model_{p}": model[:, j] for j, p in enumerate(PARAMETERS)},
+                **{f"press_{p}": press[:, j] for j, p in enumerate(PARAMETERS)}}
 
 
 def trained_region(xy: np.ndarray, depth: np.ndarray, diameter: np.ndarray) -> dict[str, Any]:
@@ -201,6 +224,14 @@ def save_map(cmap: CalibrationMap, path: str | Path) -> Path:
             for name in ("levels", "x_mean", "x_scale", "powers", "coef"):
                 t.create_dataset(name, data=getattr(st, name))
             t.attrs.update(estimable=st.estimable, reason=st.reason, intercept=st.intercept)
+            if (emu := cmap.emulator) is not None:
+                e = h5.create_group("emulator")
+                for name in ("t_mean", "t_scale", "x_mean", "components", "x_scale", "covariance"):
+                    e.create_dataset(name, data=getattr(emu, name))
+                for i, (W, b) in enumerate(zip(emu.weights, emu.biases)):
+                    e.create_dataset(f"W{i}", data=W)
+                    e.create_dataset(f"b{i}", data=b)
+                e.attrs.update(layers=len(emu.weights), parameters=_json(list(PARAMETERS)))
     return path
 
 
@@ -245,8 +276,15 @@ def load_map(path: str | Path) -> CalibrationMap:
         t = h5["stiffness"]
         st = StiffnessModel(bool(t.attrs["estimable"]), str(t.attrs["reason"]), t["levels"][()], t["x_mean"][()],
                             t["x_scale"][()], t["powers"][()], t["coef"][()], float(t.attrs["intercept"]))
+        emu = None
+        if "emulator" in h5:
+            e = h5["emulator"]
+            k = int(e.attrs["layers"])
+            emu = Emulator(e["t_mean"][()], e["t_scale"][()], tuple(e[f"W{i}"][()] for i in range(k)),
+                           tuple(e[f"b{i}"][()] for i in range(k)), e["x_mean"][()], e["components"][()], e["x_scale"][()],
+                           e["covariance"][()])
         return CalibrationMap(
             json.loads(a["fingerprint"]), com, size, str(a["size_route"]), reg, st, json.loads(a["source"]),
             json.loads(a["settings"]), json.loads(a["evaluation"]), json.loads(a["versions"]), str(a["created"]),
-            json.loads(a["region"]) if "region" in a else {},
+            json.loads(a["region"]) if "region" in a else {}, emu,
         )
