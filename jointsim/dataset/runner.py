@@ -52,6 +52,7 @@ from .._cores import THREAD_VARIABLES, available_cores, run_local
 from ..geometry import electrode_layout
 from ..io.records import open_records
 from ..io.store import RecordStore, attach, exclusive, open_store, readable_records, set_aside
+from ..linalg import SOLVER_VARIABLE, preferred_backend
 from ..mesh.chamber import ChamberMesh
 from ..mesh.electrodes import disc_patches
 from ..mesh.tetmesh import TetMesh
@@ -144,7 +145,7 @@ _WORKER_LOCK = threading.Lock()
 
 def _worker(path: str, scene: Scene, seed: int, presses: PressList | None) -> tuple[DatasetSetup, RecordStore]:
     """This process's set-up and store writer for the run at ``path``, built on first use."""
-    key = (path, seed, scene.digest(), None if presses is None else json.dumps(presses.to_record()))
+    key = (path, seed, scene.digest(), None if presses is None else json.dumps(presses.to_record()), preferred_backend())
     if _WORKER.get("key") != key:
         if "setup" in _WORKER:
             _WORKER.pop("setup").free()
@@ -157,9 +158,12 @@ def _worker(path: str, scene: Scene, seed: int, presses: PressList | None) -> tu
 
 
 def _run_group(path: str, scene: Scene, seed: int, group: int, n_samples: int,
-               presses: PressList | None = None) -> tuple[int, int, list[str], float]:
-    """Compute and store ``group`` (one record file); returns (group, samples, why draws were rejected, s)."""
+               presses: PressList | None = None, solver: str = "auto") -> tuple[int, int, list[str], float]:
+    """Compute and store ``group`` (one record file) with the driver's sparse ``solver`` (a Dask
+    worker does not inherit the driver's environment); returns (group, samples, why draws were
+    rejected, s)."""
     with _WORKER_LOCK:  # one group at a time per process: the set-up is not thread-safe
+        os.environ[SOLVER_VARIABLE] = solver
         t0 = time.perf_counter()
         setup, store = _worker(path, scene, seed, presses)
         records, rejected = setup.group(group)
@@ -326,7 +330,7 @@ def generate_dataset(
             if progress is not None:
                 progress(result[1])
 
-        tasks = [(str(final), scene, int(seed), int(g), int(n_samples), presses) for g in todo]
+        tasks = [(str(final), scene, int(seed), int(g), int(n_samples), presses, preferred_backend()) for g in todo]
         if tasks:
             if scheduler is not None:
                 _run_dask(tasks, scheduler, tick)
