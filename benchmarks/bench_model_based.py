@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from jointsim.calibration.data import load_samples, split_groups, voltage_features  # noqa: E402
-from jointsim.calibration.emulator import fit_emulator, fit_frames, fit_press  # noqa: E402
+from jointsim.calibration.emulator import fit_emulator, fit_frames, fit_presses  # noqa: E402
 from jointsim.calibration.regression import noisy_features  # noqa: E402
 
 COPIES = 3  # fresh noise draws of each held-out sample at the goals' SNR
@@ -48,10 +48,7 @@ def _estimates(emu, reg, F: np.ndarray, groups: np.ndarray) -> dict:
     """The three estimators' θ (n, 4) and the emulator's covariances on features ``F``."""
     direct = reg(F)[:, :4]
     frames, cov_f = fit_frames(emu, F, direct)
-    press, cov_p = np.full_like(frames, np.nan), np.full_like(cov_f, np.nan)
-    for g in np.unique(groups):
-        i = np.flatnonzero(groups == g)
-        press[i], cov_p[i] = fit_press(emu, F[i], direct[i])
+    press, cov_p = fit_presses(emu, F, direct, groups)
     return {"direct": (direct, None), "emulator_frame": (frames, cov_f), "emulator_press": (press, cov_p)}
 
 
@@ -76,15 +73,13 @@ def split(samples, seed: int) -> dict:
 
     tr, te = split_groups(samples.group, 0.2, seed)
     A, B = samples.subset(tr), samples.subset(te)
-    theta = lambda s: np.column_stack([s.position[:, :2], s.depth, s.size])  # noqa: E731
-    clean = lambda s: voltage_features(s.voltages_clean, s.voltages_clean - s.reference_clean)  # noqa: E731
     rng = np.random.default_rng([seed, 7])
     snr = (float(A.snr_db.min()), float(A.snr_db.max()))
-    noise = noisy_features(A.voltages_clean, A.reference_clean, snr, A.reference_frames, 1, rng) - clean(A)
+    noise = noisy_features(A.voltages_clean, A.reference_clean, snr, A.reference_frames, 1, rng) - A.clean_features
     t0 = time.perf_counter()
-    emu = fit_emulator(clean(A), theta(A), A.group, noise, seed=seed)
+    emu = fit_emulator(A.clean_features, A.press, A.group, noise, seed=seed)
     t_emu = time.perf_counter() - t0
-    Zb, Tb = emu.whiten(clean(B)), theta(B)
+    Zb, Tb = emu.whiten(B.clean_features), B.press
     r2 = 1.0 - float(((Zb - emu(Tb)) ** 2).sum() / ((Zb - Zb.mean(axis=0)) ** 2).sum())
     t0 = time.perf_counter()
     cal = calibrate(samples, Settings(seed=seed), progress=lambda _: None)  # the direct regression as `jointsim calibrate` fits it

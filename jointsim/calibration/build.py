@@ -21,7 +21,7 @@ from ..io.provenance import package_versions, utc_now
 from .com import fit_com_map
 from .curves import ALONG, LevelCurves, default_levels, fit_level_curves, value_at
 from .data import Samples, split_groups, voltage_features
-from .emulator import Emulator, fit_emulator, fit_frames, fit_press
+from .emulator import Emulator, fit_emulator, fit_frames, fit_presses
 from .maps import PRESS_MIN_DEPTH, VERSION_PACKAGES, CalibrationMap, outside_region, trained_region
 from .regression import KINDS, OUTPUTS, fit_regressor, moved_by_symmetry, noisy_features, regression_targets
 from .stiffness import decades, fit_stiffness, force_sensitivity, group_features
@@ -208,21 +208,16 @@ def _model_based(train: Samples, test: Samples, start: np.ndarray, inside: np.nd
     noise's draws at the training SNRs), and its held-out fits from the regression's estimates
     ``start``: per frame, and each press's frames at least PRESS_MIN_DEPTH deep jointly. (the
     emulator, the evaluation, the goals' rows by route)."""
-    clean = lambda s: voltage_features(s.voltages_clean, s.voltages_clean - s.reference_clean)  # noqa: E731
-    theta = lambda s: np.column_stack([s.position[:, :2], s.depth, s.size])  # noqa: E731
     rng = np.random.default_rng([seed, 11])
     snr = (float(train.snr_db.min()), float(train.snr_db.max()))
-    noise = noisy_features(train.voltages_clean, train.reference_clean, snr, train.reference_frames, 1, rng) - clean(train)
-    emu = fit_emulator(clean(train), theta(train), train.group, noise, seed=seed)
-    Z, T = emu.whiten(clean(test)), theta(test)
+    clean = train.clean_features
+    noise = noisy_features(train.voltages_clean, train.reference_clean, snr, train.reference_frames, 1, rng) - clean
+    emu = fit_emulator(clean, train.press, train.group, noise, seed=seed)
+    Z, T = emu.whiten(test.clean_features), test.press
     r2 = 1.0 - float(((Z - emu(T)) ** 2).sum() / ((Z - Z.mean(axis=0)) ** 2).sum())
     features = voltage_features(test.voltages, test.dv)
     frame = fit_frames(emu, features, start)[0]
-    press = np.full_like(frame, np.nan)
-    for g in np.unique(test.group):
-        i = np.flatnonzero((test.group == g) & (start[:, 2] >= PRESS_MIN_DEPTH))
-        if len(i):
-            press[i] = fit_press(emu, features[i], start[i])[0]
+    press = fit_presses(emu, features, start, test.group, PRESS_MIN_DEPTH)[0]
     ev, goal = {"emulator_r2": r2, "press_min_depth_m": PRESS_MIN_DEPTH}, {}
     in_range = (test.size >= SIZE_RANGE[0] - 1e-12) & (test.size <= SIZE_RANGE[1] + 1e-12)
     for name, P in (("per frame", frame), ("press", press)):

@@ -102,6 +102,17 @@ class Samples:
                 "force": self.force_mag}[name]
 
     @property
+    def press(self) -> np.ndarray:
+        """The press θ = (x, y, depth, diameter) (n, 4) m the emulator maps to features: the
+        :attr:`position`'s x, y, the depth past first contact, the target's diameter."""
+        return np.column_stack([self.position[:, :2], self.depth, self.size])
+
+    @property
+    def clean_features(self) -> np.ndarray:
+        """:func:`voltage_features` of the noise-free voltages against the noise-free reference (n, 256)."""
+        return voltage_features(self.voltages_clean, self.voltages_clean - self.reference_clean)
+
+    @property
     def has_clean(self) -> bool:
         """Whether the noise-free voltages are there (fresh noise can be drawn)."""
         return self.voltages_clean is not None and self.reference_clean is not None

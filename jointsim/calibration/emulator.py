@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["PARAMETERS", "Emulator", "fit_emulator", "fit_frames", "fit_press"]
+__all__ = ["PARAMETERS", "Emulator", "fit_emulator", "fit_frames", "fit_press", "fit_presses"]
 
 PARAMETERS = ("x", "y", "depth", "diameter")
 HIDDEN = (128, 128)
@@ -168,4 +168,17 @@ def fit_press(emulator: Emulator, features: np.ndarray, start: np.ndarray) -> tu
     for j, i in enumerate(np.flatnonzero(ok)):
         sel = [0, 1, 3 + j, 2]  # x, y, depth_j, diameter in θ's order
         cov[i] = P[np.ix_(sel, sel)]
+    return est, cov
+
+
+def fit_presses(emulator: Emulator, features: np.ndarray, start: np.ndarray, group: np.ndarray,
+                min_depth: float = -np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`fit_press` for each press of ``group`` (n,): its frames that ``start`` puts at least
+    ``min_depth`` deep, fitted jointly; θ̂ (n, 4) m and covariances (n, 4, 4) m², NaN for the
+    frames left out."""
+    est, cov = np.full((len(features), 4), np.nan), np.full((len(features), 4, 4), np.nan)
+    for k in np.unique(group):
+        i = np.flatnonzero((group == k) & (start[:, 2] >= min_depth))
+        if len(i):
+            est[i], cov[i] = fit_press(emulator, features[i], start[i])
     return est, cov

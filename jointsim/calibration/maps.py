@@ -37,7 +37,7 @@ from ..scene import Scene
 from .com import ComMap
 from .curves import LevelCurves, Monotone
 from .data import voltage_features
-from .emulator import PARAMETERS, Emulator, fit_frames, fit_press
+from .emulator import PARAMETERS, Emulator, fit_frames, fit_presses
 from .fingerprint import check_fingerprint, sensor_fingerprint
 from .regression import OUTPUTS, DirectRegressor
 from .stiffness import StiffnessModel
@@ -105,7 +105,8 @@ class CalibrationMap:
                    "rms_dv": np.sqrt(np.mean(dv**2, axis=1)), "force": fmag}
         out = {"cal_x": pos[:, 0], "cal_y": pos[:, 1], "cal_depth": pos[:, 2],
                "cal_diameter": self.size_of(metrics, pos[:, 2], fmag)}
-        direct = self.regressor(voltage_features(frames["voltages"], dv))
+        features = voltage_features(frames["voltages"], dv)
+        direct = self.regressor(features)
         out.update({f"direct_{o}": direct[:, i] for i, o in enumerate(OUTPUTS)})
         out["outside"] = outside_region(self.region, direct[:, :2], direct[:, 2], direct[:, 3])
         out["modulus"] = np.full(n, np.nan)
@@ -116,7 +117,7 @@ class CalibrationMap:
                                             metrics["diameter"][press_in])
             lookup = dict(zip(ids.tolist(), E.tolist()))
             out["modulus"] = np.array([lookup.get(i, np.nan) for i in g.tolist()])
-        out.update(self._model_based(voltage_features(frames["voltages"], dv), direct[:, :4], frames.get("group")))
+        out.update(self._model_based(features, direct[:, :4], frames.get("group")))
         return out
 
     def _model_based(self, features: np.ndarray, start: np.ndarray, group: np.ndarray | None) -> dict[str, np.ndarray]:
@@ -128,11 +129,7 @@ class CalibrationMap:
         if self.emulator is not None:
             model = fit_frames(self.emulator, features, start)[0]
             if group is not None:
-                g = np.asarray(group)
-                for k in np.unique(g):
-                    i = np.flatnonzero((g == k) & (start[:, 2] >= PRESS_MIN_DEPTH))
-                    if len(i):
-                        press[i] = fit_press(self.emulator, features[i], start[i])[0]
+                press = fit_presses(self.emulator, features, start, np.asarray(group), PRESS_MIN_DEPTH)[0]
         return {**{f"model_{p}": model[:, j] for j, p in enumerate(PARAMETERS)},
                 **{f"press_{p}": press[:, j] for j, p in enumerate(PARAMETERS)}}
 
