@@ -356,13 +356,15 @@ class PatternSolver:
         self._definite = False
 
     def factor(self, data: np.ndarray) -> None:
-        A = sp.csr_matrix((np.asarray(data, self._dtype), self.indices, self.indptr), shape=(self.n, self.n))
-        self._A = A
-        if self.backend == "cudss":
+        if self.backend == "cudss":  # the values go to the GPU as given: no host matrix to keep
             self._factor_cudss(data)
             if self.spd and not self._definite:
+                self._A = None
                 raise RuntimeError(f"cuDSS: the matrix is not positive definite (info {self._gpu.info})")
+            self._A = True  # a factor to solve with
             return
+        A = sp.csr_matrix((np.asarray(data, self._dtype), self.indices, self.indptr), shape=(self.n, self.n))
+        self._A = A
         if self.backend != "pardiso":
             self._factor_superlu(A)
             return
@@ -412,9 +414,11 @@ class PatternSolver:
         if not self.spd:
             raise ValueError("try_factor: for Cholesky solvers (spd=True) only")
         if self.backend == "cudss":
-            self._factor_cudss(data)
-            self._A = True if self._definite else None  # a factor to solve with, or none
-            return self._definite
+            try:
+                self.factor(data)
+            except RuntimeError:
+                return False  # no factor to solve with
+            return True
         if self.backend != "pardiso":
             try:
                 self.factor(data)

@@ -312,10 +312,10 @@ def generate_dataset(
         store = open_store(final, schema, scene_toml=scene_toml if scene_toml is not None else f'name = "{scene.name}"\n',
                            seed=int(seed), n_records=int(n_samples), params=dataset_params(scene, n_samples, sha, presses),
                            command=command)
+        if kept:  # the presses of a damaged finished file that read back whole
+            _put_groups(final, kept, salvage[1], k, n_samples)
         # a record file damaged since it was written (a flipped byte, a truncated copy) is found
         # here, set aside and its group computed again: the run still ends with the whole data
-        if salvage is not None and kept:  # the presses of a damaged finished file that read back whole
-            _put_groups(final, kept, salvage[1], scene.dataset.samples_per_press, n_samples)
         if damaged := store.set_aside_unreadable():
             warnings.warn(f"{len(damaged)} stored record file(s) could not be read back: set aside as {damaged[0]}"
                           f"{' and others' if len(damaged) > 1 else ''}; their samples are computed again", UserWarning, stacklevel=2)
@@ -338,7 +338,7 @@ def generate_dataset(
                 run_local(tasks, min(workers, len(tasks)), tick, _run_group)
         store.finalize(compression="gzip")
         rec = open_records(final, fields=[], verify=False)
-    if salvage is not None and kept and rec.data_sha256 != salvage[2]:
+    if kept and rec.data_sha256 != salvage[2]:
         # the kept presses and the recomputed ones do not make the data the damaged file
         # recorded: trust none of it, set this one aside too and compute every press again
         again = set_aside(final)

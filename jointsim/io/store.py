@@ -397,16 +397,14 @@ class RecordStore:
 
     def set_aside_unreadable(self) -> list[Path]:
         """Read every stored record file back (all its arrays: the zip's CRC-32 checks each);
-        a file that cannot be read is renamed NAME.damaged (kept, but no longer a record), so
+        a file that cannot be read is :func:`set_aside` (kept, but no longer a record), so
         that its records count as missing and are computed again. The files set aside."""
         aside = []
         for path in _Files.scan(self.partial).paths:
             try:
                 _load(path)
             except ValueError:
-                target = path.with_name(path.name + ".damaged")
-                os.replace(path, target)
-                aside.append(target)
+                aside.append(set_aside(path))
         return aside
 
     def missing(self, n_records: int | None = None) -> np.ndarray:
