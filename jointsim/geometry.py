@@ -15,7 +15,7 @@ import trimesh
 
 from .scene import Scene, ring_positions
 
-__all__ = ["DomeSurface", "ElectrodeLayout", "spherical_cap", "isotropic_cap", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
+__all__ = ["DomeSurface", "ElectrodeLayout", "cap_height", "spherical_cap", "isotropic_cap", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
 
 
 @dataclass(frozen=True)
@@ -31,7 +31,10 @@ class DomeSurface:
 
 @dataclass(frozen=True)
 class ElectrodeLayout:
-    """Disc electrodes on the base plane: ``centres`` (n_el, 3), ``radii`` (n_el,).
+    """Disc electrodes: ``centres`` (n_el, 3), ``radii`` (n_el,), on the base plane or, where
+    ``on_membrane`` (n_el,) is set, on the membrane's inner surface: there centred where the dome
+    lies above (x, y) (z: on the nominal cap), moving with the membrane, stretching with it or
+    rigid (``membrane_patch``, :data:`~jointsim.mesh.electrodes.MEMBRANE_PATCHES`).
 
     The driven electrodes come first (the paper's ring: 0 … count−1, anticlockwise from
     ``first_angle_deg``; a layout given as data: in the order its generators made them), the
@@ -40,10 +43,17 @@ class ElectrodeLayout:
     centres: np.ndarray
     radii: np.ndarray
     ground: int
+    on_membrane: np.ndarray | None = None
+    membrane_patch: str = "stretch"
 
     @property
     def n_electrodes(self) -> int:
         return len(self.radii)
+
+    @property
+    def membrane(self) -> np.ndarray:
+        """(n_el,) bool: the electrodes on the membrane."""
+        return np.zeros(len(self.radii), bool) if self.on_membrane is None else np.asarray(self.on_membrane, bool)
 
 
 def electrode_layout(scene: Scene) -> ElectrodeLayout:
@@ -51,11 +61,22 @@ def electrode_layout(scene: Scene) -> ElectrodeLayout:
     e = scene.electrodes
     if e.discs:
         d = np.asarray(e.discs, float)
-        return ElectrodeLayout(np.column_stack([d[:, :2], np.zeros(len(d))]), d[:, 2].copy(), ground=len(d) - 1)
+        if not any(e.on_membrane):
+            return ElectrodeLayout(np.column_stack([d[:, :2], np.zeros(len(d))]), d[:, 2].copy(), ground=len(d) - 1)
+        on = np.asarray(e.on_membrane, bool)
+        z = np.where(on, cap_height(scene.chamber.base_radius, scene.chamber.dome_height, np.hypot(d[:, 0], d[:, 1])), 0.0)
+        return ElectrodeLayout(np.column_stack([d[:, :2], z]), d[:, 2].copy(), len(d) - 1, on, e.membrane_patch)
     ring = np.column_stack([ring_positions(e.count, e.ring_radius, e.first_angle_deg), np.zeros(e.count)])
     centres = np.vstack([ring, np.zeros((1, 3))])
     radii = np.append(np.full(e.count, e.diameter / 2), e.ground_diameter / 2)
     return ElectrodeLayout(centres, radii, ground=e.count)
+
+
+def cap_height(base_radius: float, height: float, rho: np.ndarray) -> np.ndarray:
+    """Height of the spherical cap of ``base_radius`` and apex ``height`` above the base at the
+    distances ``rho`` from its axis (all m)."""
+    R = (base_radius**2 + height**2) / (2 * height)
+    return np.sqrt(np.maximum(R * R - np.asarray(rho, float) ** 2, 0.0)) - (R - height)
 
 
 def spherical_cap(base_radius: float, height: float, n_rim: int = 192, n_rings: int | None = None) -> DomeSurface:

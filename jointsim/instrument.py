@@ -45,7 +45,7 @@ from .mechanics.dome import MembraneModel
 from .mechanics.geometric import indent_dome
 from .mechanics.inner_surface import InnerSurface
 from .mesh.chamber import ChamberMesh, chamber_mesh, mesh_chamber
-from .mesh.electrodes import ElectrodePatch, disc_patches
+from .mesh.electrodes import ElectrodePatch, disc_patches, layout_patches
 from .mesh.morph import MIN_QUALITY_RATIO, ChamberMorpher, DeformedChamber, MeshInversionError, deform_chamber
 from .metrics import ImageMetrics, image_metrics
 from .reconstruction.grid import ChamberGrid
@@ -128,7 +128,9 @@ class Readout:
             centres = layout.centres.copy()
             centres[: len(offsets), :2] += offsets
             radii = layout.radii
-            patches = disc_patches(reference.mesh, centres, radii, quadratic=order == 2)
+            # (electrodes on the membrane placed where the reference dome is now: at rest there)
+            patches = [p.follow(reference.mesh.nodes)
+                       for p in layout_patches(reference.mesh, replace(layout, centres=centres), quadratic=order == 2)]
         else:
             patches = reference.patches(order)
         if contact_impedance is None:
@@ -173,8 +175,12 @@ class Readout:
 
     def model(self, chamber: ChamberMesh, same_topology: bool) -> ForwardModel:
         """The forward model of ``chamber``: a morph of the reference (``same_topology``) keeps
-        its patches, pattern and solver analysis; a remesh gets its electrodes clipped anew."""
-        patches = self.patches if same_topology else self._patches_of(chamber)
+        its patches (those on the membrane followed to its nodes), pattern and solver analysis;
+        a remesh gets its electrodes clipped anew (those on the membrane carried over)."""
+        if same_topology:
+            patches = [p.follow(chamber.mesh.nodes) for p in self.patches]
+        else:
+            patches = self._patches_of(chamber)
         return self.forward.on(chamber.mesh, patches)
 
     def fields(self, chamber: ChamberMesh, same_topology: bool) -> LeadFields:
@@ -205,9 +211,13 @@ class Readout:
         self.forward.free()
 
     def _patches_of(self, chamber: ChamberMesh) -> list[ElectrodePatch]:
+        order = self.forward.order
         if self.centres is None:
-            return chamber.patches(self.forward.order)
-        return disc_patches(chamber.mesh, self.centres, self.radii, quadratic=self.forward.order == 2)
+            return chamber.carry(list(self.patches), order)
+        on = chamber.layout.membrane
+        base = disc_patches(chamber.mesh, self.centres[~on], self.radii[~on], quadratic=order == 2)
+        own = replace(chamber, electrodes=[base.pop(0) if not m else p for m, p in zip(on, chamber.electrodes)])
+        return own.carry(list(self.patches), order)
 
 
 # ---------------------------------------------------------------------------------------------

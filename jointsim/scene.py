@@ -76,8 +76,11 @@ class ElectrodeRing:
     ``ring_radius``, electrode 0 at ``first_angle_deg``, anticlockwise, and the central ground
     of ``ground_diameter``. Any other layout is ``discs``: (x, y, radius) of every electrode, the
     reference last, built in a scene by generators ([[electrodes.ring]], [[electrodes.grid]],
-    [[electrodes.disc]]); ``reference`` False when it is floating (no electrode is a passive
-    reference: the last one is the solver's, and the protocol's patterns span every electrode).
+    [[electrodes.disc]], and on the membrane [[electrodes.membrane]]); ``reference`` False when
+    it is floating (no electrode is a passive reference: the last one is the solver's, and the
+    protocol's patterns span every electrode). ``on_membrane`` (one per disc; empty: none): the
+    disc lies on the membrane's inner surface where the dome is above (x, y), and moves with it,
+    stretching or rigid (``membrane_patch``).
 
     ``contact_impedance`` has one value per driven electrode (Ω·m²), ``ground_contact_impedance``
     the reference's; ``contact_impedance_by_freq`` is optional, shape (n_frequencies, count),
@@ -94,6 +97,8 @@ class ElectrodeRing:
     first_angle_deg: float = 0.0
     discs: tuple[tuple[float, float, float], ...] = ()
     reference: bool = True
+    on_membrane: tuple[bool, ...] = ()
+    membrane_patch: str = "stretch"
 
     @property
     def is_ring(self) -> bool:
@@ -342,7 +347,8 @@ class Scene:
 # scene values added to the format after stores, maps and studies were first written, with the
 # behaviour before they existed: identities leave them out at that value
 LATER_DEFAULTS: dict[tuple[str, str], Any] = {("reconstruction", "prior"): "tikhonov", ("mesh", "rim_refinement"): 1.0,
-                                          ("mesh", "dome_rim_vertices"): 0}
+                                          ("mesh", "dome_rim_vertices"): 0, ("electrodes", "on_membrane"): (),
+                                          ("electrodes", "membrane_patch"): "stretch"}
 
 
 # --------------------------------------------------------------------------------------------
@@ -448,7 +454,8 @@ def _number_list(key: str, v: Any, n: int | None, lo: float, hi: float, lo_open:
 # [electrodes] layouts as data
 
 
-LAYOUT_GENERATORS = ("ring", "grid", "disc")
+LAYOUT_GENERATORS = ("ring", "grid", "disc", "membrane")
+MEMBRANE_PATCHES = ("stretch", "rigid")  # [electrodes] membrane_patch: how an electrode on the membrane follows it
 RING_KEYS = ("count", "ring_radius_mm", "diameter_mm", "ground_diameter_mm", "first_angle_deg")  # the paper's layout  # [[electrodes.<generator>]] tables, electrodes made in this order
 GRID_KINDS = ("square", "hex")
 MEASUREMENTS = ("reference", "adjacent")  # [drive] measure
@@ -459,16 +466,20 @@ MIN_ELECTRODE_GAP_MM = 0.1  # edge to edge: the mesher embeds every outline, and
 MAX_ELECTRODES = 129
 
 
-def _layout(t: "_Table", base_r: float) -> tuple[tuple[tuple[float, float, float], ...], bool]:
-    """The electrodes of [[electrodes.ring]], [[electrodes.grid]] and [[electrodes.disc]] (in
-    that order, each in file order) as (x, y, radius) m, the reference moved last, and whether
-    there is one ([electrodes] reference: an electrode's index in that order, or "none")."""
+def _layout(t: "_Table", base_r: float, height: float) -> tuple[tuple[tuple[float, float, float], ...], bool, tuple[bool, ...]]:
+    """The electrodes of [[electrodes.ring]], [[electrodes.grid]], [[electrodes.disc]] and
+    [[electrodes.membrane]] (in that order, each in file order) as (x, y, radius) m, the
+    reference moved last, whether there is one ([electrodes] reference: an electrode's index in
+    that order, or "none"), and which lie on the membrane (empty where none does)."""
     for k in RING_KEYS:
         if k in t.data:
             raise SceneError(f"electrodes.{k}: describes the paper's ring; with [[electrodes.ring|grid|disc]] tables "
                              "give each generator's own sizes instead")
     discs: list[tuple[float, float, float]] = []
     where: list[str] = []
+    on: list[bool] = []
+    sphere = (base_r**2 + height**2) / (2 * height)  # the cap's sphere radius, mm
+    rim_angle = math.asin(min(base_r / sphere, 1.0))  # the rim's polar angle, from the apex
     for kind in LAYOUT_GENERATORS:
         tables = t.raw(kind, [])
         if not isinstance(tables, list) or not all(isinstance(g, dict) for g in tables):
@@ -482,6 +493,16 @@ def _layout(t: "_Table", base_r: float) -> tuple[tuple[tuple[float, float, float
                 r = u.number("radius_mm", 15.0, 0.0, base_r)
                 phase = math.radians(u.number("phase_deg", 0.0, -360.0, 360.0))
                 pts = [(r * math.cos(phase + 2 * math.pi * k / n), r * math.sin(phase + 2 * math.pi * k / n)) for k in range(n)]
+            elif kind == "membrane":
+                n = u.integer("count", 16, 1, MAX_ELECTRODES)
+                # along the surface: the disc ends EDGE_CLEARANCE_MM short of the rim
+                top = math.degrees(rim_angle - (d / 2 + EDGE_CLEARANCE_MM) / sphere)
+                if top <= 0:
+                    raise SceneError(f"{name}.diameter_mm = {d:g}: too large for the dome")
+                polar = math.radians(u.number("polar_angle_deg", min(30.0, top), 0.0, top))
+                phase = math.radians(u.number("phase_deg", 0.0, -360.0, 360.0))
+                rho = sphere * math.sin(polar)
+                pts = [(rho * math.cos(phase + 2 * math.pi * k / n), rho * math.sin(phase + 2 * math.pi * k / n)) for k in range(n)]
             elif kind == "grid":
                 pitch = u.number("pitch_mm", 5.0, 0.0, base_r, lo_open=True)
                 shape = u.choice("kind", "square", GRID_KINDS)
@@ -500,15 +521,20 @@ def _layout(t: "_Table", base_r: float) -> tuple[tuple[tuple[float, float, float
             u.finish()
             discs += [(x, y, d / 2) for x, y in pts]
             where += [f"{name} electrode {k}" for k in range(len(pts))]
+            on += [kind == "membrane"] * len(pts)
     if not 3 <= len(discs) <= MAX_ELECTRODES:
         raise SceneError(f"[electrodes]: the generators make {len(discs)} electrodes; a layout has 3 to {MAX_ELECTRODES}")
     c, r = np.array([d[:2] for d in discs]), np.array([d[2] for d in discs])
-    reach = np.hypot(c[:, 0], c[:, 1]) + r
+    membrane = np.array(on)
+    # on the membrane: the points of the cap (mm), to be apart along it (chords: a little short of arcs)
+    lifted = np.column_stack([c, np.sqrt(np.maximum(sphere**2 - (c**2).sum(axis=1), 0.0)) - (sphere - height)])
+    reach = np.where(membrane, 0.0, np.hypot(c[:, 0], c[:, 1]) + r)
     if (bad := np.flatnonzero(reach > base_r - EDGE_CLEARANCE_MM + 1e-9)).size:
         k = int(bad[0])
         raise SceneError(f"{where[k]}: at ({c[k, 0]:g}, {c[k, 1]:g}) mm it reaches {reach[k]:.3g} mm from the axis; every disc must "
                          f"end {EDGE_CLEARANCE_MM:g} mm inside the base radius {base_r:g} mm")
-    gaps = _edge_gaps(c, r)
+    gaps = _edge_gaps(lifted, r)
+    gaps[membrane[:, None] != membrane[None, :]] = np.inf  # the base and the membrane: apart by the chamber
     if gaps.min() < MIN_ELECTRODE_GAP_MM:
         a, b = np.unravel_index(int(np.argmin(gaps)), gaps.shape)
         raise SceneError(f"{where[a]} and {where[b]}: {'overlap' if gaps[a, b] < 0 else 'are closer than'} "
@@ -523,7 +549,8 @@ def _layout(t: "_Table", base_r: float) -> tuple[tuple[tuple[float, float, float
         raise SceneError(f"electrodes.reference = {ref!r}: the index of the reference electrode (0 to {len(discs) - 1}, "
                          "numbered in the order the generators make them: rings, grids, discs) or \"none\" for a floating reference")
     order = [i for i in range(len(discs)) if i != k] + [k]
-    return tuple((discs[i][0] * MM, discs[i][1] * MM, discs[i][2] * MM) for i in order), reference
+    placed = tuple((discs[i][0] * MM, discs[i][1] * MM, discs[i][2] * MM) for i in order)
+    return placed, reference, tuple(on[i] for i in order) if membrane.any() else ()
 
 
 PATTERN_KEYS = ("stim_ua", "meas")  # [drive]: a protocol as data, instead of skip and measure
@@ -599,8 +626,9 @@ def _patterns_from_file(drive: dict[str, Any], scene_path: Path) -> dict[str, An
 
 
 def _edge_gaps(centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
-    """(n, n) edge-to-edge distances between the discs (negative: overlap), inf on the diagonal."""
-    gaps = np.hypot(*(centres[:, None] - centres[None]).transpose(2, 0, 1)) - radii[:, None] - radii[None]
+    """(n, n) edge-to-edge distances between the discs (centres (n, 2 or 3); negative: overlap),
+    inf on the diagonal."""
+    gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1) - radii[:, None] - radii[None]
     np.fill_diagonal(gaps, np.inf)
     return gaps
 
@@ -612,9 +640,14 @@ def ring_positions(count: int, radius: float, first_angle_deg: float) -> np.ndar
     return np.column_stack([radius * np.cos(ang), radius * np.sin(ang)])
 
 
-def _layout_room(centres: np.ndarray, radii: np.ndarray, base_r: float) -> tuple[float, float]:
-    """(smallest edge gap between electrodes, least room to the rim beyond EDGE_CLEARANCE_MM), mm."""
+def _layout_room(centres: np.ndarray, radii: np.ndarray, base_r: float, on_membrane: tuple[bool, ...] = ()) -> tuple[float, float]:
+    """(smallest edge gap between electrodes, least room to the rim beyond EDGE_CLEARANCE_MM), mm,
+    in the base plane (a membrane electrode's footprint there: a little less room than it has
+    on the dome); a base and a membrane electrode are apart by the chamber."""
     gaps = _edge_gaps(centres, radii)
+    if any(on_membrane):
+        on = np.asarray(on_membrane)
+        gaps[on[:, None] != on[None, :]] = np.inf
     edge = base_r - EDGE_CLEARANCE_MM - (np.hypot(centres[:, 0], centres[:, 1]) + radii)
     return float(gaps.min()), float(edge.min())
 
@@ -640,8 +673,9 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
 
     t = _Table(data.get("electrodes", {}), "electrodes")
     generated = [k for k in LAYOUT_GENERATORS if k in t.data]
+    on_membrane: tuple[bool, ...] = ()
     if generated:
-        discs, reference = _layout(t, base_r)
+        discs, reference, on_membrane = _layout(t, base_r, height)
         count = len(discs) - 1
         ring = diam = gdiam = first = 0.0  # the ring's own sizes: not this layout's
     else:
@@ -664,12 +698,15 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     )
     zg = t.number("ground_contact_impedance_ohm_m2", 1e-3, 0.0, 1.0, lo_open=True)
     zf_raw = t.raw("contact_impedance_by_freq_ohm_m2", None)
+    patch = t.choice("membrane_patch", "stretch", MEMBRANE_PATCHES)
+    if patch != "stretch" and not any(on_membrane):
+        raise SceneError(f"electrodes.membrane_patch = {patch!r}: only for electrodes on the membrane ([[electrodes.membrane]])")
     t.finish()
     # room each electrode has: to its nearest neighbour's edge, and to the base's rim (mm)
     centres = (np.array([(d[0], d[1]) for d in discs]) / MM if discs else
                np.vstack([ring_positions(count, ring, first), [0.0, 0.0]]))
     radii = np.array([d[2] for d in discs]) / MM if discs else np.append(np.full(count, diam / 2), gdiam / 2)
-    gap, edge = _layout_room(centres, radii, base_r)
+    gap, edge = _layout_room(centres, radii, base_r, on_membrane)
 
     t = _Table(data.get("saline", {}), "saline")
     sigma = t.number("conductivity_s_per_m", 0.37, 0.0, 100.0, lo_open=True)
@@ -761,7 +798,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     return Scene(
         name=name,
         chamber=chamber,
-        electrodes=ElectrodeRing(count, ring * MM, diam * MM, gdiam * MM, z, zg, zf, first, discs, reference),
+        electrodes=ElectrodeRing(count, ring * MM, diam * MM, gdiam * MM, z, zg, zf, first, discs, reference, on_membrane, patch),
         saline=Saline(sigma),
         drive=Drive(current * 1e-6, freqs, skip, measure, stim, meas),
         noise=Noise(snr, seed, drift, rate),

@@ -117,7 +117,7 @@ def _fit(scene, inst, v_ref, n_frames: int) -> dict:
     z0 = np.append(np.asarray(e.contact_impedance), e.ground_contact_impedance)
     f = fit_reference(ch.mesh, ch.layout.centres, ch.layout.radii, ch.ground, scene_protocol(scene), v_ref,
                       scene.saline.conductivity, z0, inst.readout.noise_std / np.sqrt(n_frames),
-                      order=scene.mesh.element_order)
+                      order=scene.mesh.element_order, membrane=ch.layout.membrane, membrane_patch=ch.layout.membrane_patch)
     move = np.linalg.norm(f.centres[:, :2] - ch.layout.centres[:, :2], axis=1)
     return {"conductivity_s_per_m": f.conductivity, "contact_impedance_ohm_m2": f.contact_impedance.tolist(),
             "centres_mm": np.round(f.centres * 1e3, 6).tolist(), "largest_move_mm": float(move.max() * 1e3),

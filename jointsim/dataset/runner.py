@@ -54,7 +54,7 @@ from ..io.records import open_records
 from ..io.store import RecordStore, attach, exclusive, open_store, readable_records, set_aside
 from ..linalg import SOLVER_VARIABLE, preferred_backend
 from ..mesh.chamber import ChamberMesh
-from ..mesh.electrodes import disc_patches
+from ..mesh.electrodes import layout_patches
 from ..mesh.tetmesh import TetMesh
 from ..instrument import deployed_chamber
 from ..scene import Scene
@@ -133,7 +133,7 @@ def _load_chamber(partial: Path, scene: Scene) -> tuple[ChamberMesh, str]:
     sha = h.hexdigest()
     mesh = TetMesh(nodes, tets)
     layout = electrode_layout(scene)
-    return ChamberMesh(mesh, disc_patches(mesh, layout.centres, layout.radii), layout, f"dataset-{sha[:20]}"), sha
+    return ChamberMesh(mesh, layout_patches(mesh, layout), layout, f"dataset-{sha[:20]}"), sha
 
 
 # --------------------------------------------------------------------------------------------

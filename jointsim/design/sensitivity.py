@@ -91,7 +91,8 @@ def electrode_moves(inst: Instrument, step: float) -> list:
     """The instrument's electrode discs moved by ±``step`` (:func:`~jointsim.eit.parameters.moved_discs`),
     clipped once on the reference chamber's base (which no morph moves)."""
     layout = inst.reference.layout
-    return moved_discs(inst.reference.mesh, layout.centres, layout.radii, step, inst.readout.forward.order == 2)
+    return moved_discs(inst.reference.mesh, layout.centres, layout.radii, step, inst.readout.forward.order == 2,
+                       layout.membrane, layout.membrane_patch)
 
 
 def _electrical(inst: Instrument, chamber, moves: list, step: float) -> np.ndarray:

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..mesh.electrodes import disc_patches
+from ..mesh.electrodes import place_discs
 from ..mesh.tetmesh import TetMesh
 from .forward import ForwardModel
 from .parameters import conductivity_sensitivity, contact_impedance_sensitivity, electrode_position_sensitivity, moved_discs
@@ -52,7 +52,8 @@ class ElectricalFit:
 def fit_reference(mesh: TetMesh, centres: np.ndarray, radii: np.ndarray, ground: int, protocol: Protocol,
                   v_meas: np.ndarray, conductivity: float, contact_impedance: np.ndarray, noise_std: float, *,
                   positions: bool = True, order: int = 1, prior_log: float = 1.0, prior_position: float = 0.5e-3,
-                  max_iterations: int = 30, rtol: float = 1e-10) -> ElectricalFit:
+                  max_iterations: int = 30, rtol: float = 1e-10, membrane: np.ndarray | None = None,
+                  membrane_patch: str = "stretch") -> ElectricalFit:
     """Fit the reference frame ``v_meas`` (n_meas,) V of the chamber ``mesh`` with disc
     electrodes (``centres`` (n_el, 3), ``radii`` (n_el,) m, the ``ground``'s index) under
     ``protocol``, from the scene's ``conductivity`` and ``contact_impedance`` (n_el,); with
@@ -75,7 +76,8 @@ def fit_reference(mesh: TetMesh, centres: np.ndarray, radii: np.ndarray, ground:
     def solve(theta: np.ndarray):
         """(residual, the fields it came from, the centres) at ``theta``: one factorisation."""
         sigma, z, c = unpack(theta)
-        model = ForwardModel(mesh, disc_patches(mesh, c, radii, quadratic=order == 2), ground, z, "auto", order)
+        patches = [p.follow(mesh.nodes) for p in place_discs(mesh, c, radii, membrane, membrane_patch, order == 2)]
+        model = ForwardModel(mesh, patches, ground, z, "auto", order)
         fields = model.solve(sigma)
         return fields.voltages(protocol) - v_meas, fields, c
 
@@ -84,7 +86,7 @@ def fit_reference(mesh: TetMesh, centres: np.ndarray, radii: np.ndarray, ground:
         dz = contact_impedance_sensitivity(fields, protocol)
         cols = [conductivity_sensitivity(fields, protocol, dz)[:, None], dz.T]
         if moving:  # every disc moved (in the model's patch order), the moving ones kept
-            moved = moved_discs(mesh, c, radii, POSITION_STEP, quadratic=order == 2)
+            moved = moved_discs(mesh, c, radii, POSITION_STEP, order == 2, membrane, membrane_patch)
             dc = electrode_position_sensitivity(fields, protocol, moved, POSITION_STEP)[moving]  # (k, 2, n_meas)
             cols.append(dc.reshape(-1, protocol.n_meas).T)
         return np.hstack(cols)

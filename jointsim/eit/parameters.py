@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..mesh.electrodes import ElectrodePatch, disc_patches
+from ..mesh.electrodes import ElectrodePatch, place_discs
 from ..mesh.tetmesh import TetMesh
 from .forward import LeadFields
 from .protocol import Protocol
@@ -74,17 +74,21 @@ def conductivity_sensitivity(fields: LeadFields, protocol: Protocol, dz: np.ndar
 
 
 def moved_discs(mesh: TetMesh, centres: np.ndarray, radii: np.ndarray, step: float = 1e-5,
-                quadratic: bool = False) -> list[list[tuple[ElectrodePatch, ElectrodePatch]]]:
+                quadratic: bool = False, membrane: np.ndarray | None = None,
+                membrane_patch: str = "stretch") -> list[list[tuple[ElectrodePatch, ElectrodePatch]]]:
     """Each disc electrode's patch clipped with its centre moved by ±``step`` m along x and y:
     ``[l][axis] = (plus, minus)``. ``centres`` (n_el, 3), ``radii`` (n_el,) m: the discs the
-    model's patches were clipped from. A morph keeps the base, so one set serves every frame."""
+    model's patches were clipped from (``membrane`` (n_el,): those on the membrane, moved in
+    the footprint they have on the base plane, placed on the dome). A morph keeps the base, so
+    one set serves every frame; those on the membrane follow it where they are used."""
+    on = np.zeros(len(radii), bool) if membrane is None else np.asarray(membrane, bool)
     out = []
-    for c, r in zip(np.asarray(centres, float), np.asarray(radii, float)):
+    for c, r, up in zip(np.asarray(centres, float), np.asarray(radii, float), on):
         pair = []
         for a in range(2):
             d = np.zeros(3)
             d[a] = step
-            plus, minus = disc_patches(mesh, np.array([c + d, c - d]), np.array([r, r]), quadratic=quadratic)
+            plus, minus = place_discs(mesh, np.array([c + d, c - d]), np.array([r, r]), np.array([up, up]), membrane_patch, quadratic)
             pair.append((plus, minus))
         out.append(pair)
     return out
@@ -96,8 +100,10 @@ def electrode_position_sensitivity(fields: LeadFields, protocol: Protocol,
     central differences of its patch's moments (:func:`moved_discs` at ``step``; O(step²)),
     the fields held."""
     out = np.empty((len(moved), 2, protocol.n_meas))
+    nodes = fields.model.mesh.nodes
     for l, pair in enumerate(moved):
         for a, (plus, minus) in enumerate(pair):
+            plus, minus = plus.follow(nodes), minus.follow(nodes)
             dQ = (electrode_form(fields, plus, l) - electrode_form(fields, minus, l)) / (2 * step)
             out[l, a] = transfer_voltages(-dQ / fields.z[l], protocol)
     return out

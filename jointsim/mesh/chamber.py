@@ -32,7 +32,7 @@ import trimesh
 
 from ..geometry import DOME_RIM_VERTICES, ElectrodeLayout, chamber_surface, electrode_layout, isotropic_cap
 from ..scene import MeshSpec, Scene
-from .electrodes import ElectrodePatch, disc_patches
+from .electrodes import ElectrodePatch, carry_patches, disc_patches, layout_patches
 from .tetmesh import MeshQuality, TetMesh, mesh_quality
 
 __all__ = ["ChamberMesh", "mesh_chamber", "chamber_mesh", "reference_surface", "cache_dir"]
@@ -59,12 +59,16 @@ _GMSH_LOCK = threading.Lock()  # gmsh is one global state per process
 @dataclass(frozen=True, eq=False)
 class ChamberMesh:
     """A meshed chamber: ``mesh``, ``electrodes`` (one patch per electrode, ring first, ground
-    last), ``layout`` and the ``ground`` electrode index."""
+    last; those on the membrane as they were placed, see :meth:`patches`), ``layout`` and the
+    ``ground`` electrode index. ``carried``: on a remesh of a deformed chamber with electrodes
+    on the membrane, the index here of each node of the chamber it was made from (−1: none), by
+    which patches placed on that one are carried here (:meth:`carry`)."""
 
     mesh: TetMesh
     electrodes: list[ElectrodePatch]
     layout: ElectrodeLayout
     key: str = ""
+    carried: np.ndarray | None = None
 
     @property
     def ground(self) -> int:
@@ -74,11 +78,26 @@ class ChamberMesh:
         return mesh_quality(self.mesh)
 
     def patches(self, order: int) -> list[ElectrodePatch]:
-        """The electrode patches for elements of ``order``: the chamber's own (P1 moments), or
-        for P2 clipped again from the same discs with P2 moments."""
-        if order == 2 and any(p.q1 is None for p in self.electrodes):
-            return disc_patches(self.mesh, self.layout.centres, self.layout.radii, quadratic=True)
-        return list(self.electrodes)
+        """The electrode patches for elements of ``order`` where the nodes are now: the
+        chamber's own (P1 moments), or for P2 clipped again from the same discs with P2
+        moments; those on the membrane (which have both) followed to the nodes
+        (:meth:`ElectrodePatch.follow`)."""
+        patches = list(self.electrodes)
+        if order == 2 and any(p.q1 is None for p in patches):
+            base = np.flatnonzero(~self.layout.membrane)
+            for i, p in zip(base, disc_patches(self.mesh, self.layout.centres[base], self.layout.radii[base], quadratic=True)):
+                patches[i] = p
+        return [p.follow(self.mesh.nodes) for p in patches]
+
+    def carry(self, patches: list[ElectrodePatch], order: int) -> list[ElectrodePatch]:
+        """``patches`` (placed on the chamber this one was remeshed from; one per electrode)
+        here: those on the membrane carried over (:attr:`carried`) and followed to the nodes,
+        the others as :meth:`patches` has them."""
+        own = self.patches(order)
+        if self.carried is None or not self.layout.membrane.any():
+            return own
+        moved = carry_patches(patches, self.carried)
+        return [own[i] if m is None else m.follow(self.mesh.nodes) for i, m in enumerate(moved)]
 
 
 def cache_dir() -> Path:
@@ -93,11 +112,16 @@ def _size_expression(layout: ElectrodeLayout, spec: MeshSpec) -> str:
     min(·, h_max / rim_refinement + grading · d_rim(x)), d_rim the distance to the nearest
     electrode's outline (its rim circle)."""
     d = d_rim = None
-    for (x0, y0, _), r in zip(layout.centres, layout.radii):
-        rho = f"Sqrt((x-({x0:.17g}))^2+(y-({y0:.17g}))^2)"
-        term = f"Sqrt(Max({rho}-{r + spec.refinement_zone:.17g},0)^2+z^2)"
+    for (x0, y0, z0), r, up in zip(layout.centres, layout.radii, layout.membrane):
+        if up:  # on the membrane: from the 3-D distance to its centre, on the nominal cap
+            dist = f"Sqrt((x-({x0:.17g}))^2+(y-({y0:.17g}))^2+(z-({z0:.17g}))^2)"
+            term = f"Max({dist}-{r + spec.refinement_zone:.17g},0)"
+            rim = f"Abs({dist}-{r:.17g})"
+        else:
+            rho = f"Sqrt((x-({x0:.17g}))^2+(y-({y0:.17g}))^2)"
+            term = f"Sqrt(Max({rho}-{r + spec.refinement_zone:.17g},0)^2+z^2)"
+            rim = f"Sqrt(Abs({rho}-{r:.17g})^2+z^2)"
         d = term if d is None else f"Min({d},{term})"
-        rim = f"Sqrt(Abs({rho}-{r:.17g})^2+z^2)"
         d_rim = rim if d_rim is None else f"Min({d_rim},{rim})"
     h = f"Min({spec.max_edge:.17g},{spec.max_edge / spec.electrode_refinement:.17g}+{spec.grading:.17g}*{d})"
     if spec.rim_refinement > 1.0:
@@ -111,13 +135,18 @@ def mesh_chamber(
     spec: MeshSpec,
     *,
     use_cache: bool = True,
+    carry_from: ChamberMesh | None = None,
 ) -> ChamberMesh:
     """Tetrahedralise a watertight chamber surface (base on z = 0) and tag its electrodes.
 
     The faces on z = 0 (the base) are re-meshed with the electrode outlines embedded; the
     others are kept as they are. The result is cached under :func:`cache_dir` by a hash
     of the surface, the electrode layout and the mesh spec; a second call with the same inputs
-    loads it instead of meshing (and meshing again would give the same mesh)."""
+    loads it instead of meshing (and meshing again would give the same mesh).
+
+    Electrodes on the membrane are placed on the dome's faces (where the layout puts them), or,
+    for a remesh of ``carry_from`` (a deformed chamber whose boundary is ``surface``), carried
+    over from it by its dome nodes, which the mesher keeps (:attr:`ChamberMesh.carried`)."""
     if not surface.is_watertight:
         raise ValueError("surface: the chamber surface must be watertight")
     if len(surface.faces) == 0 or not np.all(np.isfinite(surface.vertices)):
@@ -131,7 +160,24 @@ def mesh_chamber(
         mesh = _tetrahedralise(surface, layout, spec)
         if use_cache:
             _atomic_savez(path, nodes=mesh.nodes, tets=mesh.tets)
-    return ChamberMesh(mesh, disc_patches(mesh, layout.centres, layout.radii), layout, key)
+    if carry_from is None or not layout.membrane.any():
+        return ChamberMesh(mesh, layout_patches(mesh, layout), layout, key)
+    carried = _node_map(carry_from.mesh.nodes, mesh.nodes)
+    patches = carry_patches(carry_from.electrodes, carried)
+    base = np.flatnonzero(~layout.membrane)
+    for i, patch in zip(base, disc_patches(mesh, layout.centres[base], layout.radii[base])):
+        patches[i] = patch
+    return ChamberMesh(mesh, patches, layout, key, carried)
+
+
+def _node_map(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """For each point of ``source`` (n, 3), the index of the point of ``target`` at the same place
+    (to 1e-9 of the extent), −1 where none is."""
+    from scipy.spatial import cKDTree
+
+    tol = 1e-9 * float(np.ptp(target, axis=0).max())
+    dist, index = cKDTree(target).query(source, distance_upper_bound=tol)
+    return np.where(np.isfinite(dist), index, -1)
 
 
 def chamber_mesh(scene: Scene, **kw) -> ChamberMesh:
@@ -229,7 +275,7 @@ def _mesh_base(rim: np.ndarray, layout: ElectrodeLayout, spec: MeshSpec) -> tupl
         sides = [geo.addLine(corners[i], corners[(i + 1) % len(corners)]) for i in range(len(corners))]
         plane = geo.addPlaneSurface([geo.addCurveLoop(sides)])
         arcs = []
-        for (x0, y0, _), r in zip(layout.centres, layout.radii):
+        for (x0, y0, _), r in zip(layout.centres[~layout.membrane], layout.radii[~layout.membrane]):
             centre = geo.addPoint(x0, y0, 0.0)
             q = [geo.addPoint(x0 + r * c, y0 + r * s, 0.0) for c, s in ((1, 0), (0, 1), (-1, 0), (0, -1))]
             arcs += [geo.addCircleArc(q[i], centre, q[(i + 1) % 4]) for i in range(4)]
@@ -291,6 +337,8 @@ def _hash(surface: trimesh.Trimesh, layout: ElectrodeLayout, spec: MeshSpec) -> 
     h.update(repr((spec.max_edge, spec.electrode_refinement, spec.refinement_zone, spec.grading)).encode())
     if spec.rim_refinement > 1.0:  # off, the field and the key are what they were before the rim term
         h.update(repr(("rim", spec.rim_refinement)).encode())
+    if layout.membrane.any():  # (the patches are not in the cached file; the size field is)
+        h.update(layout.membrane.tobytes())
     return h.hexdigest()[:20]
 
 

@@ -10,20 +10,44 @@ area is mesh noise. Here each base triangle is clipped against the electrode dis
 independent of the mesh) and the moments of the barycentric coordinates are integrated
 exactly over the clipped polygon (closed forms for P1, a degree-4 rule on each piece of the
 polygon for P2: exact for its degree-4 products).
+
+Electrodes on the membrane (:func:`surface_disc_patch`) lie on the chamber's curved dome: the
+disc is clipped in the plane tangent to the surface at its centre (the faces projected onto it;
+barycentric moments are invariant under that affine map, and each face's are scaled by its
+area over its projection's), and the patch is scaled to the electrode's area πr². Such a patch
+moves with the membrane (:class:`Carried`, :meth:`ElectrodePatch.follow`): a *stretching*
+electrode keeps its region of each face, so its moments scale with the face's area, exactly on
+the deformed triangles; a *rigid* one (a flexible printed patch) is clipped anew each frame as
+the same disc at its carried centre, over a fixed superset of faces (the CEM pattern then does
+not change).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..geometry import ElectrodeLayout
+from ..scene import MEMBRANE_PATCHES
 from .tetmesh import TetMesh
 
 __all__ = [
-    "electrode_tags", "ElectrodePatch", "disc_patches", "plane_face_patch", "FACE_EDGES", "p2_face_basis"]
+    "electrode_tags", "ElectrodePatch", "Carried", "disc_patches", "surface_disc_patch", "layout_patches", "place_discs", "carry_patches",
+    "plane_face_patch", "FACE_EDGES", "p2_face_basis", "MEMBRANE_PATCHES"]
 
 N_POLY = 256
+# the polygon of N_POLY sides with the unit disc's area: R_p² · (N/2) sin(2π/N) = π
+_POLY_SCALE = np.sqrt(2 * np.pi / (N_POLY * np.sin(2 * np.pi / N_POLY)))
+_ANGLES = 2 * np.pi * (np.arange(N_POLY) + 0.5) / N_POLY
+UNIT_POLY = _POLY_SCALE * np.column_stack([np.cos(_ANGLES), np.sin(_ANGLES)])
+
+# a rigid patch's fixed faces: those within this × its radius of its centre at rest (room for
+# the membrane under it to shrink to 1/RIGID_REACH before the disc leaves them)
+RIGID_REACH = 2.0
+# faces turned more than ~73° from the tangent plane are not clipped (their projection is
+# degenerate; on a dome they lie far outside a disc that is small against its radius)
+MIN_FACING = 0.3
 FACE_EDGES = np.array([[0, 1], [1, 2], [2, 0]])  # the edges of a face's P2 basis, after its vertices
 # Dunavant's 6-point rule, exact to degree 4 on a triangle: (barycentrics, weight / area)
 _D4_A, _D4_B = 0.445948490915965, 0.091576213509771
@@ -48,13 +72,28 @@ def electrode_tags(n_nodes: int, patches: list["ElectrodePatch"]) -> np.ndarray:
     return tags
 
 
+@dataclass(frozen=True, eq=False)
+class Carried:
+    """How a patch on the membrane follows its faces (:meth:`ElectrodePatch.follow`):
+    ``face_area`` (k,) the full areas of the patch's faces where its moments were taken;
+    ``rigid``: the same disc of ``radius`` m clipped anew at its centre (barycentrics
+    ``centre_bary`` (3,) of face ``centre_face`` of the patch) instead of stretching with the faces."""
+
+    face_area: np.ndarray
+    rigid: bool = False
+    radius: float = 0.0
+    centre_face: int = 0
+    centre_bary: np.ndarray | None = None
+
+
 @dataclass(frozen=True)
 class ElectrodePatch:
     """One electrode: ``faces`` (k, 3) node indices of the boundary triangles it touches and,
     per face, ``area`` (k,) of the covered part, ``m1`` (k, 3) = ∫ λ_a dS and
     ``m2`` (k, 3, 3) = ∫ λ_a λ_b dS over the covered part (λ: the face's barycentrics), and,
     where asked for, the same moments ``q1`` (k, 6), ``q2`` (k, 6, 6) of the P2 basis
-    (:func:`p2_face_basis`; None otherwise: on the clipped discs they add ~30 % to the patches' cost)."""
+    (:func:`p2_face_basis`; None otherwise: on the clipped discs they add ~30 % to the patches' cost).
+    ``carried``: how a patch on the membrane follows its faces (None: it does not move)."""
 
     faces: np.ndarray
     area: np.ndarray
@@ -62,6 +101,25 @@ class ElectrodePatch:
     m2: np.ndarray
     q1: np.ndarray | None = None
     q2: np.ndarray | None = None
+    carried: Carried | None = None
+
+    def follow(self, nodes: np.ndarray) -> "ElectrodePatch":
+        """This patch where its faces' nodes are at ``nodes`` (n, 3): itself where it does not
+        move; a stretching one's moments scaled by each face's area now over its area where
+        they were taken (its region of every face kept: exact on the deformed triangles); a
+        rigid one clipped anew as its disc at its carried centre."""
+        c = self.carried
+        if c is None:
+            return self
+        p = nodes[self.faces]
+        now = replace(c, face_area=_areas(p))
+        if c.rigid:
+            centre = c.centre_bary @ p[c.centre_face]
+            return ElectrodePatch(self.faces, *_surface_moments(p, centre, c.radius, quadratic=self.q1 is not None), carried=now)
+        s = now.face_area / c.face_area
+        scaled = [m * s.reshape((-1,) + (1,) * (m.ndim - 1)) if m is not None else None
+                  for m in (self.area, self.m1, self.m2, self.q1, self.q2)]
+        return ElectrodePatch(self.faces, *scaled, carried=now)
 
     def moments(self, order: int) -> tuple[np.ndarray, np.ndarray]:
         """(∫ φ_a dS, ∫ φ_a φ_b dS) per face for the basis of elements of ``order`` (1 or 2)."""
@@ -88,6 +146,8 @@ class ElectrodePatch:
 
     @classmethod
     def concat(cls, patches: list["ElectrodePatch"]) -> "ElectrodePatch":
+        if any(p.carried is not None for p in patches):
+            raise ValueError("ElectrodePatch.concat: patches on the membrane cannot be joined")
         fields = ("faces", "area", "m1", "m2") + (("q1", "q2") if all(p.q1 is not None for p in patches) else ())
         return cls(*(np.concatenate([getattr(p, f) for p in patches]) for f in fields))
 
@@ -116,10 +176,7 @@ def disc_patches(
     on = np.all(np.abs(mesh.nodes[f][..., 2]) <= plane_tol, axis=1)
     base = f[on]
     xy = mesh.nodes[base][..., :2]  # (k, 3, 2)
-    # polygon with the disc's area: R_p² · (N/2) sin(2π/N) = r²π
-    ang = 2 * np.pi * (np.arange(N_POLY) + 0.5) / N_POLY
-    scale = np.sqrt(2 * np.pi / (N_POLY * np.sin(2 * np.pi / N_POLY)))
-    unit_poly = scale * np.column_stack([np.cos(ang), np.sin(ang)])
+    unit_poly, scale = UNIT_POLY, _POLY_SCALE
     patches = []
     lo, hi = xy.min(axis=1), xy.max(axis=1)
     for k, (c, r) in enumerate(zip(np.asarray(centres)[:, :2], radii)):
@@ -136,6 +193,123 @@ def disc_patches(
             )
         patches.append(patch)
     return patches
+
+
+def surface_disc_patch(mesh: TetMesh, centre_xy: np.ndarray, radius: float, *, rigid: bool = False) -> ElectrodePatch:
+    """A disc electrode of ``radius`` m on the chamber's dome (its boundary faces off z = 0),
+    centred where the dome lies above ``centre_xy`` (2,) m, carried by the membrane
+    (:class:`Carried`; ``rigid``: a patch that keeps its shape, else one that stretches). P1 and
+    P2 moments. Raises ValueError when no dome face lies above the point or the disc is not
+    covered by dome faces."""
+    nodes = mesh.nodes
+    f = mesh.boundary_faces
+    dome = f[~np.all(np.abs(nodes[f][..., 2]) <= 1e-9 * np.ptp(nodes), axis=1)]
+    p = nodes[dome]
+    face, bary = _above(p, np.asarray(centre_xy, float))
+    centre = bary @ p[face]
+    near = np.flatnonzero(np.linalg.norm(p - centre, axis=2).min(axis=1) <= RIGID_REACH * radius)
+    near = np.union1d(near, [face])
+    moments = _surface_moments(p[near], centre, radius, quadratic=True)
+    # a stretching patch keeps the faces it covers; a rigid one all those it may come to cover
+    keep = np.arange(len(near)) if rigid else np.flatnonzero(moments[0] > 1e-14 * radius * radius)
+    carried = Carried(_areas(p[near[keep]]), rigid, float(radius), int(np.searchsorted(near, face)), bary)
+    return ElectrodePatch(dome[near[keep]], *(m[keep] for m in moments), carried=carried)
+
+
+def layout_patches(mesh: TetMesh, layout: ElectrodeLayout, quadratic: bool = False) -> list[ElectrodePatch]:
+    """The patches of every electrode of ``layout`` on ``mesh``, in its order (:func:`place_discs`)."""
+    return place_discs(mesh, layout.centres, layout.radii, layout.membrane, layout.membrane_patch, quadratic)
+
+
+def place_discs(mesh: TetMesh, centres: np.ndarray, radii: np.ndarray, membrane: np.ndarray | None = None,
+                membrane_patch: str = "stretch", quadratic: bool = False) -> list[ElectrodePatch]:
+    """Disc electrodes (``centres`` (n, 3), ``radii`` (n,) m) on ``mesh``: on the base clipped
+    (:func:`disc_patches`), where ``membrane`` (n,) bool is set on the dome above (x, y)
+    (:func:`surface_disc_patch`, which has P2 moments always; ``membrane_patch`` one of
+    :data:`MEMBRANE_PATCHES`)."""
+    if membrane_patch not in MEMBRANE_PATCHES:
+        raise ValueError(f"membrane_patch = {membrane_patch!r}: allowed values are {list(MEMBRANE_PATCHES)}")
+    centres, radii = np.asarray(centres, float), np.asarray(radii, float)
+    on = np.zeros(len(radii), bool) if membrane is None else np.asarray(membrane, bool)
+    patches: list[ElectrodePatch | None] = [None] * len(radii)
+    base = np.flatnonzero(~on)
+    for i, patch in zip(base, disc_patches(mesh, centres[base], radii[base], quadratic=quadratic)):
+        patches[i] = patch
+    for i in np.flatnonzero(on):
+        patches[i] = surface_disc_patch(mesh, centres[i, :2], float(radii[i]), rigid=membrane_patch == "rigid")
+    return patches  # type: ignore[return-value]
+
+
+def carry_patches(patches: list[ElectrodePatch], carried: np.ndarray) -> list[ElectrodePatch]:
+    """The patches on the membrane among ``patches`` renumbered onto another mesh of the same
+    dome faces (``carried``: each node of theirs, its index there; −1 where it has none); the
+    others as None (to be clipped on that mesh). Raises ValueError where a face is not there."""
+    out: list[ElectrodePatch | None] = []
+    for p in patches:
+        if p.carried is None:
+            out.append(None)
+            continue
+        faces = carried[p.faces]
+        if (faces < 0).any():
+            raise ValueError("carry_patches: an electrode on the membrane lies on faces the new mesh does not have")
+        out.append(replace(p, faces=faces))
+    return out  # type: ignore[return-value]
+
+
+def _areas(p: np.ndarray) -> np.ndarray:
+    """Areas (k,) of the triangles p (k, 3, 3)."""
+    return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+
+
+def _above(p: np.ndarray, xy: np.ndarray) -> tuple[int, np.ndarray]:
+    """The highest of the triangles ``p`` (k, 3, 3) whose projection on z = 0 holds ``xy``, and
+    the point's barycentrics (3,) on it."""
+    t = p[..., :2]
+    d1, d2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    det = _cross2(d1, d2)
+    ok = np.abs(det) > 0
+    r = xy - t[:, 0]
+    l1 = np.where(ok, _cross2(r, d2) / np.where(ok, det, 1), -1)
+    l2 = np.where(ok, _cross2(d1, r) / np.where(ok, det, 1), -1)
+    lam = np.column_stack([1 - l1 - l2, l1, l2])
+    inside = np.flatnonzero(ok & (lam >= -1e-12).all(axis=1))
+    if not inside.size:
+        raise ValueError(f"electrode on the membrane at ({xy[0] * 1e3:g}, {xy[1] * 1e3:g}) mm: no dome face lies above it")
+    z = np.einsum("ka,ka->k", lam[inside], p[inside, :, 2])
+    k = int(inside[np.argmax(z)])
+    return k, np.clip(lam[k], 0.0, 1.0) / np.clip(lam[k], 0.0, 1.0).sum()
+
+
+def _surface_moments(p: np.ndarray, centre: np.ndarray, radius: float, quadratic: bool) -> tuple[np.ndarray, ...]:
+    """The moments (area, m1, m2[, q1, q2]) over the triangles ``p`` (k, 3, 3) of the disc of
+    ``radius`` at ``centre`` on them: clipped in the plane tangent at the centre (the mean
+    normal of the faces within ``radius``), each face's moments scaled by its area over its
+    projection's, the whole scaled to the disc's area πr². Raises ValueError where the faces do
+    not cover the disc."""
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])  # 2·area × unit normal
+    area3 = 0.5 * np.linalg.norm(n, axis=1)
+    close = np.linalg.norm(p - centre, axis=2).min(axis=1) <= radius
+    normal = n[close].sum(axis=0) if close.any() else n[np.argmin(np.linalg.norm(p.mean(axis=1) - centre, axis=1))]
+    normal = normal / np.linalg.norm(normal)
+    e1 = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    tri = np.stack([(p - centre) @ e1, (p - centre) @ e2], axis=-1) / radius  # the unit disc's frame
+    facing = (n @ normal) > MIN_FACING * 2 * area3
+    k = len(p)
+    width = 6 if quadratic else 3
+    out = [np.zeros(k), np.zeros((k, 3)), np.zeros((k, 3, 3))] + ([np.zeros((k, width)), np.zeros((k, width, width))] if quadratic else [])
+    got = _clip_moments(tri[facing], UNIT_POLY, quadratic)
+    covered = float(got[0].sum())  # of the unit polygon's area π
+    if abs(covered / np.pi - 1) > 1e-9:
+        raise ValueError(f"electrode on the membrane: the dome's faces cover {covered / np.pi:.4%} of its disc "
+                         "(it reaches past the faces it was given)")
+    projected = 0.5 * np.abs(_cross2(tri[facing, 1] - tri[facing, 0], tri[facing, 2] - tri[facing, 0]))
+    to_surface = area3[facing] / projected  # m² of the face per unit area of its projection
+    for o, g in zip(out, got):
+        o[facing] = g * to_surface.reshape((-1,) + (1,) * (g.ndim - 1))
+    total = out[0].sum()
+    return tuple(o * (np.pi * radius * radius / total) for o in out)
 
 
 def _clip_moments(tri: np.ndarray, poly: np.ndarray, quadratic: bool = False) -> tuple[np.ndarray, ...]:

@@ -394,7 +394,12 @@ def _without(chamber: ChamberMesh, nodes: np.ndarray, keep: np.ndarray, tag: str
         raise MeshInversionError("pull-back: a dropped surface sliver touches an electrode")
     new = np.cumsum(used) - 1
     electrodes = [replace(e, faces=new[e.faces]) for e in chamber.electrodes]
-    return replace(chamber, mesh=TetMesh(nodes[used], new[tets]), electrodes=electrodes, key=f"{chamber.key}-{tag}")
+    carried = None
+    if chamber.carried is not None:  # a node dropped here is no longer where it was carried to
+        ok = chamber.carried >= 0
+        carried = np.where(ok, np.where(used[np.where(ok, chamber.carried, 0)], new[np.where(ok, chamber.carried, 0)], -1), -1)
+    return replace(chamber, mesh=TetMesh(nodes[used], new[tets]), electrodes=electrodes, key=f"{chamber.key}-{tag}",
+                   carried=carried)
 
 
 @dataclass(frozen=True, eq=False)
@@ -499,11 +504,14 @@ def remeshed(chamber: ChamberMesh, deformed: DomeSurface, reference: DomeSurface
 
 
 def _remesh(morpher: ChamberMorpher, deformed: DomeSurface, spec: MeshSpec, use_cache: bool) -> ChamberMesh:
-    """A new mesh of the reference chamber's boundary moved onto ``deformed``."""
+    """A new mesh of the reference chamber's boundary moved onto ``deformed`` (electrodes on the
+    membrane carried over from the morph, whose dome faces the new mesh keeps)."""
     mesh = morpher.chamber.mesh
-    surface = trimesh.Trimesh(mesh.nodes + morpher.displacement(deformed), mesh.boundary_faces, process=True, validate=False)
+    moved = mesh.nodes + morpher.displacement(deformed)
+    surface = trimesh.Trimesh(moved, mesh.boundary_faces, process=True, validate=False)
     surface.fix_normals()
-    return mesh_chamber(surface, morpher.chamber.layout, spec, use_cache=use_cache)
+    carry = replace(morpher.chamber, mesh=mesh.moved(moved)) if morpher.chamber.layout.membrane.any() else None
+    return mesh_chamber(surface, morpher.chamber.layout, spec, use_cache=use_cache, carry_from=carry)
 
 
 def _digest(a: np.ndarray) -> str:
