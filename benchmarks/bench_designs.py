@@ -3,7 +3,8 @@
     python benchmarks/bench_designs.py [--mesh dataset]   # writes results/designs.{md,json}
 
 Designs: the shipped scenes ``paper_sensor`` (16-electrode ring, central ground), ``ring16_inner8``
-(the ring plus 8 internal electrodes) and ``grid5x5`` (a floating 5 × 5 grid), each at the same
+(the ring plus 8 internal electrodes), ``grid5x5`` (a floating 5 × 5 grid) and ``membrane16`` (the
+ring's 16 electrodes on the membrane, stretching with it), each at the same
 chamber, membrane, drive current and noise level (74.2 dB re its own mean standing |V|). Per
 design: electrodes, measurements, chamber tets, the instrument's set-up stages; for one press
 (a 15 mm sphere, 2 mm past first contact, geometric, on the inflated membrane) at 0, 5, 10 and
@@ -38,7 +39,7 @@ from jointsim.reconstruction.grid import ChamberGrid  # noqa: E402
 from jointsim.scene import SCENES_DIR, load_scene  # noqa: E402
 from jointsim.studies.protocol_study import jittered_chamber  # noqa: E402
 
-DESIGNS = ("paper_sensor", "ring16_inner8", "grid5x5")
+DESIGNS = ("paper_sensor", "ring16_inner8", "grid5x5", "membrane16")
 OFFSETS_MM = (0.0, 5.0, 10.0, 13.0)
 RADIUS, DEPTH = 7.5e-3, 2e-3
 

@@ -152,3 +152,25 @@ def test_bad_membrane_layouts_are_refused_naming_the_key(table, match):
     data["electrodes"].setdefault("disc", [{"xy_mm": [0.0, 0.0], "diameter_mm": 4.0}])
     with pytest.raises(SceneError, match=match):
         scene_from_dict(data)
+
+
+def test_the_jobs_run_with_electrodes_on_the_membrane(membrane16):
+    """A dataset group (its driven electrodes jittered: those on the membrane moved in their footprint
+    and placed on the dome again) and the protocol study run on membrane16; a press moves the
+    electrodes on the membrane, so their δV is not zero, and a rigid patch reads the press
+    otherwise than a stretching one."""
+    from jointsim.dataset.generate import DatasetSetup
+    from jointsim.instrument import deployed_chamber
+    from jointsim.studies.protocol_study import StudyConfig, run_protocol_study
+
+    setup = DatasetSetup(membrane16, deployed_chamber(membrane16), seed=1)
+    try:
+        records, _ = setup.group(0, 2)
+    finally:
+        setup.free()
+    assert records[0]["electrode_jitter"].shape == (16, 2) and records[0]["dv"].shape == (256,)
+    assert 0 < np.abs(records[0]["dv_clean"]).max() < np.abs(records[1]["dv_clean"]).max()
+    cfg = StudyConfig(skips=(8,), positions=((0.0, 0.0),), noise_repeats=2, n_cells=1000, mesh_floor=False)
+    stretch = run_protocol_study(membrane16, cfg).dv_clean[8]
+    rigid = run_protocol_study(replace(membrane16, electrodes=replace(membrane16.electrodes, membrane_patch="rigid")), cfg).dv_clean[8]
+    assert np.abs(stretch).max() > 0 and np.abs(rigid - stretch).max() > 1e-3 * np.abs(stretch).max()
