@@ -20,13 +20,15 @@ from .protocol_study import StudyResult
 __all__ = ["write_study"]
 
 
-def write_study(result: StudyResult, out: Path, command: str) -> list[Path]:
+def write_study(result: StudyResult, out: Path, command: str, *, vtu: bool = True) -> list[Path]:
+    """The study's table (CSV, Markdown), figures, JSON and, with ``vtu``, its images and
+    sensitivity densities on the voxels for ParaView, into ``out``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rows = result.table()
     written = [_csv(out / "table.csv", rows), _markdown(out / "table.md", result, rows, command)]
     written += _figures(out, result, rows)
-    for s in result.config.skips:
+    for s in result.config.skips if vtu else ():
         data = {f"pos{i}": result.images[s][i] for i in range(len(result.config.positions))}
         data["volume_fraction"] = result.grid.volume_fraction
         if s in result.sensitivity:
