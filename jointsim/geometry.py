@@ -1,9 +1,10 @@
 """Sensor geometry: the domed saline chamber's surface and the electrode layout on its base.
 
-The chamber is a flat circular base (z = 0, outward normal −z) closed by a dome. The dome is
-passed around as a :class:`DomeSurface` (a triangle mesh whose boundary is the rim circle), so
-the parametric spherical cap and a mechanically deformed membrane go through the same path:
-``chamber_surface(dome)`` welds any dome to the base and returns a watertight trimesh.
+The chamber is a flat base (z = 0, outward normal −z; a disc, or for an elongated pad an
+ellipse) closed by a dome. The dome is passed around as a :class:`DomeSurface` (a triangle mesh
+whose boundary is the rim), so the parametric cap (:func:`chamber_cap`: the spherical cap, or
+that cap stretched along y for a pad) and a mechanically deformed membrane go through the same
+path: ``chamber_surface(dome)`` welds any dome to the base and returns a watertight trimesh.
 """
 
 from __future__ import annotations
@@ -13,16 +14,16 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from .scene import Scene, ring_positions
+from .scene import Chamber, Scene, ring_positions
 
-__all__ = ["DomeSurface", "ElectrodeLayout", "cap_height", "spherical_cap", "isotropic_cap", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
+__all__ = ["DomeSurface", "ElectrodeLayout", "cap_height", "chamber_cap", "spherical_cap", "isotropic_cap", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
 
 
 @dataclass(frozen=True)
 class DomeSurface:
     """The dome's inner surface: ``vertices`` (n, 3) in m, ``faces`` (m, 3), ``rim`` (k,) the
-    indices of the boundary loop, which lies on the circle r = base_radius, z = 0, ordered
-    anticlockwise seen from +z."""
+    indices of the boundary loop, which lies on the base's outline (the circle r = base_radius,
+    or a pad's ellipse) in z = 0, ordered anticlockwise seen from +z."""
 
     vertices: np.ndarray
     faces: np.ndarray
@@ -64,7 +65,9 @@ def electrode_layout(scene: Scene) -> ElectrodeLayout:
         if not any(e.on_membrane):
             return ElectrodeLayout(np.column_stack([d[:, :2], np.zeros(len(d))]), d[:, 2].copy(), ground=len(d) - 1)
         on = np.asarray(e.on_membrane, bool)
-        z = np.where(on, cap_height(scene.chamber.base_radius, scene.chamber.dome_height, np.hypot(d[:, 0], d[:, 1])), 0.0)
+        c = scene.chamber
+        rho = np.hypot(d[:, 0], d[:, 1] / c.y_scale)  # on a pad: where on the round cap the point came from
+        z = np.where(on, cap_height(c.base_radius, c.dome_height, rho), 0.0)
         return ElectrodeLayout(np.column_stack([d[:, :2], z]), d[:, 2].copy(), len(d) - 1, on, e.membrane_patch)
     ring = np.column_stack([ring_positions(e.count, e.ring_radius, e.first_angle_deg), np.zeros(e.count)])
     centres = np.vstack([ring, np.zeros((1, 3))])
@@ -170,6 +173,18 @@ def isotropic_cap(base_radius: float, height: float, n_rim: int = 96, apex_edge:
     return DomeSurface(verts, np.vstack(faces).astype(np.int64), np.arange(n_rim))
 
 
+def chamber_cap(chamber: Chamber, n_rim: int = 96, apex_edge: float | None = None) -> DomeSurface:
+    """The dome of ``chamber`` as :func:`isotropic_cap` triangulates it: the spherical cap of its
+    base radius and height, or, for an elongated pad, that cap stretched along y to the pad's
+    semi-axis (its triangles stretched with it)."""
+    cap = isotropic_cap(chamber.base_radius, chamber.dome_height, n_rim, apex_edge)
+    if chamber.base_radius_y is None:
+        return cap
+    v = cap.vertices.copy()
+    v[:, 1] *= chamber.y_scale
+    return DomeSurface(v, cap.faces, cap.rim)
+
+
 def flat_disc(base_radius: float, n_rim: int = 96) -> DomeSurface:
     """A flat disc of radius ``base_radius`` in the base plane, triangulated as
     :func:`isotropic_cap` in its limit of zero height (the same rings and symmetry): the inner
@@ -207,10 +222,12 @@ def chamber_surface(dome: DomeSurface) -> trimesh.Trimesh:
     outward-oriented surface. Raises ValueError naming what is wrong if it is not closed."""
     v = np.asarray(dome.vertices, float)
     rim = np.asarray(dome.rim)
-    rim_xy = v[rim, :2]
-    rim_r = np.hypot(*rim_xy.T)
-    if len(rim) < 8 or np.ptp(rim_r) > 1e-6 * rim_r.max() or np.abs(v[rim, 2]).max() > 1e-9:
-        raise ValueError("dome.rim: must be a loop of >= 8 vertices on the circle r = base_radius, z = 0")
+    if len(rim) < 8 or np.abs(v[rim, 2]).max() > 1e-9:
+        raise ValueError("dome.rim: must be a loop of >= 8 vertices in the base plane z = 0")
+    # the base is a fan from the axis: its rim must turn once around it, anticlockwise
+    turn = np.diff(np.unwrap(np.arctan2(v[rim, 1], v[rim, 0])))
+    if not (turn > 0).all():
+        raise ValueError("dome.rim: must run once around the axis, anticlockwise seen from +z (a star-shaped base)")
     centre = len(v)
     verts = np.vstack([v, [0.0, 0.0, 0.0]])
     # base normal must point −z: the rim runs anticlockwise seen from +z, so reverse it
@@ -230,9 +247,15 @@ DOME_RIM_VERTICES = 96  # a multiple of 16: a 22.5° rotation maps the dome tria
 
 
 def dome_from_scene(scene: Scene, n_rim: int = DOME_RIM_VERTICES) -> DomeSurface:
-    """The undeformed inner dome surface of ``scene``."""
+    """The undeformed inner dome surface of ``scene`` (structured in polar rings; a pad's
+    stretched along y)."""
     c = scene.chamber
-    return spherical_cap(c.base_radius, c.dome_height, n_rim)
+    cap = spherical_cap(c.base_radius, c.dome_height, n_rim)
+    if c.base_radius_y is None:
+        return cap
+    v = cap.vertices.copy()
+    v[:, 1] *= c.y_scale
+    return DomeSurface(v, cap.faces, cap.rim)
 
 
 def chamber_from_scene(scene: Scene, n_rim: int = DOME_RIM_VERTICES) -> trimesh.Trimesh:

@@ -330,7 +330,7 @@ def deployed_chamber(scene: Scene, dome: DomeSurface | None = None, **kw) -> Cha
         return chamber_mesh(scene, **kw)
     if dome is None:
         model = _resting_membrane(scene)
-        dome = InnerSurface.of(model, scene.chamber.base_radius, inflated=True).dome(None)
+        dome = InnerSurface.of(model, scene.chamber.base_radius, inflated=True, y_scale=scene.chamber.y_scale).dome(None)
     return mesh_chamber(chamber_surface(dome), electrode_layout(scene), scene.mesh, **kw)
 
 
@@ -390,7 +390,7 @@ class Instrument:
             with timed(t, "membrane"):
                 model = _resting_membrane(scene, device) if membrane is None else membrane
                 inflated_u = model.u[: model.mesh.n_nodes].copy() if flat else None
-                surface = InnerSurface.of(model, scene.chamber.base_radius, inflated=flat)
+                surface = InnerSurface.of(model, scene.chamber.base_radius, inflated=flat, y_scale=scene.chamber.y_scale)
                 membrane_dome = surface.dome(None)  # the inner surface the morpher maps from
                 reference_dome = surface.dome(model.u)
         with timed(t, "chamber"):

@@ -60,11 +60,25 @@ class SceneError(ValueError):
 
 @dataclass(frozen=True)
 class Chamber:
-    """Saline chamber: a spherical-cap dome over a flat circular base (SI units)."""
+    """Saline chamber: a spherical-cap dome over a flat circular base (SI units), or, where
+    ``base_radius_y`` is given, an elongated pad: that cap stretched along y to an elliptical
+    base of semi-axes ``base_radius`` (x) and ``base_radius_y`` (y), the same height."""
 
     base_radius: float = 20 * MM
     dome_height: float = 10 * MM
     membrane_thickness: float = 2 * MM
+    base_radius_y: float | None = None
+
+    @property
+    def y_scale(self) -> float:
+        """The pad's stretch along y (1 for the round dome)."""
+        return 1.0 if self.base_radius_y is None else self.base_radius_y / self.base_radius
+
+    def inside(self, xy: np.ndarray, inset: float | np.ndarray = 0.0) -> np.ndarray:
+        """Whether the points ``xy`` (n, 2) m lie inside the base outline moved ``inset`` m in."""
+        xy = np.atleast_2d(np.asarray(xy, float))
+        a, b = self.base_radius - inset, self.base_radius * self.y_scale - inset
+        return (xy[:, 0] / a) ** 2 + (xy[:, 1] / b) ** 2 <= 1.0
 
 
 @dataclass(frozen=True)
@@ -347,6 +361,7 @@ class Scene:
 # scene values added to the format after stores, maps and studies were first written, with the
 # behaviour before they existed: identities leave them out at that value
 LATER_DEFAULTS: dict[tuple[str, str], Any] = {("reconstruction", "prior"): "tikhonov", ("mesh", "rim_refinement"): 1.0,
+                                          ("chamber", "base_radius_y"): None,
                                           ("mesh", "dome_rim_vertices"): 0, ("electrodes", "on_membrane"): (),
                                           ("electrodes", "membrane_patch"): "stretch"}
 
@@ -464,13 +479,16 @@ MEASUREMENTS = ("reference", "adjacent")  # [drive] measure
 EDGE_CLEARANCE_MM = 0.5
 MIN_ELECTRODE_GAP_MM = 0.1  # edge to edge: the mesher embeds every outline, and they must not touch
 MAX_ELECTRODES = 129
+PAD_STRETCH_MAX = 4.0  # [chamber] base_radius_y_mm within this factor of base_radius_mm (the cap's triangles stretch with it)
 
 
-def _layout(t: "_Table", base_r: float, height: float) -> tuple[tuple[tuple[float, float, float], ...], bool, tuple[bool, ...]]:
+def _layout(t: "_Table", base_r: float, height: float, base_ry: float) -> tuple[tuple[tuple[float, float, float], ...], bool, tuple[bool, ...]]:
     """The electrodes of [[electrodes.ring]], [[electrodes.grid]], [[electrodes.disc]] and
     [[electrodes.membrane]] (in that order, each in file order) as (x, y, radius) m, the
     reference moved last, whether there is one ([electrodes] reference: an electrode's index in
-    that order, or "none"), and which lie on the membrane (empty where none does)."""
+    that order, or "none"), and which lie on the membrane (empty where none does). ``base_ry``:
+    the base's semi-axis along y (an elongated pad where it is not ``base_r``: the cap and the
+    membrane's electrodes stretched along y with it)."""
     for k in RING_KEYS:
         if k in t.data:
             raise SceneError(f"electrodes.{k}: describes the paper's ring; with [[electrodes.ring|grid|disc]] tables "
@@ -502,7 +520,8 @@ def _layout(t: "_Table", base_r: float, height: float) -> tuple[tuple[tuple[floa
                 polar = math.radians(u.number("polar_angle_deg", min(30.0, top), 0.0, top))
                 phase = math.radians(u.number("phase_deg", 0.0, -360.0, 360.0))
                 rho = sphere * math.sin(polar)
-                pts = [(rho * math.cos(phase + 2 * math.pi * k / n), rho * math.sin(phase + 2 * math.pi * k / n)) for k in range(n)]
+                sy = base_ry / base_r  # on a pad, the cap's points stretched along y with it
+                pts = [(rho * math.cos(phase + 2 * math.pi * k / n), sy * rho * math.sin(phase + 2 * math.pi * k / n)) for k in range(n)]
             elif kind == "grid":
                 pitch = u.number("pitch_mm", 5.0, 0.0, base_r, lo_open=True)
                 shape = u.choice("kind", "square", GRID_KINDS)
@@ -527,12 +546,21 @@ def _layout(t: "_Table", base_r: float, height: float) -> tuple[tuple[tuple[floa
     c, r = np.array([d[:2] for d in discs]), np.array([d[2] for d in discs])
     membrane = np.array(on)
     # on the membrane: the points of the cap (mm), to be apart along it (chords: a little short of arcs)
-    lifted = np.column_stack([c, np.sqrt(np.maximum(sphere**2 - (c**2).sum(axis=1), 0.0)) - (sphere - height)])
-    reach = np.where(membrane, 0.0, np.hypot(c[:, 0], c[:, 1]) + r)
-    if (bad := np.flatnonzero(reach > base_r - EDGE_CLEARANCE_MM + 1e-9)).size:
-        k = int(bad[0])
-        raise SceneError(f"{where[k]}: at ({c[k, 0]:g}, {c[k, 1]:g}) mm it reaches {reach[k]:.3g} mm from the axis; every disc must "
-                         f"end {EDGE_CLEARANCE_MM:g} mm inside the base radius {base_r:g} mm")
+    round_xy = c * [1.0, base_r / base_ry]  # where on the round cap a point of a pad came from
+    lifted = np.column_stack([c, np.sqrt(np.maximum(sphere**2 - (round_xy**2).sum(axis=1), 0.0)) - (sphere - height)])
+    if base_ry == base_r:
+        reach = np.where(membrane, 0.0, np.hypot(c[:, 0], c[:, 1]) + r)
+        if (bad := np.flatnonzero(reach > base_r - EDGE_CLEARANCE_MM + 1e-9)).size:
+            k = int(bad[0])
+            raise SceneError(f"{where[k]}: at ({c[k, 0]:g}, {c[k, 1]:g}) mm it reaches {reach[k]:.3g} mm from the axis; every disc must "
+                             f"end {EDGE_CLEARANCE_MM:g} mm inside the base radius {base_r:g} mm")
+    else:  # a pad: every disc's footprint inside the outline moved in by its radius and the clearance
+        inset = r + EDGE_CLEARANCE_MM
+        q = (c[:, 0] / (base_r - inset)) ** 2 + (c[:, 1] / (base_ry - inset)) ** 2
+        if (bad := np.flatnonzero((q > 1 + 1e-9) | (inset >= min(base_r, base_ry)))).size:
+            k = int(bad[0])
+            raise SceneError(f"{where[k]}: at ({c[k, 0]:g}, {c[k, 1]:g}) mm it does not end {EDGE_CLEARANCE_MM:g} mm inside the "
+                             f"base's outline (an ellipse of semi-axes {base_r:g} x {base_ry:g} mm)")
     gaps = _edge_gaps(lifted, r)
     gaps[membrane[:, None] != membrane[None, :]] = np.inf  # the base and the membrane: apart by the chamber
     if gaps.min() < MIN_ELECTRODE_GAP_MM:
@@ -640,15 +668,22 @@ def ring_positions(count: int, radius: float, first_angle_deg: float) -> np.ndar
     return np.column_stack([radius * np.cos(ang), radius * np.sin(ang)])
 
 
-def _layout_room(centres: np.ndarray, radii: np.ndarray, base_r: float, on_membrane: tuple[bool, ...] = ()) -> tuple[float, float]:
+def _layout_room(centres: np.ndarray, radii: np.ndarray, base_r: float, on_membrane: tuple[bool, ...] = (),
+                 base_ry: float | None = None) -> tuple[float, float]:
     """(smallest edge gap between electrodes, least room to the rim beyond EDGE_CLEARANCE_MM), mm,
     in the base plane (a membrane electrode's footprint there: a little less room than it has
-    on the dome); a base and a membrane electrode are apart by the chamber."""
+    on the dome); a base and a membrane electrode are apart by the chamber. On a pad (``base_ry``
+    the semi-axis along y) the room to its elliptical rim is bounded from below by the shorter
+    semi-axis × (1 − the point's elliptical radius)."""
     gaps = _edge_gaps(centres, radii)
     if any(on_membrane):
         on = np.asarray(on_membrane)
         gaps[on[:, None] != on[None, :]] = np.inf
-    edge = base_r - EDGE_CLEARANCE_MM - (np.hypot(centres[:, 0], centres[:, 1]) + radii)
+    if base_ry is None or base_ry == base_r:
+        edge = base_r - EDGE_CLEARANCE_MM - (np.hypot(centres[:, 0], centres[:, 1]) + radii)
+    else:
+        q = np.sqrt((centres[:, 0] / base_r) ** 2 + (centres[:, 1] / base_ry) ** 2)
+        edge = min(base_r, base_ry) * (1 - q) - EDGE_CLEARANCE_MM - radii
     return float(gaps.min()), float(edge.min())
 
 
@@ -665,17 +700,20 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
 
     t = _Table(data.get("chamber", {}), "chamber")
     base_r = t.number("base_radius_mm", 20.0, 1.0, 500.0)
+    # an elongated pad: the cap stretched along y to this semi-axis (its membrane's triangles with it)
+    base_ry = t.number("base_radius_y_mm", base_r, base_r / PAD_STRETCH_MAX, base_r * PAD_STRETCH_MAX)
     # a spherical cap taller than its base radius would be more than a hemisphere
-    height = t.number("dome_height_mm", 10.0, 0.5, base_r)
+    height = t.number("dome_height_mm", 10.0, 0.5, min(base_r, base_ry))
     thick = t.number("membrane_thickness_mm", 2.0, 0.05, min(height, 50.0), lo_open=False)
     t.finish()
-    chamber = Chamber(base_r * MM, height * MM, thick * MM)
+    chamber = Chamber(base_r * MM, height * MM, thick * MM, None if base_ry == base_r else base_ry * MM)
+    short = min(base_r, base_ry)  # the base's smaller half-width: what a disc of contact points or a ring fits in
 
     t = _Table(data.get("electrodes", {}), "electrodes")
     generated = [k for k in LAYOUT_GENERATORS if k in t.data]
     on_membrane: tuple[bool, ...] = ()
     if generated:
-        discs, reference, on_membrane = _layout(t, base_r, height)
+        discs, reference, on_membrane = _layout(t, base_r, height, base_ry)
         count = len(discs) - 1
         ring = diam = gdiam = first = 0.0  # the ring's own sizes: not this layout's
     else:
@@ -683,7 +721,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         diam = t.number("diameter_mm", 2.0, 0.0, base_r, lo_open=True)
         gdiam = t.number("ground_diameter_mm", 4.0, 0.0, base_r, lo_open=True)
         ring_lo = gdiam / 2 + diam / 2
-        ring_hi = base_r - diam / 2 - EDGE_CLEARANCE_MM
+        ring_hi = short - diam / 2 - EDGE_CLEARANCE_MM
         ring = t.number("ring_radius_mm", 15.0, ring_lo, ring_hi, lo_open=True)
         pitch = 2 * ring * math.sin(math.pi / count)
         if pitch <= diam:
@@ -706,7 +744,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     centres = (np.array([(d[0], d[1]) for d in discs]) / MM if discs else
                np.vstack([ring_positions(count, ring, first), [0.0, 0.0]]))
     radii = np.array([d[2] for d in discs]) / MM if discs else np.append(np.full(count, diam / 2), gdiam / 2)
-    gap, edge = _layout_room(centres, radii, base_r, on_membrane)
+    gap, edge = _layout_room(centres, radii, base_r, on_membrane, base_ry)
 
     t = _Table(data.get("saline", {}), "saline")
     sigma = t.number("conductivity_s_per_m", 0.37, 0.0, 100.0, lo_open=True)
@@ -785,6 +823,9 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     rim_vertices = t.integer("rim_vertices", MEMBRANE_RIM_VERTICES[preset], *MEMBRANE_RIM_RANGE)
     volumetric = t.choice("volumetric", "pointwise", ("pointwise", "mean_dilatation"))
     moulding = t.choice("moulding", "cap", MOULDINGS)
+    if moulding == "flat" and chamber.base_radius_y is not None:
+        raise SceneError("membrane.moulding = 'flat': only for a round dome (chamber.base_radius_y_mm makes an elongated pad, "
+                         "moulded as its cap)")
     element = t.choice("element", "wedge15", MEMBRANE_ELEMENTS)
     if element == "wedge15" and volumetric != "pointwise":
         raise SceneError(f"membrane.volumetric = {volumetric!r}: only 'pointwise' with membrane.element = 'wedge15' "
@@ -805,10 +846,17 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         mesh=MeshSpec(preset, max_edge * MM, refine, zone * MM, grading, element_order, update, rim, dome_rim),
         membrane=Membrane(law, mu * 1e3, tuple(c * 1e3 for c in yc), bulk_ratio, layers, p_res, closed, rim_vertices, volumetric, moulding, element),
         target=target,
-        reconstruction=_reconstruction(data.get("reconstruction", {}), base_r, height, thick),
-        palpation=_palpation(data.get("palpation", {}), base_r, height, thick, zf is not None),
-        dataset=_dataset(data.get("dataset", {}), base_r, height, float(np.max(np.hypot(*centres[:-1].T))), gap, edge, zone),
+        reconstruction=_reconstruction(data.get("reconstruction", {}), base_r, height, thick, chamber),
+        palpation=_palpation(data.get("palpation", {}), base_r, height, thick, zf is not None, chamber),
+        dataset=_dataset(data.get("dataset", {}), short, height, float(np.max(np.hypot(*centres[:-1].T))), gap, edge, zone),
     )
+
+
+def _outline(chamber: Chamber) -> str:
+    """The base's outline in words, mm."""
+    if chamber.base_radius_y is None:
+        return f"radius {chamber.base_radius / MM:g} mm about the axis"
+    return f"an ellipse of semi-axes {chamber.base_radius / MM:g} x {chamber.base_radius_y / MM:g} mm"
 
 
 def _sphere_radius(t: "_Table", radius_key: str, diameter_key: str, default: float, base_r: float) -> float:
@@ -996,7 +1044,7 @@ class ReconstructionSpec:
     prior: str = "tikhonov"
 
 
-def _reconstruction(data: dict[str, Any], base_r: float, height: float, thick: float) -> ReconstructionSpec:
+def _reconstruction(data: dict[str, Any], base_r: float, height: float, thick: float, chamber: Chamber = Chamber()) -> ReconstructionSpec:
     """Parse [reconstruction] (units in the key names); the sensor's lengths in mm."""
     t = _Table(data, "reconstruction")
     cells = t.integer("cells", 7000, 100, 200_000)
@@ -1005,8 +1053,8 @@ def _reconstruction(data: dict[str, Any], base_r: float, height: float, thick: f
     radius = _sphere_radius(t, "lambda_target_radius_mm", "lambda_target_diameter_mm", 7.5, base_r)
     depth = t.number("lambda_depth_mm", min(3.0, height / 2), 0.0, height + thick, lo_open=True)
     xy = _number_list("reconstruction.lambda_xy_mm", t.raw("lambda_xy_mm", [0.0, 0.0]), 2, -base_r, base_r, True)
-    if math.hypot(*xy) >= base_r:
-        raise SceneError(f"reconstruction.lambda_xy_mm = {list(xy)}: must lie within the base radius {base_r:g} mm of the axis")
+    if not chamber.inside(np.array(xy) * MM, 1e-12)[0]:
+        raise SceneError(f"reconstruction.lambda_xy_mm = {list(xy)}: must lie within the base ({_outline(chamber)})")
     t.finish()
     return ReconstructionSpec(cells, lam, radius * MM, depth * MM, (xy[0] * MM, xy[1] * MM), prior)
 
@@ -1073,7 +1121,7 @@ class PalpationSpec:
     fdm_contact_impedance: bool = False
 
 
-def _palpation(data: dict[str, Any], base_r: float, height: float, thick: float, has_zf: bool) -> PalpationSpec:
+def _palpation(data: dict[str, Any], base_r: float, height: float, thick: float, has_zf: bool, chamber: Chamber = Chamber()) -> PalpationSpec:
     """Parse [palpation] (mm, s, N in the key names); ``base_r``, ``height``, ``thick`` in mm;
     ``has_zf``: the scene gives per-carrier contact impedances."""
     t = _Table(data, "palpation")
@@ -1097,8 +1145,8 @@ def _palpation(data: dict[str, Any], base_r: float, height: float, thick: float,
     hold = t.number("hold_s", 0.5, 0.0, 60.0)
     gap = t.number("gap_mm", 0.0, 0.0, 50.0)
     xy = _number_list("palpation.xy_mm", t.raw("xy_mm", [0.0, 0.0]), 2, -base_r, base_r, True)
-    if math.hypot(*xy) >= base_r:
-        raise SceneError(f"palpation.xy_mm = {list(xy)}: must lie within the base radius {base_r:g} mm of the axis")
+    if not chamber.inside(np.array(xy) * MM, 1e-12)[0]:
+        raise SceneError(f"palpation.xy_mm = {list(xy)}: must lie within the base ({_outline(chamber)})")
     force = t.number("force_n", 0.05, 0.0, 10.0, lo_open=True)
     ramp = t.number("force_ramp_s", 0.2, 0.0, 60.0)
     k = t.raw("probe_stiffness_n_per_m", None)

@@ -6,6 +6,7 @@ chamber surface (npz) to --out."""
 from __future__ import annotations
 
 import argparse
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -39,10 +40,11 @@ def run(args: argparse.Namespace) -> int:
     from ..studies.indentation import indentation_sweep
 
     scene = scene_from_args(args)
-    base = scene.chamber.base_radius * 1e3
-    if not (abs(args.x_mm) < base and abs(args.y_mm) < base and (args.x_mm**2 + args.y_mm**2) ** 0.5 < base):
-        raise ValueError(f"--x-mm, --y-mm = {args.x_mm:g}, {args.y_mm:g}: the contact must lie within the base radius "
-                         f"{base:g} mm of the axis")
+    c = scene.chamber
+    if not (math.isfinite(args.x_mm) and math.isfinite(args.y_mm) and c.inside([[args.x_mm * 1e-3, args.y_mm * 1e-3]], 1e-12)[0]):
+        where = (f"the base radius {c.base_radius * 1e3:g} mm of the axis" if c.base_radius_y is None else
+                 f"the base's ellipse of semi-axes {c.base_radius * 1e3:g} x {c.base_radius_y * 1e3:g} mm")
+        raise ValueError(f"--x-mm, --y-mm = {args.x_mm:g}, {args.y_mm:g}: the contact must lie within {where}")
     if not args.depth_mm > 0:
         raise ValueError(f"--depth-mm = {args.depth_mm}: must be > 0")
     device = warp_device(args.device, "--device")

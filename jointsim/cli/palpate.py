@@ -82,8 +82,10 @@ def configure(args: argparse.Namespace):
         spec = replace(spec, hold=args.hold_s)
     if args.xy_mm is not None:
         xy = float_list("--xy-mm", args.xy_mm, count=2)
-        if (xy[0] ** 2 + xy[1] ** 2) ** 0.5 >= c.base_radius * 1e3:
-            raise ValueError(f"--xy-mm = {args.xy_mm!r}: two numbers 'x,y' in mm within the base radius {c.base_radius * 1e3:g} mm")
+        if not c.inside([[xy[0] * 1e-3, xy[1] * 1e-3]], 1e-12)[0]:
+            where = (f"the base radius {c.base_radius * 1e3:g} mm" if c.base_radius_y is None else
+                     f"the base's ellipse of semi-axes {c.base_radius * 1e3:g} x {c.base_radius_y * 1e3:g} mm")
+            raise ValueError(f"--xy-mm = {args.xy_mm!r}: two numbers 'x,y' in mm within {where}")
         spec = replace(spec, xy=(xy[0] * 1e-3, xy[1] * 1e-3))
     noise = scene.noise
     if args.seed is not None:

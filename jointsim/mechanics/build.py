@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import DomeSurface, flat_disc, isotropic_cap
+from ..geometry import DomeSurface, chamber_cap, flat_disc
 from ..scene import Scene
 from .dome import MembraneModel, membrane_material
 from .newton import NewtonError
@@ -54,7 +54,7 @@ def membrane_from_scene(
         raise ValueError(f"contact_slave = {contact_slave!r}: only for a soft target (give target_modulus)")
     flat = m.moulding == "flat"
     if dome is None:
-        dome = flat_disc(c.base_radius, m.rim_vertices) if flat else isotropic_cap(c.base_radius, c.dome_height, m.rim_vertices)
+        dome = flat_disc(c.base_radius, m.rim_vertices) if flat else chamber_cap(c, m.rim_vertices)
     if flat:
         kw["inflate_to"] = c.dome_height
         kw["inflate_from"] = inflate_from

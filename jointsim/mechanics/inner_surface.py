@@ -20,8 +20,8 @@ class InnerSurface:
     """The membrane's inner surface as the linear sub-triangles of its 6-node faces (the
     surface the FEM's saline volume is integrated over): P2 node indices ``nodes`` (n,),
     ``faces`` (m, 3) into them (normals out of the chamber), ``rim`` (k,) anticlockwise, and the
-    reference positions ``X`` (n, 3) with the rim's edge midpoints moved onto the base circle
-    (they never move).
+    reference positions ``X`` (n, 3) with the rim's edge midpoints moved onto the base's outline
+    (the circle, or a pad's ellipse; they never move).
 
     The reference is the moulded surface (the moulded cap; the morph then takes the chamber to
     the reservoir's inflation), or, for a membrane moulded flat, the inflated one: ``u0`` (n, 3)
@@ -34,9 +34,10 @@ class InnerSurface:
     u0: np.ndarray
 
     @classmethod
-    def of(cls, model: MembraneModel, base_radius: float, inflated: bool = False) -> "InnerSurface":
-        """The inner surface of ``model``; ``inflated``: its reference is the model's current
-        (inflated, untouched) state instead of the moulded one."""
+    def of(cls, model: MembraneModel, base_radius: float, inflated: bool = False, y_scale: float = 1.0) -> "InnerSurface":
+        """The inner surface of ``model`` on a base of ``base_radius`` (its semi-axis along y
+        ``y_scale`` × that for an elongated pad); ``inflated``: its reference is the model's
+        current (inflated, untouched) state instead of the moulded one."""
         # the model's inner sub-triangles (the pressure term's surface)
         tris = np.asarray(model.inner_tris)
         nodes, local = np.unique(tris, return_inverse=True)
@@ -47,7 +48,10 @@ class InnerSurface:
         # circle for a flat sheet, whose whole inner surface lies in the base plane)
         rim = np.flatnonzero(model.fixed[nodes, 0])
         rim = rim[np.argsort(np.arctan2(X[rim, 1], X[rim, 0]))]
-        X[rim, :2] *= base_radius / np.hypot(X[rim, 0], X[rim, 1])[:, None]
+        if y_scale == 1.0:
+            X[rim, :2] *= base_radius / np.hypot(X[rim, 0], X[rim, 1])[:, None]
+        else:  # onto the ellipse along the ray from the axis
+            X[rim, :2] /= np.hypot(X[rim, 0] / base_radius, X[rim, 1] / (base_radius * y_scale))[:, None]
         X[rim, 2] = 0.0
         return cls(nodes, np.ascontiguousarray(faces), rim, X, u0)
 

@@ -30,7 +30,7 @@ from typing import Iterator
 import numpy as np
 import trimesh
 
-from ..geometry import DOME_RIM_VERTICES, ElectrodeLayout, chamber_surface, electrode_layout, isotropic_cap
+from ..geometry import DOME_RIM_VERTICES, ElectrodeLayout, chamber_cap, chamber_surface, electrode_layout
 from ..scene import MeshSpec, Scene
 from .electrodes import ElectrodePatch, carry_patches, disc_patches, layout_patches
 from .tetmesh import MeshQuality, TetMesh, mesh_quality
@@ -192,9 +192,9 @@ def reference_surface(scene: Scene) -> trimesh.Trimesh:
     saline volume)."""
     c = scene.chamber
     if scene.mesh.dome_rim_vertices:
-        return chamber_surface(isotropic_cap(c.base_radius, c.dome_height, scene.mesh.dome_rim_vertices))
+        return chamber_surface(chamber_cap(c, scene.mesh.dome_rim_vertices))
     n_rim = 16 * int(np.ceil(2 * np.pi * c.base_radius / scene.mesh.max_edge / 16))
-    return chamber_surface(isotropic_cap(c.base_radius, c.dome_height, max(DOME_RIM_VERTICES, n_rim)))
+    return chamber_surface(chamber_cap(c, max(DOME_RIM_VERTICES, n_rim)))
 
 
 def _tetrahedralise(surface: trimesh.Trimesh, layout: ElectrodeLayout, spec: MeshSpec) -> TetMesh:

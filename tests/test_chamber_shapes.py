@@ -1,0 +1,123 @@
+"""Chamber shapes beyond the paper's round dome: the elongated pad ([chamber] base_radius_y_mm),
+the spherical cap stretched along y over an elliptical base, through every stage."""
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from jointsim.geometry import chamber_cap, chamber_surface
+from jointsim.scene import SCENES_DIR, SceneError, load_scene, scene_from_dict
+
+
+@pytest.fixture(scope="module")
+def pad():
+    s = load_scene(SCENES_DIR / "elongated_pad.toml").with_mesh_preset("test")
+    return replace(s, membrane=replace(s.membrane, rim_vertices=32, layers=1), reconstruction=replace(s.reconstruction, cells=1000))
+
+
+def cap_volume(a: float, h: float) -> float:
+    """The spherical cap's volume πh²(3R − h)/3, R = (a² + h²)/(2h)."""
+    R = (a * a + h * h) / (2 * h)
+    return math.pi * h * h * (3 * R - h) / 3
+
+
+def test_a_pad_is_the_round_cap_stretched_along_y(pad):
+    """The pad's dome lies on the stretched sphere (x² + (y/s)² + (z − z_c)² = R²) to round-off,
+    its rim on the ellipse of its semi-axes, and the closed chamber holds s × the round cap's
+    volume to the triangulation's chord error (below 1 % at 96 rim vertices)."""
+    c = pad.chamber
+    dome = chamber_cap(c, 96)
+    v = dome.vertices
+    a, h, s = c.base_radius, c.dome_height, c.y_scale
+    R = (a * a + h * h) / (2 * h)
+    np.testing.assert_allclose(np.hypot(np.hypot(v[:, 0], v[:, 1] / s), v[:, 2] - (h - R)), R, rtol=1e-12)
+    rim = v[dome.rim]
+    np.testing.assert_allclose((rim[:, 0] / a) ** 2 + (rim[:, 1] / (a * s)) ** 2, 1.0, rtol=1e-12)
+    assert np.abs(rim[:, 2]).max() == 0
+    surface = chamber_surface(dome)
+    assert surface.is_watertight
+    assert surface.volume == pytest.approx(s * cap_volume(a, h), rel=0.01)
+    assert surface.volume < s * cap_volume(a, h)  # chords lie inside the curved dome
+
+
+def test_the_pads_sensor_keeps_its_mirror_symmetries(pad):
+    """The pad's layout is symmetric under x → −x and y → −y: its transfer impedances, mapped by
+    each mirror's electrode permutation, are unchanged to the test chamber's mesh noise (which
+    is not symmetric): within 2 % of the largest entry (the driven electrodes' own; measured
+    0.85 %), 0.5 % off the diagonal (measured 0.1 %). The reference chamber holds the pad's
+    volume within the test preset's 1.5 %."""
+    from jointsim.instrument import Instrument
+
+    inst = Instrument.build(pad, imaging=False)
+    try:
+        Z = inst.readout.fields(inst.reference, True).transfer
+        centres = inst.reference.layout.centres[:12, :2]
+        off = ~np.eye(12, dtype=bool)
+        for mirror in ([-1.0, 1.0], [1.0, -1.0]):
+            image = centres * mirror
+            P = np.array([np.argmin(np.linalg.norm(centres - q, axis=1)) for q in image])
+            np.testing.assert_allclose(centres[P], image, atol=1e-12)
+            moved = Z[np.ix_(P, P)] - Z
+            assert np.abs(moved).max() < 0.02 * np.abs(Z).max()
+            assert np.abs(moved[off]).max() < 0.005 * np.abs(Z[off]).max()
+        m = inst.reference.mesh
+        volume = np.abs(m.signed_volumes).sum()
+        assert volume == pytest.approx(pad.chamber.y_scale * cap_volume(20e-3, 8e-3), rel=0.015)
+    finally:
+        inst.free()
+
+
+def test_a_pad_is_pressed_alike_at_mirrored_points(pad):
+    """The membrane on the pad pressed 1 mm past first contact at (±8, 0) mm: the same force to
+    1 % (its triangulation, the round cap's stretched, is mirror-symmetric only to its rings)."""
+    from jointsim.mechanics.build import membrane_from_scene
+
+    model = membrane_from_scene(pad, 5e-3)
+    rest = model.get_state()
+    forces = []
+    for x in (8e-3, -8e-3):
+        model.set_state(rest)
+        top = model.first_contact_height(np.array([x, 0.0]))
+        forces.append(model.press(np.array([x, 0.0, top - 1e-3])).force[2])
+    assert forces[0] > 0 and forces[1] == pytest.approx(forces[0], rel=0.01)
+
+
+def test_the_jobs_run_on_a_pad(pad):
+    """A dataset group (contact points over the disc the short axis holds) and the protocol
+    study run on the pad: 144 measurements per sample, the press seen."""
+    from jointsim.dataset.generate import DatasetSetup
+    from jointsim.instrument import deployed_chamber
+    from jointsim.studies.protocol_study import StudyConfig, run_protocol_study
+
+    setup = DatasetSetup(pad, deployed_chamber(pad), seed=2)
+    try:
+        records, _ = setup.group(0, 2)
+    finally:
+        setup.free()
+    assert records[0]["dv"].shape == (144,) and 0 < records[0]["displaced_volume"] < records[1]["displaced_volume"]
+    assert all(pad.chamber.inside(r["contact_point"][None], 2e-3)[0] for r in records)
+    cfg = StudyConfig(skips=(6,), positions=((0.0, 0.0), (10e-3, 0.0)), noise_repeats=2, n_cells=1000, mesh_floor=False,
+                      target_radius=5e-3)
+    dv = run_protocol_study(pad, cfg).dv_clean[6]
+    assert dv.shape == (2, 144) and np.abs(dv).max() > 0
+
+
+@pytest.mark.parametrize("text, match", [
+    ('[chamber]\nbase_radius_y_mm = 12\n[electrodes]\nring_radius_mm = 15',
+     r"electrodes.ring_radius_mm = 15: must be in \(3, 10.5\]"),
+    ('[chamber]\nbase_radius_y_mm = 12\ndome_height_mm = 10\n[electrodes]\nreference = 0\n[[electrodes.disc]]\nxy_mm = [0, 0]\n'
+     '[[electrodes.disc]]\nxy_mm = [5, 0]\n[[electrodes.disc]]\nxy_mm = [0, 11]\n[dataset]\nr_max_mm = 5',
+     r"electrodes.disc\[2\] electrode 0: at \(0, 11\) mm it does not end 0.5 mm inside the base's outline \(an ellipse of semi-axes 20 x 12 mm\)"),
+    ('[chamber]\nbase_radius_y_mm = 2', r"chamber.base_radius_y_mm = 2: must be in \[5, 80\]"),
+    ('[chamber]\nbase_radius_y_mm = 12\n[electrodes]\nring_radius_mm = 9\n[dataset]\nr_max_mm = 9\n[membrane]\nmoulding = "flat"',
+     r"membrane.moulding = 'flat': only for a round dome"),
+    ('[chamber]\nbase_radius_y_mm = 12\n[electrodes]\nring_radius_mm = 9\n[dataset]\nr_max_mm = 9\n[palpation]\nxy_mm = [0, 12.5]',
+     r"palpation.xy_mm = \[0.0, 12.5\]: must lie within the base \(an ellipse of semi-axes 20 x 12 mm\)"),
+])
+def test_bad_pads_are_refused_naming_the_key(text, match):
+    import tomllib
+
+    with pytest.raises(SceneError, match=match):
+        scene_from_dict(tomllib.loads(text))
