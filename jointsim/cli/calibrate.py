@@ -35,6 +35,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_progress_argument(p)
     p.add_argument("--symmetry", action="store_true",
                    help="move the noise draws about the electrode ring by the sensor's turns and mirrors (default: off)")
+    p.add_argument("--no-emulator", action="store_true",
+                   help="skip the model-based estimator (the emulator of the coupled model): a quicker map without it")
 
 
 def _command(args: argparse.Namespace) -> str:
@@ -69,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
         test_fraction=args.test_fraction, seed=args.seed, depth_levels=_levels(args.depths_mm, "--depths-mm", 1e-3),
         force_levels=_levels(args.forces_n, "--forces-n", 1.0), regressor=args.regressor, goal_snr_db=args.goal_snr_db,
         snr_band_db=args.snr_band_db, max_com_points=args.max_com_points, noise_copies=args.noise_copies,
-        symmetry=args.symmetry,
+        symmetry=args.symmetry, emulator=not args.no_emulator,
     )
     command = _command(args)
     samples = load_samples(args.dataset)
