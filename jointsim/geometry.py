@@ -14,9 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from .scene import Chamber, Scene, ring_positions
+from .scene import Chamber, Scene, SurfaceFile, read_surface, ring_positions
 
-__all__ = ["DomeSurface", "ElectrodeLayout", "cap_height", "chamber_cap", "spherical_cap", "isotropic_cap", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
+__all__ = ["DomeSurface", "ElectrodeLayout", "cap_height", "chamber_cap", "user_dome", "user_surface", "spherical_cap", "isotropic_cap", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
 
 
 @dataclass(frozen=True)
@@ -35,7 +35,9 @@ class ElectrodeLayout:
     """Disc electrodes: ``centres`` (n_el, 3), ``radii`` (n_el,), on the base plane or, where
     ``on_membrane`` (n_el,) is set, on the membrane's inner surface: there centred where the dome
     lies above (x, y) (z: on the nominal cap), moving with the membrane, stretching with it or
-    rigid (``membrane_patch``, :data:`~jointsim.mesh.electrodes.MEMBRANE_PATCHES`).
+    rigid (``membrane_patch``, :data:`~jointsim.mesh.electrodes.MEMBRANE_PATCHES`). Where
+    ``face_z`` (n_el,) is finite, the electrode is a whole face of the chamber instead: every
+    boundary face on the plane z = face_z (a user's chamber's end plates).
 
     The driven electrodes come first (the paper's ring: 0 … count−1, anticlockwise from
     ``first_angle_deg``; a layout given as data: in the order its generators made them), the
@@ -46,6 +48,7 @@ class ElectrodeLayout:
     ground: int
     on_membrane: np.ndarray | None = None
     membrane_patch: str = "stretch"
+    face_z: np.ndarray | None = None
 
     @property
     def n_electrodes(self) -> int:
@@ -56,12 +59,28 @@ class ElectrodeLayout:
         """(n_el,) bool: the electrodes on the membrane."""
         return np.zeros(len(self.radii), bool) if self.on_membrane is None else np.asarray(self.on_membrane, bool)
 
+    @property
+    def face(self) -> np.ndarray:
+        """(n_el,) bool: the full-face electrodes (every face of the chamber's surface on the
+        plane z = ``face_z``)."""
+        return np.zeros(len(self.radii), bool) if self.face_z is None else np.isfinite(self.face_z)
+
+    @property
+    def clipped(self) -> np.ndarray:
+        """(n_el,) bool: the discs clipped on the base plane (neither on the membrane nor faces)."""
+        return ~self.membrane & ~self.face
+
 
 def electrode_layout(scene: Scene) -> ElectrodeLayout:
     """The electrodes of ``scene``'s [electrodes]: the paper's ring and central ground, or its discs."""
     e = scene.electrodes
     if e.discs:
         d = np.asarray(e.discs, float)
+        if any(z is not None for z in e.face_z):
+            face_z = np.array([np.nan if z is None else z for z in e.face_z])
+            centres = np.column_stack([d[:, :2], np.nan_to_num(face_z)])
+            on = np.asarray(e.on_membrane, bool) if e.on_membrane else None
+            return ElectrodeLayout(centres, d[:, 2].copy(), len(d) - 1, on, e.membrane_patch, face_z)
         if not any(e.on_membrane):
             return ElectrodeLayout(np.column_stack([d[:, :2], np.zeros(len(d))]), d[:, 2].copy(), ground=len(d) - 1)
         on = np.asarray(e.on_membrane, bool)
@@ -176,13 +195,40 @@ def isotropic_cap(base_radius: float, height: float, n_rim: int = 96, apex_edge:
 def chamber_cap(chamber: Chamber, n_rim: int = 96, apex_edge: float | None = None) -> DomeSurface:
     """The dome of ``chamber`` as :func:`isotropic_cap` triangulates it: the spherical cap of its
     base radius and height, or, for an elongated pad, that cap stretched along y to the pad's
-    semi-axis (its triangles stretched with it)."""
+    semi-axis (its triangles stretched with it); for a user's surface (``surface_file``) its top
+    as the file triangulates it (:func:`user_dome`; ``n_rim`` then has no say)."""
+    if chamber.surface_file is not None:
+        return user_dome(chamber)
     cap = isotropic_cap(chamber.base_radius, chamber.dome_height, n_rim, apex_edge)
     if chamber.base_radius_y is None:
         return cap
     v = cap.vertices.copy()
     v[:, 1] *= chamber.y_scale
     return DomeSurface(v, cap.faces, cap.rim)
+
+
+def user_dome(chamber: Chamber) -> DomeSurface:
+    """The top of a user's chamber (``chamber.surface_file``): its faces off z = 0, as the file
+    triangulates them, outward, the rim its loop on the base."""
+    sf = _surface(chamber)
+    top = sf.faces[~sf.base]
+    used, faces = np.unique(top, return_inverse=True)
+    index = np.full(len(sf.vertices), -1)
+    index[used] = np.arange(len(used))
+    return DomeSurface(sf.vertices[used], faces.reshape(-1, 3).astype(np.int64), index[sf.rim])
+
+
+def user_surface(chamber: Chamber) -> trimesh.Trimesh:
+    """A user's chamber (``chamber.surface_file``) as the closed, outward surface the mesher takes."""
+    sf = _surface(chamber)
+    return trimesh.Trimesh(sf.vertices, sf.faces, process=False)
+
+
+def _surface(chamber: Chamber) -> SurfaceFile:
+    sf = read_surface(chamber.surface_file, chamber.surface_unit)
+    if sf.sha256 != chamber.surface_sha256:
+        raise ValueError(f"chamber.surface_file = {chamber.surface_file!r}: the file changed since the scene was read")
+    return sf
 
 
 def flat_disc(base_radius: float, n_rim: int = 96) -> DomeSurface:

@@ -214,9 +214,9 @@ class Readout:
         order = self.forward.order
         if self.centres is None:
             return chamber.carry(list(self.patches), order)
-        on = chamber.layout.membrane
-        base = disc_patches(chamber.mesh, self.centres[~on], self.radii[~on], quadratic=order == 2)
-        own = replace(chamber, electrodes=[base.pop(0) if not m else p for m, p in zip(on, chamber.electrodes)])
+        clip = chamber.layout.clipped
+        base = disc_patches(chamber.mesh, self.centres[clip], self.radii[clip], quadratic=order == 2)
+        own = replace(chamber, electrodes=[base.pop(0) if c else p for c, p in zip(clip, chamber.electrodes)])
         return own.carry(list(self.patches), order)
 
 
@@ -330,8 +330,13 @@ def deployed_chamber(scene: Scene, dome: DomeSurface | None = None, **kw) -> Cha
         return chamber_mesh(scene, **kw)
     if dome is None:
         model = _resting_membrane(scene)
-        dome = InnerSurface.of(model, scene.chamber.base_radius, inflated=True, y_scale=scene.chamber.y_scale).dome(None)
+        dome = InnerSurface.of(model, _rim_radius(scene), inflated=True, y_scale=scene.chamber.y_scale).dome(None)
     return mesh_chamber(chamber_surface(dome), electrode_layout(scene), scene.mesh, **kw)
+
+
+def _rim_radius(scene: Scene) -> float | None:
+    """The base radius the membrane's rim is put back onto (None: a user's polygon, left as it is)."""
+    return None if scene.chamber.surface_file is not None else scene.chamber.base_radius
 
 
 def _resting_membrane(scene: Scene, device: str = "cpu") -> MembraneModel:
@@ -390,7 +395,7 @@ class Instrument:
             with timed(t, "membrane"):
                 model = _resting_membrane(scene, device) if membrane is None else membrane
                 inflated_u = model.u[: model.mesh.n_nodes].copy() if flat else None
-                surface = InnerSurface.of(model, scene.chamber.base_radius, inflated=flat, y_scale=scene.chamber.y_scale)
+                surface = InnerSurface.of(model, _rim_radius(scene), inflated=flat, y_scale=scene.chamber.y_scale)
                 membrane_dome = surface.dome(None)  # the inner surface the morpher maps from
                 reference_dome = surface.dome(model.u)
         with timed(t, "chamber"):

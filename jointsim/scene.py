@@ -68,17 +68,123 @@ class Chamber:
     dome_height: float = 10 * MM
     membrane_thickness: float = 2 * MM
     base_radius_y: float | None = None
+    surface_file: str | None = None
+    surface_sha256: str | None = None
+    surface_unit: float = MM
+    outline: tuple[tuple[float, float], ...] = ()
 
     @property
     def y_scale(self) -> float:
-        """The pad's stretch along y (1 for the round dome)."""
+        """The pad's stretch along y (1 for the round dome and a user's surface)."""
         return 1.0 if self.base_radius_y is None else self.base_radius_y / self.base_radius
+
+    @property
+    def inradius(self) -> float:
+        """The largest disc about the axis inside the base, m."""
+        if self.outline:
+            return float(_segment_distance(np.zeros(2), np.asarray(self.outline)).min())
+        return min(self.base_radius, self.base_radius * self.y_scale)
 
     def inside(self, xy: np.ndarray, inset: float | np.ndarray = 0.0) -> np.ndarray:
         """Whether the points ``xy`` (n, 2) m lie inside the base outline moved ``inset`` m in."""
         xy = np.atleast_2d(np.asarray(xy, float))
+        if self.outline:
+            poly = np.asarray(self.outline)
+            far = np.array([_segment_distance(q, poly).min() for q in xy]) >= inset
+            return _in_polygon(xy, poly) & far
         a, b = self.base_radius - inset, self.base_radius * self.y_scale - inset
         return (xy[:, 0] / a) ** 2 + (xy[:, 1] / b) ** 2 <= 1.0
+
+
+def _segment_distance(q: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Distances (k,) from the point ``q`` (2,) to the sides of the closed polygon ``poly`` (k, 2)."""
+    a, b = poly, np.roll(poly, -1, axis=0)
+    d = b - a
+    t = np.clip(((q - a) * d).sum(axis=1) / np.maximum((d * d).sum(axis=1), 1e-300), 0.0, 1.0)
+    return np.linalg.norm(a + t[:, None] * d - q, axis=1)
+
+
+def _in_polygon(xy: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Whether the points ``xy`` (n, 2) lie inside the closed polygon ``poly`` (k, 2) (even-odd rule)."""
+    a, b = poly[None], np.roll(poly, -1, axis=0)[None]
+    x, y = xy[:, None, 0], xy[:, None, 1]
+    crosses = (a[..., 1] > y) != (b[..., 1] > y)
+    at = a[..., 0] + (y - a[..., 1]) * (b[..., 0] - a[..., 0]) / np.where(b[..., 1] != a[..., 1], b[..., 1] - a[..., 1], 1.0)
+    return (crosses & (x < at)).sum(axis=1) % 2 == 1
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceFile:
+    """A user's chamber read from a surface file (:func:`read_surface`): ``vertices`` (n, 3) m,
+    ``faces`` (m, 3) outward, ``base`` (m,) bool: the faces of the flat base on z = 0 (the rest
+    is the deformable top, the membrane's inner surface), ``rim`` (k,) the top's boundary loop,
+    anticlockwise seen from +z, and ``sha256`` of the file."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    base: np.ndarray
+    rim: np.ndarray
+    sha256: str
+
+
+SURFACE_SUFFIXES = (".stl", ".obj", ".ply", ".off")
+
+
+def read_surface(path: str | Path, unit: float = MM) -> SurfaceFile:
+    """Read a user's chamber: a watertight, consistently wound triangle surface (STL, OBJ, PLY,
+    OFF; lengths in ``unit`` m) whose flat base lies on z = 0 and whose other faces (the top,
+    where the membrane is built) meet the base along one loop around the axis. Raises
+    SceneError naming what is wrong."""
+    import trimesh
+
+    path = Path(path)
+    key = f"chamber.surface_file = {str(path)!r}"
+    if path.suffix.lower() not in SURFACE_SUFFIXES:
+        raise SceneError(f"{key}: a triangle surface file ({', '.join(SURFACE_SUFFIXES)})")
+    try:
+        data = path.read_bytes()
+        mesh = trimesh.load(path, force="mesh", process=True)
+    except Exception as e:  # trimesh raises what its loaders raise
+        raise SceneError(f"{key}: cannot read it ({type(e).__name__}: {e})") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise SceneError(f"{key}: holds no triangles")
+    mesh.merge_vertices()
+    if not mesh.is_watertight:
+        raise SceneError(f"{key}: the surface is not watertight (closed); the chamber must be a closed volume")
+    if not mesh.is_winding_consistent:
+        raise SceneError(f"{key}: the surface's faces are not consistently wound")
+    if mesh.volume < 0:
+        mesh.invert()
+    v = np.asarray(mesh.vertices, float) * unit
+    f = np.asarray(mesh.faces, np.int64)
+    size = float(np.ptp(v, axis=0).max())
+    if abs(v[:, 2].min()) > 1e-9 * size:
+        raise SceneError(f"{key}: its lowest point is at z = {v[:, 2].min() / MM:g} mm; the flat base must lie on z = 0")
+    v[np.abs(v[:, 2]) <= 1e-9 * size, 2] = 0.0
+    base = np.all(v[f][..., 2] == 0.0, axis=1)
+    if not base.any():
+        raise SceneError(f"{key}: no faces on z = 0: the chamber needs its flat base there")
+    if base.all():
+        raise SceneError(f"{key}: every face is on z = 0: there is no top")
+    # the top's boundary: edges used once by the top faces; one loop, turning once around the axis
+    top = f[~base]
+    e = top[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2)
+    _, inverse, count = np.unique(np.sort(e, axis=1), axis=0, return_inverse=True, return_counts=True)
+    edges = e[count[inverse.ravel()] == 1]
+    nxt = dict(zip(edges[:, 1].tolist(), edges[:, 0].tolist()))  # walked against the top's winding: anticlockwise from +z
+    loop = [int(edges[0, 1])]
+    while len(loop) <= len(edges) and nxt.get(loop[-1]) is not None and nxt[loop[-1]] != loop[0]:
+        loop.append(nxt[loop[-1]])
+    rim = np.array(loop)
+    if len(nxt) != len(edges) or len(rim) != len(edges):
+        raise SceneError(f"{key}: the top (the faces off z = 0) must meet the base along one loop")
+    angle = np.unwrap(np.arctan2(v[rim, 1], v[rim, 0]))
+    if not np.all(np.diff(angle) > 0) and np.all(np.diff(angle) < 0):
+        rim = rim[::-1]
+        angle = np.unwrap(np.arctan2(v[rim, 1], v[rim, 0]))
+    if not (np.all(np.diff(angle) > 0) and abs(angle[-1] - angle[0] + np.diff(angle).mean() - 2 * np.pi) < 1e-6):
+        raise SceneError(f"{key}: the base's rim must run once around the axis (x = y = 0), seen from it")
+    return SurfaceFile(v, f, base, rim, hashlib.sha256(data).hexdigest())
 
 
 @dataclass(frozen=True)
@@ -94,7 +200,9 @@ class ElectrodeRing:
     it is floating (no electrode is a passive reference: the last one is the solver's, and the
     protocol's patterns span every electrode). ``on_membrane`` (one per disc; empty: none): the
     disc lies on the membrane's inner surface where the dome is above (x, y), and moves with it,
-    stretching or rigid (``membrane_patch``).
+    stretching or rigid (``membrane_patch``). ``face_z`` (one per disc; empty: none): where not
+    None, the electrode is every face of the chamber's surface on the plane z = face_z
+    ([[electrodes.face]]: a user's chamber's end plates).
 
     ``contact_impedance`` has one value per driven electrode (Ω·m²), ``ground_contact_impedance``
     the reference's; ``contact_impedance_by_freq`` is optional, shape (n_frequencies, count),
@@ -113,6 +221,7 @@ class ElectrodeRing:
     reference: bool = True
     on_membrane: tuple[bool, ...] = ()
     membrane_patch: str = "stretch"
+    face_z: tuple[float | None, ...] = ()
 
     @property
     def is_ring(self) -> bool:
@@ -361,7 +470,9 @@ class Scene:
 # scene values added to the format after stores, maps and studies were first written, with the
 # behaviour before they existed: identities leave them out at that value
 LATER_DEFAULTS: dict[tuple[str, str], Any] = {("reconstruction", "prior"): "tikhonov", ("mesh", "rim_refinement"): 1.0,
-                                          ("chamber", "base_radius_y"): None,
+                                          ("chamber", "base_radius_y"): None, ("chamber", "surface_file"): None,
+                                          ("chamber", "surface_sha256"): None, ("chamber", "surface_unit"): MM,
+                                          ("chamber", "outline"): (), ("electrodes", "face_z"): (),
                                           ("mesh", "dome_rim_vertices"): 0, ("electrodes", "on_membrane"): (),
                                           ("electrodes", "membrane_patch"): "stretch"}
 
@@ -469,7 +580,7 @@ def _number_list(key: str, v: Any, n: int | None, lo: float, hi: float, lo_open:
 # [electrodes] layouts as data
 
 
-LAYOUT_GENERATORS = ("ring", "grid", "disc", "membrane")
+LAYOUT_GENERATORS = ("ring", "grid", "disc", "membrane", "face")
 MEMBRANE_PATCHES = ("stretch", "rigid")  # [electrodes] membrane_patch: how an electrode on the membrane follows it
 RING_KEYS = ("count", "ring_radius_mm", "diameter_mm", "ground_diameter_mm", "first_angle_deg")  # the paper's layout  # [[electrodes.<generator>]] tables, electrodes made in this order
 GRID_KINDS = ("square", "hex")
@@ -479,16 +590,22 @@ MEASUREMENTS = ("reference", "adjacent")  # [drive] measure
 EDGE_CLEARANCE_MM = 0.5
 MIN_ELECTRODE_GAP_MM = 0.1  # edge to edge: the mesher embeds every outline, and they must not touch
 MAX_ELECTRODES = 129
+MIN_ELECTRODES = 2  # one driven against the reference: a resistance
+CAP_KEYS = ("base_radius_mm", "base_radius_y_mm", "dome_height_mm")  # [chamber]: the parametric cap's size
 PAD_STRETCH_MAX = 4.0  # [chamber] base_radius_y_mm within this factor of base_radius_mm (the cap's triangles stretch with it)
 
 
-def _layout(t: "_Table", base_r: float, height: float, base_ry: float) -> tuple[tuple[tuple[float, float, float], ...], bool, tuple[bool, ...]]:
+def _layout(t: "_Table", base_r: float, height: float, base_ry: float,
+            chamber: Chamber | None = None) -> tuple[tuple[tuple[float, float, float], ...], bool, tuple[bool, ...], tuple]:
     """The electrodes of [[electrodes.ring]], [[electrodes.grid]], [[electrodes.disc]] and
     [[electrodes.membrane]] (in that order, each in file order) as (x, y, radius) m, the
     reference moved last, whether there is one ([electrodes] reference: an electrode's index in
-    that order, or "none"), and which lie on the membrane (empty where none does). ``base_ry``:
+    that order, or "none"), which lie on the membrane (empty where none does), and the planes of
+    the [[electrodes.face]] ones (None for the others; empty where there are none). ``base_ry``:
     the base's semi-axis along y (an elongated pad where it is not ``base_r``: the cap and the
-    membrane's electrodes stretched along y with it)."""
+    membrane's electrodes stretched along y with it); ``chamber``: where it is a user's surface,
+    the discs are checked against its base's outline."""
+    outline = chamber is not None and bool(chamber.outline)
     for k in RING_KEYS:
         if k in t.data:
             raise SceneError(f"electrodes.{k}: describes the paper's ring; with [[electrodes.ring|grid|disc]] tables "
@@ -496,6 +613,7 @@ def _layout(t: "_Table", base_r: float, height: float, base_ry: float) -> tuple[
     discs: list[tuple[float, float, float]] = []
     where: list[str] = []
     on: list[bool] = []
+    planes: list[float | None] = []
     sphere = (base_r**2 + height**2) / (2 * height)  # the cap's sphere radius, mm
     rim_angle = math.asin(min(base_r / sphere, 1.0))  # the rim's polar angle, from the apex
     for kind in LAYOUT_GENERATORS:
@@ -505,6 +623,14 @@ def _layout(t: "_Table", base_r: float, height: float, base_ry: float) -> tuple[
         for i, g in enumerate(tables):
             name = f"electrodes.{kind}[{i}]"
             u = _Table(g, name)
+            if kind == "face":
+                z = _face_plane(u, name, chamber, height)
+                u.finish()
+                discs.append((0.0, 0.0, 0.0))
+                where.append(f"{name} electrode 0")
+                on.append(False)
+                planes.append(z * MM)
+                continue
             d = u.number("diameter_mm", 2.0, 0.0, base_r, lo_open=True)
             if kind == "ring":
                 n = u.integer("count", 16, 1, MAX_ELECTRODES)
@@ -512,6 +638,9 @@ def _layout(t: "_Table", base_r: float, height: float, base_ry: float) -> tuple[
                 phase = math.radians(u.number("phase_deg", 0.0, -360.0, 360.0))
                 pts = [(r * math.cos(phase + 2 * math.pi * k / n), r * math.sin(phase + 2 * math.pi * k / n)) for k in range(n)]
             elif kind == "membrane":
+                if outline:
+                    raise SceneError(f"{name}: electrodes on the membrane are placed by the cap's polar angle; a chamber "
+                                     "from chamber.surface_file has no cap (not supported there yet)")
                 n = u.integer("count", 16, 1, MAX_ELECTRODES)
                 # along the surface: the disc ends EDGE_CLEARANCE_MM short of the rim
                 top = math.degrees(rim_angle - (d / 2 + EDGE_CLEARANCE_MM) / sphere)
@@ -541,15 +670,28 @@ def _layout(t: "_Table", base_r: float, height: float, base_ry: float) -> tuple[
             discs += [(x, y, d / 2) for x, y in pts]
             where += [f"{name} electrode {k}" for k in range(len(pts))]
             on += [kind == "membrane"] * len(pts)
-    if not 3 <= len(discs) <= MAX_ELECTRODES:
-        raise SceneError(f"[electrodes]: the generators make {len(discs)} electrodes; a layout has 3 to {MAX_ELECTRODES}")
+            planes += [None] * len(pts)
+    if not MIN_ELECTRODES <= len(discs) <= MAX_ELECTRODES:
+        raise SceneError(f"[electrodes]: the generators make {len(discs)} electrodes; a layout has {MIN_ELECTRODES} to {MAX_ELECTRODES}")
     c, r = np.array([d[:2] for d in discs]), np.array([d[2] for d in discs])
     membrane = np.array(on)
+    face = np.array([z is not None for z in planes])
+    if face.any():
+        zs = [z for z in planes if z is not None]
+        if len(set(zs)) < len(zs):
+            raise SceneError("[[electrodes.face]]: two face electrodes on one plane")
+        if 0.0 in zs and (~face & ~membrane).any():
+            raise SceneError("[[electrodes.face]] on z = 0 covers the whole base: no disc can lie there too")
     # on the membrane: the points of the cap (mm), to be apart along it (chords: a little short of arcs)
     round_xy = c * [1.0, base_r / base_ry]  # where on the round cap a point of a pad came from
     lifted = np.column_stack([c, np.sqrt(np.maximum(sphere**2 - (round_xy**2).sum(axis=1), 0.0)) - (sphere - height)])
-    if base_ry == base_r:
-        reach = np.where(membrane, 0.0, np.hypot(c[:, 0], c[:, 1]) + r)
+    if outline:
+        if (bad := np.flatnonzero(~chamber.inside(c * MM, (r + EDGE_CLEARANCE_MM) * MM) & ~face)).size:
+            k = int(bad[0])
+            raise SceneError(f"{where[k]}: at ({c[k, 0]:g}, {c[k, 1]:g}) mm it does not end {EDGE_CLEARANCE_MM:g} mm inside the "
+                             "base's outline (the rim of chamber.surface_file)")
+    elif base_ry == base_r:
+        reach = np.where(membrane | face, 0.0, np.hypot(c[:, 0], c[:, 1]) + r)
         if (bad := np.flatnonzero(reach > base_r - EDGE_CLEARANCE_MM + 1e-9)).size:
             k = int(bad[0])
             raise SceneError(f"{where[k]}: at ({c[k, 0]:g}, {c[k, 1]:g}) mm it reaches {reach[k]:.3g} mm from the axis; every disc must "
@@ -557,12 +699,13 @@ def _layout(t: "_Table", base_r: float, height: float, base_ry: float) -> tuple[
     else:  # a pad: every disc's footprint inside the outline moved in by its radius and the clearance
         inset = r + EDGE_CLEARANCE_MM
         q = (c[:, 0] / (base_r - inset)) ** 2 + (c[:, 1] / (base_ry - inset)) ** 2
-        if (bad := np.flatnonzero((q > 1 + 1e-9) | (inset >= min(base_r, base_ry)))).size:
+        if (bad := np.flatnonzero(((q > 1 + 1e-9) | (inset >= min(base_r, base_ry))) & ~face)).size:
             k = int(bad[0])
             raise SceneError(f"{where[k]}: at ({c[k, 0]:g}, {c[k, 1]:g}) mm it does not end {EDGE_CLEARANCE_MM:g} mm inside the "
                              f"base's outline (an ellipse of semi-axes {base_r:g} x {base_ry:g} mm)")
     gaps = _edge_gaps(lifted, r)
     gaps[membrane[:, None] != membrane[None, :]] = np.inf  # the base and the membrane: apart by the chamber
+    gaps[face] = gaps[:, face] = np.inf  # a face electrode: alone on its plane (checked above)
     if gaps.min() < MIN_ELECTRODE_GAP_MM:
         a, b = np.unravel_index(int(np.argmin(gaps)), gaps.shape)
         raise SceneError(f"{where[a]} and {where[b]}: {'overlap' if gaps[a, b] < 0 else 'are closer than'} "
@@ -578,7 +721,24 @@ def _layout(t: "_Table", base_r: float, height: float, base_ry: float) -> tuple[
                          "numbered in the order the generators make them: rings, grids, discs) or \"none\" for a floating reference")
     order = [i for i in range(len(discs)) if i != k] + [k]
     placed = tuple((discs[i][0] * MM, discs[i][1] * MM, discs[i][2] * MM) for i in order)
-    return placed, reference, tuple(on[i] for i in order) if membrane.any() else ()
+    return (placed, reference, tuple(on[i] for i in order) if membrane.any() else (),
+            tuple(planes[i] for i in order) if face.any() else ())
+
+
+def _face_plane(u: "_Table", name: str, chamber: Chamber | None, height: float) -> float:
+    """The plane z (mm) of a [[electrodes.face]]: z = 0 (the whole base) on the cap; on a
+    user's surface any plane that holds some of its faces."""
+    z = u.number("z_mm", 0.0, 0.0, height)
+    if chamber is None or not chamber.outline:
+        if z != 0.0:
+            raise SceneError(f"{name}.z_mm = {z:g}: the cap has faces only on z = 0 (the base); other planes need a "
+                             "chamber.surface_file with faces there")
+        return z
+    sf = read_surface(chamber.surface_file, chamber.surface_unit)
+    tol = 1e-9 * float(np.ptp(sf.vertices, axis=0).max())
+    if not np.any(np.all(np.abs(sf.vertices[sf.faces][..., 2] - z * MM) <= tol, axis=1)):
+        raise SceneError(f"{name}.z_mm = {z:g}: no face of chamber.surface_file lies on that plane")
+    return z
 
 
 PATTERN_KEYS = ("stim_ua", "meas")  # [drive]: a protocol as data, instead of skip and measure
@@ -669,7 +829,7 @@ def ring_positions(count: int, radius: float, first_angle_deg: float) -> np.ndar
 
 
 def _layout_room(centres: np.ndarray, radii: np.ndarray, base_r: float, on_membrane: tuple[bool, ...] = (),
-                 base_ry: float | None = None) -> tuple[float, float]:
+                 base_ry: float | None = None, outline: tuple = (), face_z: tuple = ()) -> tuple[float, float]:
     """(smallest edge gap between electrodes, least room to the rim beyond EDGE_CLEARANCE_MM), mm,
     in the base plane (a membrane electrode's footprint there: a little less room than it has
     on the dome); a base and a membrane electrode are apart by the chamber. On a pad (``base_ry``
@@ -679,11 +839,20 @@ def _layout_room(centres: np.ndarray, radii: np.ndarray, base_r: float, on_membr
     if any(on_membrane):
         on = np.asarray(on_membrane)
         gaps[on[:, None] != on[None, :]] = np.inf
-    if base_ry is None or base_ry == base_r:
+    if outline:  # a user's surface (m): the distance to its rim
+        poly = np.asarray(outline) / MM
+        edge = np.array([_segment_distance(q, poly).min() for q in centres]) - EDGE_CLEARANCE_MM - radii
+    elif base_ry is None or base_ry == base_r:
         edge = base_r - EDGE_CLEARANCE_MM - (np.hypot(centres[:, 0], centres[:, 1]) + radii)
     else:
         q = np.sqrt((centres[:, 0] / base_r) ** 2 + (centres[:, 1] / base_ry) ** 2)
         edge = min(base_r, base_ry) * (1 - q) - EDGE_CLEARANCE_MM - radii
+    if face_z:  # whole faces: no room to measure (a dataset does not move them)
+        face = np.array([z is not None for z in face_z])
+        gaps[face] = gaps[:, face] = np.inf
+        edge = np.where(face, np.inf, edge)
+        if face.all():
+            return math.inf, math.inf
     return float(gaps.min()), float(edge.min())
 
 
@@ -699,21 +868,29 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         raise SceneError(f"unknown section(s): {', '.join(unknown)}; known are {', '.join(sorted(known))}")
 
     t = _Table(data.get("chamber", {}), "chamber")
-    base_r = t.number("base_radius_mm", 20.0, 1.0, 500.0)
-    # an elongated pad: the cap stretched along y to this semi-axis (its membrane's triangles with it)
-    base_ry = t.number("base_radius_y_mm", base_r, base_r / PAD_STRETCH_MAX, base_r * PAD_STRETCH_MAX)
-    # a spherical cap taller than its base radius would be more than a hemisphere
-    height = t.number("dome_height_mm", 10.0, 0.5, min(base_r, base_ry))
+    surface = t.raw("surface_file", None)
+    _read("chamber", "surface_file", "value", None, "a watertight triangle surface (.stl, .obj, .ply, .off), base on z = 0; "
+          "relative to the scene file")
+    if surface is not None:
+        chamber, base_r, base_ry, height = _user_chamber(t, surface)
+    else:
+        base_r = t.number("base_radius_mm", 20.0, 1.0, 500.0)
+        # an elongated pad: the cap stretched along y to this semi-axis (its membrane's triangles with it)
+        base_ry = t.number("base_radius_y_mm", base_r, base_r / PAD_STRETCH_MAX, base_r * PAD_STRETCH_MAX)
+        # a spherical cap taller than its base radius would be more than a hemisphere
+        height = t.number("dome_height_mm", 10.0, 0.5, min(base_r, base_ry))
+        chamber = Chamber(base_r * MM, height * MM, 0.0, None if base_ry == base_r else base_ry * MM)
     thick = t.number("membrane_thickness_mm", 2.0, 0.05, min(height, 50.0), lo_open=False)
     t.finish()
-    chamber = Chamber(base_r * MM, height * MM, thick * MM, None if base_ry == base_r else base_ry * MM)
-    short = min(base_r, base_ry)  # the base's smaller half-width: what a disc of contact points or a ring fits in
+    chamber = replace(chamber, membrane_thickness=thick * MM)
+    short = chamber.inradius / MM  # the largest disc about the axis in the base: what contact points or a ring fit in
 
     t = _Table(data.get("electrodes", {}), "electrodes")
     generated = [k for k in LAYOUT_GENERATORS if k in t.data]
     on_membrane: tuple[bool, ...] = ()
+    face_z: tuple = ()
     if generated:
-        discs, reference, on_membrane = _layout(t, base_r, height, base_ry)
+        discs, reference, on_membrane, face_z = _layout(t, base_r, height, base_ry, chamber)
         count = len(discs) - 1
         ring = diam = gdiam = first = 0.0  # the ring's own sizes: not this layout's
     else:
@@ -744,7 +921,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     centres = (np.array([(d[0], d[1]) for d in discs]) / MM if discs else
                np.vstack([ring_positions(count, ring, first), [0.0, 0.0]]))
     radii = np.array([d[2] for d in discs]) / MM if discs else np.append(np.full(count, diam / 2), gdiam / 2)
-    gap, edge = _layout_room(centres, radii, base_r, on_membrane, base_ry)
+    gap, edge = _layout_room(centres, radii, base_r, on_membrane, base_ry, chamber.outline, face_z)
 
     t = _Table(data.get("saline", {}), "saline")
     sigma = t.number("conductivity_s_per_m", 0.37, 0.0, 100.0, lo_open=True)
@@ -761,6 +938,8 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     if isinstance(skip, bool) or not isinstance(skip, int) or not 0 <= skip <= n_driven // 2:
         raise SceneError(f"drive.skip = {skip!r}: must be an integer in [0, {n_driven // 2}] for {n_driven} driven electrodes")
     stim, meas = _patterns(t, n_driven, reference)
+    if stim is None and n_driven < 2:
+        raise SceneError(f"[drive]: {n_driven} driven electrode: give the protocol as data (stim_ua, meas), skip-N needs two or more")
     measure = t.choice("measure", "reference" if reference else "adjacent", MEASUREMENTS)
     if measure == "reference" and not reference and stim is None:
         raise SceneError("drive.measure = 'reference': the layout has no reference electrode (electrodes.reference = \"none\"); "
@@ -823,7 +1002,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     rim_vertices = t.integer("rim_vertices", MEMBRANE_RIM_VERTICES[preset], *MEMBRANE_RIM_RANGE)
     volumetric = t.choice("volumetric", "pointwise", ("pointwise", "mean_dilatation"))
     moulding = t.choice("moulding", "cap", MOULDINGS)
-    if moulding == "flat" and chamber.base_radius_y is not None:
+    if moulding == "flat" and (chamber.base_radius_y is not None or chamber.outline):
         raise SceneError("membrane.moulding = 'flat': only for a round dome (chamber.base_radius_y_mm makes an elongated pad, "
                          "moulded as its cap)")
     element = t.choice("element", "wedge15", MEMBRANE_ELEMENTS)
@@ -839,7 +1018,8 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     return Scene(
         name=name,
         chamber=chamber,
-        electrodes=ElectrodeRing(count, ring * MM, diam * MM, gdiam * MM, z, zg, zf, first, discs, reference, on_membrane, patch),
+        electrodes=ElectrodeRing(count, ring * MM, diam * MM, gdiam * MM, z, zg, zf, first, discs, reference, on_membrane, patch,
+                                 face_z),
         saline=Saline(sigma),
         drive=Drive(current * 1e-6, freqs, skip, measure, stim, meas),
         noise=Noise(snr, seed, drift, rate),
@@ -852,8 +1032,31 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     )
 
 
+def _user_chamber(t: "_Table", surface: Any) -> tuple[Chamber, float, float, float]:
+    """[chamber] from a user's surface file: (the chamber with its outline, its largest rim
+    distance from the axis, that again, its height), lengths in mm."""
+    if not isinstance(surface, str):
+        raise SceneError(f"chamber.surface_file = {surface!r}: must be the path of a surface file")
+    for k in CAP_KEYS:
+        if k in t.data:
+            raise SceneError(f"chamber.{k}: with chamber.surface_file the surface sizes the chamber; give one or the other")
+    unit = t.number("surface_unit_mm", 1.0, 1e-6, 1e6, lo_open=True)
+    if not Path(surface).is_file():
+        raise SceneError(f"chamber.surface_file = {surface!r}: no such file")
+    sf = read_surface(surface, unit * MM)
+    rim = sf.vertices[sf.rim, :2]
+    height = float(sf.vertices[:, 2].max()) / MM
+    if not _in_polygon(np.zeros((1, 2)), rim)[0]:
+        raise SceneError(f"chamber.surface_file = {surface!r}: the axis (x = y = 0) must lie inside the base")
+    base_r = float(np.hypot(*rim.T).max()) / MM
+    chamber = Chamber(base_r * MM, height * MM, 0.0, None, str(surface), sf.sha256, unit * MM, tuple(map(tuple, rim.tolist())))
+    return chamber, base_r, base_r, height
+
+
 def _outline(chamber: Chamber) -> str:
     """The base's outline in words, mm."""
+    if chamber.outline:
+        return "the surface file's rim"
     if chamber.base_radius_y is None:
         return f"radius {chamber.base_radius / MM:g} mm about the axis"
     return f"an ellipse of semi-axes {chamber.base_radius / MM:g} x {chamber.base_radius_y / MM:g} mm"
@@ -907,6 +1110,9 @@ def scene_data(path: str | Path, _chain: tuple[Path, ...] = ()) -> dict[str, Any
     drive = data.get("drive")
     if isinstance(drive, dict) and "patterns_file" in drive:
         data["drive"] = _patterns_from_file(drive, path)
+    chamber = data.get("chamber")
+    if isinstance(chamber, dict) and isinstance(chamber.get("surface_file"), str):
+        data["chamber"] = {**chamber, "surface_file": str((path.parent / chamber["surface_file"]).resolve())}
     if base is None:
         return data
     if not isinstance(base, str):
@@ -927,6 +1133,8 @@ def scene_data(path: str | Path, _chain: tuple[Path, ...] = ()) -> dict[str, Any
                 drop |= set(RING_KEYS)  # a layout given as data replaces the other scene's ring
             if key == "drive" and any(k in value for k in PATTERN_KEYS):
                 drop |= {"skip", "measure"}  # and a protocol as data the other's skip-N
+            if key == "chamber" and "surface_file" in value:
+                drop |= set(CAP_KEYS)  # a user's surface sizes the chamber itself
             merged[key] = {**{k: v for k, v in merged[key].items() if k not in drop}, **value}
         else:
             merged[key] = value

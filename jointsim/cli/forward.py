@@ -35,17 +35,19 @@ def run(args: argparse.Namespace) -> int:
     scene = scene_from_args(args)
     require_backend(args.solver, "--solver")
     preferred_backend()
-    skip = scene.drive.skip if args.skip is None else args.skip
     n = scene.electrodes.n_active
-    if not 0 <= skip <= n // 2:
-        raise ValueError(f"--skip = {skip}: must be in [0, {n // 2}] for {n} driven electrodes")
+    if args.skip is not None and not 0 <= args.skip <= n // 2:
+        raise ValueError(f"--skip = {args.skip}: must be in [0, {n // 2}] for {n} driven electrodes")
+    # the scene's own protocol (its patterns given as data too) unless --skip overrides it
+    given = scene.drive.stim is not None and args.skip is None
+    drive = "the scene's patterns" if given else f"skip-{scene.drive.skip if args.skip is None else args.skip}"
     if args.voxels is not None and args.voxels < 1:
         raise ValueError(f"--voxels = {args.voxels}: must be >= 1")
     out: Path = args.out
     t: dict[str, float] = {}
-    print(f"jointsim forward: scene {scene.name}, mesh preset {scene.mesh.preset}, P{scene.mesh.element_order} elements, skip-{skip}")
+    print(f"jointsim forward: scene {scene.name}, mesh preset {scene.mesh.preset}, P{scene.mesh.element_order} elements, {drive}")
     zf = scene.electrodes.contact_impedance_by_freq
-    protocol = scene_protocol(scene, skip)
+    protocol = scene_protocol(scene, args.skip)
     what = ("membrane inflated, chamber mesh (cached after the first run)" + (" on the flat moulding" if scene.membrane.moulding == "flat" else "")
             + f", {protocol.n_el} lead fields" + (f" per carrier ({len(zf)} contact impedances)" if zf is not None else "")
             + ("" if args.no_jacobian else ", Jacobian and lambda"))

@@ -34,10 +34,11 @@ class InnerSurface:
     u0: np.ndarray
 
     @classmethod
-    def of(cls, model: MembraneModel, base_radius: float, inflated: bool = False, y_scale: float = 1.0) -> "InnerSurface":
+    def of(cls, model: MembraneModel, base_radius: float | None, inflated: bool = False, y_scale: float = 1.0) -> "InnerSurface":
         """The inner surface of ``model`` on a base of ``base_radius`` (its semi-axis along y
-        ``y_scale`` × that for an elongated pad); ``inflated``: its reference is the model's
-        current (inflated, untouched) state instead of the moulded one."""
+        ``y_scale`` × that for an elongated pad; None: a polygon, the rim left where it is);
+        ``inflated``: its reference is the model's current (inflated, untouched) state instead
+        of the moulded one."""
         # the model's inner sub-triangles (the pressure term's surface)
         tris = np.asarray(model.inner_tris)
         nodes, local = np.unique(tris, return_inverse=True)
@@ -48,7 +49,9 @@ class InnerSurface:
         # circle for a flat sheet, whose whole inner surface lies in the base plane)
         rim = np.flatnonzero(model.fixed[nodes, 0])
         rim = rim[np.argsort(np.arctan2(X[rim, 1], X[rim, 0]))]
-        if y_scale == 1.0:
+        if base_radius is None:  # a user's chamber: its rim is the file's polygon, edge midpoints on it
+            pass
+        elif y_scale == 1.0:
             X[rim, :2] *= base_radius / np.hypot(X[rim, 0], X[rim, 1])[:, None]
         else:  # onto the ellipse along the ray from the axis
             X[rim, :2] /= np.hypot(X[rim, 0] / base_radius, X[rim, 1] / (base_radius * y_scale))[:, None]

@@ -30,9 +30,9 @@ from typing import Iterator
 import numpy as np
 import trimesh
 
-from ..geometry import DOME_RIM_VERTICES, ElectrodeLayout, chamber_cap, chamber_surface, electrode_layout
+from ..geometry import DOME_RIM_VERTICES, ElectrodeLayout, chamber_cap, chamber_surface, electrode_layout, user_surface
 from ..scene import MeshSpec, Scene
-from .electrodes import ElectrodePatch, carry_patches, disc_patches, layout_patches
+from .electrodes import ElectrodePatch, carry_patches, disc_patches, layout_patches, plane_face_patch
 from .tetmesh import MeshQuality, TetMesh, mesh_quality
 
 __all__ = ["ChamberMesh", "mesh_chamber", "chamber_mesh", "reference_surface", "cache_dir"]
@@ -84,7 +84,7 @@ class ChamberMesh:
         (:meth:`ElectrodePatch.follow`)."""
         patches = list(self.electrodes)
         if order == 2 and any(p.q1 is None for p in patches):
-            base = np.flatnonzero(~self.layout.membrane)
+            base = np.flatnonzero(self.layout.clipped)
             for i, p in zip(base, disc_patches(self.mesh, self.layout.centres[base], self.layout.radii[base], quadratic=True)):
                 patches[i] = p
         return [p.follow(self.mesh.nodes) for p in patches]
@@ -112,7 +112,9 @@ def _size_expression(layout: ElectrodeLayout, spec: MeshSpec) -> str:
     min(·, h_max / rim_refinement + grading · d_rim(x)), d_rim the distance to the nearest
     electrode's outline (its rim circle)."""
     d = d_rim = None
-    for (x0, y0, z0), r, up in zip(layout.centres, layout.radii, layout.membrane):
+    for (x0, y0, z0), r, up, face in zip(layout.centres, layout.radii, layout.membrane, layout.face):
+        if face:  # a whole face of the chamber: no rim to grade towards
+            continue
         if up:  # on the membrane: from the 3-D distance to its centre, on the nominal cap
             dist = f"Sqrt((x-({x0:.17g}))^2+(y-({y0:.17g}))^2+(z-({z0:.17g}))^2)"
             term = f"Max({dist}-{r + spec.refinement_zone:.17g},0)"
@@ -123,6 +125,8 @@ def _size_expression(layout: ElectrodeLayout, spec: MeshSpec) -> str:
             rim = f"Sqrt(Abs({rho}-{r:.17g})^2+z^2)"
         d = term if d is None else f"Min({d},{term})"
         d_rim = rim if d_rim is None else f"Min({d_rim},{rim})"
+    if d is None:  # whole-face electrodes only: nothing to grade towards
+        return f"{spec.max_edge:.17g}"
     h = f"Min({spec.max_edge:.17g},{spec.max_edge / spec.electrode_refinement:.17g}+{spec.grading:.17g}*{d})"
     if spec.rim_refinement > 1.0:
         h = f"Min({h},{spec.max_edge / spec.rim_refinement:.17g}+{spec.grading:.17g}*{d_rim})"
@@ -164,9 +168,11 @@ def mesh_chamber(
         return ChamberMesh(mesh, layout_patches(mesh, layout), layout, key)
     carried = _node_map(carry_from.mesh.nodes, mesh.nodes)
     patches = carry_patches(carry_from.electrodes, carried)
-    base = np.flatnonzero(~layout.membrane)
+    base = np.flatnonzero(layout.clipped)
     for i, patch in zip(base, disc_patches(mesh, layout.centres[base], layout.radii[base])):
         patches[i] = patch
+    for i in np.flatnonzero(layout.face):
+        patches[i] = plane_face_patch(mesh, 2, float(layout.face_z[i]))
     return ChamberMesh(mesh, patches, layout, key, carried)
 
 
@@ -191,6 +197,8 @@ def reference_surface(scene: Scene) -> trimesh.Trimesh:
     max_edge, at least ``DOME_RIM_VERTICES`` on the rim (kept by the mesher: they bound the
     saline volume)."""
     c = scene.chamber
+    if c.surface_file is not None:  # a user's chamber: its own surface, base and top as the file has them
+        return user_surface(c)
     if scene.mesh.dome_rim_vertices:
         return chamber_surface(chamber_cap(c, scene.mesh.dome_rim_vertices))
     n_rim = 16 * int(np.ceil(2 * np.pi * c.base_radius / scene.mesh.max_edge / 16))
@@ -275,12 +283,13 @@ def _mesh_base(rim: np.ndarray, layout: ElectrodeLayout, spec: MeshSpec) -> tupl
         sides = [geo.addLine(corners[i], corners[(i + 1) % len(corners)]) for i in range(len(corners))]
         plane = geo.addPlaneSurface([geo.addCurveLoop(sides)])
         arcs = []
-        for (x0, y0, _), r in zip(layout.centres[~layout.membrane], layout.radii[~layout.membrane]):
+        for (x0, y0, _), r in zip(layout.centres[layout.clipped], layout.radii[layout.clipped]):
             centre = geo.addPoint(x0, y0, 0.0)
             q = [geo.addPoint(x0 + r * c, y0 + r * s, 0.0) for c, s in ((1, 0), (0, 1), (-1, 0), (0, -1))]
             arcs += [geo.addCircleArc(q[i], centre, q[(i + 1) % 4]) for i in range(4)]
         geo.synchronize()
-        gmsh.model.mesh.embed(1, arcs, 2, plane)
+        if arcs:  # (gmsh aborts on an empty embedding)
+            gmsh.model.mesh.embed(1, arcs, 2, plane)
         for side in sides:
             gmsh.model.mesh.setTransfiniteCurve(side, 2)  # the rim stays the surface's rim
         _size_field(gmsh, layout, spec)
@@ -337,8 +346,8 @@ def _hash(surface: trimesh.Trimesh, layout: ElectrodeLayout, spec: MeshSpec) -> 
     h.update(repr((spec.max_edge, spec.electrode_refinement, spec.refinement_zone, spec.grading)).encode())
     if spec.rim_refinement > 1.0:  # off, the field and the key are what they were before the rim term
         h.update(repr(("rim", spec.rim_refinement)).encode())
-    if layout.membrane.any():  # (the patches are not in the cached file; the size field is)
-        h.update(layout.membrane.tobytes())
+    if layout.membrane.any() or layout.face.any():  # (the patches are not in the cached file; the size field is)
+        h.update(layout.membrane.tobytes() + layout.face.tobytes())
     return h.hexdigest()[:20]
 
 

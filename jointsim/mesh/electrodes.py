@@ -217,25 +217,31 @@ def surface_disc_patch(mesh: TetMesh, centre_xy: np.ndarray, radius: float, *, r
 
 
 def layout_patches(mesh: TetMesh, layout: ElectrodeLayout, quadratic: bool = False) -> list[ElectrodePatch]:
-    """The patches of every electrode of ``layout`` on ``mesh``, in its order (:func:`place_discs`)."""
-    return place_discs(mesh, layout.centres, layout.radii, layout.membrane, layout.membrane_patch, quadratic)
+    """The patches of every electrode of ``layout`` on ``mesh``, in its order (:func:`place_discs`;
+    a full-face electrode: :func:`plane_face_patch` on its plane)."""
+    patches = place_discs(mesh, layout.centres, np.where(layout.face, 1.0, layout.radii), layout.membrane & ~layout.face,
+                          layout.membrane_patch, quadratic, skip=layout.face)
+    for i in np.flatnonzero(layout.face):
+        patches[i] = plane_face_patch(mesh, 2, float(layout.face_z[i]))
+    return patches
 
 
 def place_discs(mesh: TetMesh, centres: np.ndarray, radii: np.ndarray, membrane: np.ndarray | None = None,
-                membrane_patch: str = "stretch", quadratic: bool = False) -> list[ElectrodePatch]:
+                membrane_patch: str = "stretch", quadratic: bool = False, skip: np.ndarray | None = None) -> list[ElectrodePatch]:
     """Disc electrodes (``centres`` (n, 3), ``radii`` (n,) m) on ``mesh``: on the base clipped
     (:func:`disc_patches`), where ``membrane`` (n,) bool is set on the dome above (x, y)
     (:func:`surface_disc_patch`, which has P2 moments always; ``membrane_patch`` one of
-    :data:`MEMBRANE_PATCHES`)."""
+    :data:`MEMBRANE_PATCHES`); where ``skip`` (n,) bool is set, None (placed by the caller)."""
     if membrane_patch not in MEMBRANE_PATCHES:
         raise ValueError(f"membrane_patch = {membrane_patch!r}: allowed values are {list(MEMBRANE_PATCHES)}")
     centres, radii = np.asarray(centres, float), np.asarray(radii, float)
     on = np.zeros(len(radii), bool) if membrane is None else np.asarray(membrane, bool)
+    off = np.zeros(len(radii), bool) if skip is None else np.asarray(skip, bool)
     patches: list[ElectrodePatch | None] = [None] * len(radii)
-    base = np.flatnonzero(~on)
+    base = np.flatnonzero(~on & ~off)
     for i, patch in zip(base, disc_patches(mesh, centres[base], radii[base], quadratic=quadratic)):
         patches[i] = patch
-    for i in np.flatnonzero(on):
+    for i in np.flatnonzero(on & ~off):
         patches[i] = surface_disc_patch(mesh, centres[i, :2], float(radii[i]), rigid=membrane_patch == "rigid")
     return patches  # type: ignore[return-value]
 
