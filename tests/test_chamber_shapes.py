@@ -203,3 +203,34 @@ def test_bad_user_surfaces_are_refused_naming_the_file(cylinder, tmp_path):
         (tmp_path / "s.toml").write_text(CYLINDER_SCENE.format(file=name))
         with pytest.raises(SceneError, match=rf"chamber.surface_file = .*{name}.*: .*{match}"):
             load_scene(tmp_path / "s.toml")
+
+
+def test_a_cap_given_as_a_file_is_the_parametric_cap(tmp_path):
+    """The paper's chamber written to an OBJ file (mm) and read back as a user's surface: its
+    top is the parametric dome (the same vertices to the file's 1e-12 mm), and the membrane
+    built on it presses like the parametric one (the same force to 1e-6: the same mesh,
+    numbered by the file). (The chamber meshed from the file is another mesh of the same
+    surface, the mesher taking its vertices in the file's order: its standing voltages differ
+    by the test preset's mesh noise, 2 % measured.)"""
+    import trimesh
+
+    from jointsim.geometry import chamber_cap
+    from jointsim.mechanics.build import membrane_from_scene
+    from jointsim.mesh.chamber import reference_surface
+
+    paper = load_scene(SCENES_DIR / "paper_sensor.toml").with_mesh_preset("test")
+    surf = reference_surface(paper)
+    trimesh.Trimesh(surf.vertices * 1e3, surf.faces, process=False).export(tmp_path / "cap.obj", digits=12)
+    (tmp_path / "cap.toml").write_text('extends = "paper_sensor"\nname = "cap_file"\n[chamber]\nsurface_file = "cap.obj"\n')
+    user = load_scene(tmp_path / "cap.toml").with_mesh_preset("test")
+    assert user.chamber.base_radius == pytest.approx(20e-3, rel=1e-12) and user.chamber.dome_height == pytest.approx(10e-3, rel=1e-12)
+    dome, want = chamber_cap(user.chamber), chamber_cap(paper.chamber, 96)
+    order = lambda v: np.lexsort(np.round(v, 12).T)  # noqa: E731
+    np.testing.assert_allclose(dome.vertices[order(dome.vertices)], want.vertices[order(want.vertices)], atol=1e-14)
+    forces = []
+    for s in (replace(paper, membrane=replace(paper.membrane, rim_vertices=96, layers=1)),
+              replace(user, membrane=replace(user.membrane, layers=1))):
+        model = membrane_from_scene(s, 7.5e-3)
+        top = model.first_contact_height(np.array([5e-3, 0.0]))
+        forces.append(model.press(np.array([5e-3, 0.0, top - 1e-3])).force[2])
+    assert forces[1] == pytest.approx(forces[0], rel=1e-6)
