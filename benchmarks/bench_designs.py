@@ -3,12 +3,13 @@
     python benchmarks/bench_designs.py [--mesh dataset]   # writes results/designs.{md,json}
 
 Designs: the shipped scenes ``paper_sensor`` (16-electrode ring, central ground), ``ring16_inner8``
-(the ring plus 8 internal electrodes), ``grid5x5`` (a floating 5 × 5 grid) and ``membrane16`` (the
-ring's 16 electrodes on the membrane, stretching with it), each at the same
-chamber, membrane, drive current and noise level (74.2 dB re its own mean standing |V|). Per
-design: electrodes, measurements, chamber tets, the instrument's set-up stages; for one press
-(a 15 mm sphere, 2 mm past first contact, geometric, on the inflated membrane) at 0, 5, 10 and
-13 mm off the axis: RMS δV, the whole frame's δV against the instrument's noise
+(the ring plus 8 internal electrodes), ``grid5x5`` (a floating 5 × 5 grid), ``membrane16`` (the
+ring's 16 electrodes on the membrane, stretching with it), ``small_dome8`` (half the paper's dome,
+8 electrodes) and ``elongated_pad`` (a 40 × 24 mm elliptical pad, 12 electrodes), each at the
+same drive current and noise level (74.2 dB re its own mean standing |V|). Per design:
+electrodes, measurements, chamber tets, the instrument's set-up stages; for one press (a 15 mm
+sphere, 2 mm past first contact, geometric, on the inflated membrane; on a smaller dome scaled
+with its base radius) at 0, 5, 10 and 13 mm off the axis (scaled likewise): RMS δV, the whole frame's δV against the instrument's noise
 (‖δV‖ / σ, in dB: how far above the noise the press stands when every channel is used) and the
 frame step's time (morph + forward + δV, no image); J_sens = Σᵢ ‖J[:, i]‖ / V_chamber; the
 mesh-noise floor (the chamber as meshed against it meshed with a 1 µm jitter of its dome), dB
@@ -39,7 +40,7 @@ from jointsim.reconstruction.grid import ChamberGrid  # noqa: E402
 from jointsim.scene import SCENES_DIR, load_scene  # noqa: E402
 from jointsim.studies.protocol_study import jittered_chamber  # noqa: E402
 
-DESIGNS = ("paper_sensor", "ring16_inner8", "grid5x5", "membrane16")
+DESIGNS = ("paper_sensor", "ring16_inner8", "grid5x5", "membrane16", "small_dome8", "elongated_pad")
 OFFSETS_MM = (0.0, 5.0, 10.0, 13.0)
 RADIUS, DEPTH = 7.5e-3, 2e-3
 
@@ -53,8 +54,9 @@ def bench(name: str, preset: str) -> dict:
     grid = ChamberGrid.over(inst.reference.mesh, scene.reconstruction.cells)
     J = jacobian(ro.fields(inst.reference, True), ro.protocol, coarse=grid.C)
     presses = []
+    k = scene.chamber.base_radius / 20e-3  # a smaller dome: the press scaled with its base radius
     for x in OFFSETS_MM:
-        dome = indent_dome(inst.reference_dome, (x * 1e-3, 0.0), DEPTH, RADIUS, scene.chamber.membrane_thickness).dome
+        dome = indent_dome(inst.reference_dome, (k * x * 1e-3, 0.0), k * DEPTH, k * RADIUS, scene.chamber.membrane_thickness).dome
         t = time.perf_counter()
         r = inst.measure(dome, None, image=False)
         presses.append({"x_mm": x, "frame_s": time.perf_counter() - t, "mesh_path": r.chamber.path,
@@ -82,10 +84,12 @@ def report(rows: list[dict], preset: str, machine: str) -> str:
     lines = [
         "# Electrode designs side by side",
         "",
-        f"`python benchmarks/bench_designs.py --mesh {preset}`; {machine}. Chamber, membrane, drive current and "
-        "noise level (74.2 dB re each design's mean standing |V|) are the paper sensor's; only the electrodes and "
-        "the protocol differ. The press: a 15 mm sphere 2 mm past first contact (geometric indentation of the "
-        "inflated membrane), on the x axis. ‖δV‖/σ: the whole frame's clean change against one frame's noise std.",
+        f"`python benchmarks/bench_designs.py --mesh {preset}`; {machine}. Drive current and noise level (74.2 dB re "
+        "each design's mean standing |V|) are the paper sensor's; the electrodes, the protocol and, for small_dome8 "
+        "(half the paper's dome) and elongated_pad (a 40 x 24 mm elliptical pad), the chamber differ. The press: a "
+        "15 mm sphere 2 mm past first contact (geometric indentation of the inflated membrane), on the x axis at the "
+        "offsets below; on small_dome8 all of it scaled by its base radius (7.5 mm sphere, 1 mm, half the offsets). "
+        "‖δV‖/σ: the whole frame's clean change against one frame's noise std.",
         "",
         "| design | electrodes | reference | protocol | lead fields | measurements | tets | mean standing mV | noise µV | J_sens | mesh floor (1 µm jitter) dB | set-up s |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",

@@ -27,7 +27,7 @@ from jointsim.scene import MESH_PRESETS, SCENES_DIR, load_scene  # noqa: E402
 from jointsim.studies.protocol_study import StudyConfig, run_protocol_study  # noqa: E402
 from jointsim.studies.report import write_study  # noqa: E402
 
-DESIGNS = ("paper_sensor", "ring16_inner8", "grid5x5", "membrane16", "small_dome8")
+DESIGNS = ("paper_sensor", "ring16_inner8", "grid5x5", "membrane16", "small_dome8", "elongated_pad")
 
 
 def main() -> int:

@@ -113,6 +113,60 @@ def _in_polygon(xy: np.ndarray, poly: np.ndarray) -> np.ndarray:
     return (crosses & (x < at)).sum(axis=1) % 2 == 1
 
 
+def _crossing_faces(v: np.ndarray, f: np.ndarray) -> tuple[int, int] | None:
+    """Two faces of the surface (v (n, 3), f (m, 3)) that cross each other, or None. Candidate
+    pairs are faces whose bounding spheres overlap (a k-d tree of their centres), faces sharing
+    a vertex left out; each pair is tested as Möller's triangle–triangle test does: each
+    triangle's corners straddle the other's plane, and the two triangles' intervals on the line
+    where the planes meet overlap. Coplanar pairs are not reported."""
+    from scipy.spatial import cKDTree
+
+    p = v[f]  # (m, 3, 3)
+    centre = p.mean(axis=1)
+    radius = np.linalg.norm(p - centre[:, None], axis=2).max(axis=1)
+    pairs = cKDTree(centre).query_pairs(2 * float(radius.max()), output_type="ndarray")
+    if not len(pairs):
+        return None
+    a, b = pairs.T
+    apart = (f[a][:, :, None] != f[b][:, None, :]).all(axis=(1, 2))
+    near = np.linalg.norm(centre[a] - centre[b], axis=1) <= radius[a] + radius[b]
+    a, b = a[apart & near], b[apart & near]
+    if not len(a):
+        return None
+    A, B = p[a], p[b]
+    nA = np.cross(A[:, 1] - A[:, 0], A[:, 2] - A[:, 0])
+    nB = np.cross(B[:, 1] - B[:, 0], B[:, 2] - B[:, 0])
+    scale = radius.max()
+    dB = np.einsum("kj,kij->ki", nA, B - A[:, :1])  # B's corners against A's plane
+    dA = np.einsum("kj,kij->ki", nB, A - B[:, :1])
+    tolB = 1e-12 * np.linalg.norm(nA, axis=1, keepdims=True) * scale
+    tolA = 1e-12 * np.linalg.norm(nB, axis=1, keepdims=True) * scale
+    straddle = ((dB > tolB).any(1) & (dB < -tolB).any(1)) & ((dA > tolA).any(1) & (dA < -tolA).any(1))
+    ok = np.flatnonzero(straddle & (np.linalg.norm(np.cross(nA, nB), axis=1) > 0))
+    if not ok.size:
+        return None
+    A, B, dA, dB, a, b = A[ok], B[ok], dA[ok], dB[ok], a[ok], b[ok]
+    line = np.cross(nA[ok], nB[ok])
+
+    def interval(T: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """The triangle's segment on the planes' line: its corners' projections, cut where d changes sign."""
+        proj = np.einsum("kij,kj->ki", T, line)
+        ends = []
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            cut = (d[:, i] > 0) != (d[:, j] > 0)
+            t = d[:, i] / np.where(cut, d[:, i] - d[:, j], 1.0)
+            ends.append(np.where(cut, proj[:, i] + t * (proj[:, j] - proj[:, i]), np.nan))
+        e = np.column_stack(ends)
+        return np.column_stack([np.nanmin(e, axis=1), np.nanmax(e, axis=1)])
+
+    with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: a triangle only touching the line
+        ia, ib = interval(A, dA), interval(B, dB)
+    overlap = (np.minimum(ia[:, 1], ib[:, 1]) - np.maximum(ia[:, 0], ib[:, 0])) > 1e-9 * scale * np.linalg.norm(line, axis=1)
+    hit = np.flatnonzero(overlap)
+    return (int(a[hit[0]]), int(b[hit[0]])) if hit.size else None
+
+
 @dataclass(frozen=True, eq=False)
 class SurfaceFile:
     """A user's chamber read from a surface file (:func:`read_surface`): ``vertices`` (n, 3) m,
@@ -157,6 +211,8 @@ def read_surface(path: str | Path, unit: float = MM) -> SurfaceFile:
         mesh.invert()
     v = np.asarray(mesh.vertices, float) * unit
     f = np.asarray(mesh.faces, np.int64)
+    if (k := _crossing_faces(v, f)) is not None:
+        raise SceneError(f"{key}: the surface intersects itself (faces {k[0]} and {k[1]} cross)")
     size = float(np.ptp(v, axis=0).max())
     if abs(v[:, 2].min()) > 1e-9 * size:
         raise SceneError(f"{key}: its lowest point is at z = {v[:, 2].min() / MM:g} mm; the flat base must lie on z = 0")

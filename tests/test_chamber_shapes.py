@@ -186,8 +186,9 @@ def test_a_users_cylinder_reads_its_resistance(cylinder):
 
 
 def test_bad_user_surfaces_are_refused_naming_the_file(cylinder, tmp_path):
-    """A surface with a hole, one off the base plane, or a missing file: one line naming
-    chamber.surface_file and what is wrong."""
+    """A surface with a hole, one off the base plane, one that intersects itself (two boxes
+    through each other), or a missing file: one line naming chamber.surface_file and what is
+    wrong."""
     import trimesh
 
     cyl = trimesh.creation.cylinder(radius=5.0, height=10.0, sections=32)
@@ -198,8 +199,12 @@ def test_bad_user_surfaces_are_refused_naming_the_file(cylinder, tmp_path):
     lifted = cyl.copy()
     lifted.apply_translation([0.0, 0.0, 1.0])
     lifted.export(tmp_path / "lifted.stl")
+    boxes = [trimesh.creation.box([8.0, 8.0, 6.0]) for _ in range(2)]
+    boxes[0].apply_translation([0.0, 0.0, 3.0])
+    boxes[1].apply_translation([2.0, 2.0, 4.0])
+    trimesh.util.concatenate(boxes).export(tmp_path / "crossing.stl")
     for name, match in (("holed.stl", "not watertight"), ("lifted.stl", "the flat base must lie on z = 0"),
-                        ("none.stl", "no such file")):
+                        ("crossing.stl", "the surface intersects itself"), ("none.stl", "no such file")):
         (tmp_path / "s.toml").write_text(CYLINDER_SCENE.format(file=name))
         with pytest.raises(SceneError, match=rf"chamber.surface_file = .*{name}.*: .*{match}"):
             load_scene(tmp_path / "s.toml")

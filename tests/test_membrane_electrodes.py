@@ -174,3 +174,22 @@ def test_the_jobs_run_with_electrodes_on_the_membrane(membrane16):
     stretch = run_protocol_study(membrane16, cfg).dv_clean[8]
     rigid = run_protocol_study(replace(membrane16, electrodes=replace(membrane16.electrodes, membrane_patch="rigid")), cfg).dv_clean[8]
     assert np.abs(stretch).max() > 0 and np.abs(rigid - stretch).max() > 1e-3 * np.abs(stretch).max()
+
+
+def test_at_zero_deformation_membrane_electrodes_are_static_ones(membrane16):
+    """The membrane at rest (the instrument's reference dome): the frame step through the
+    electrodes it carries gives the reference voltages bit for bit, and the same as the
+    reference chamber read through those patches held still (no carrying) to round-off."""
+    from jointsim.eit.forward import ForwardModel
+    from jointsim.instrument import Instrument
+
+    inst = Instrument.build(membrane16, imaging=False)
+    try:
+        ro = inst.readout
+        frame = inst.measure(inst.reference_dome, None, image=False)
+        np.testing.assert_array_equal(frame.voltages_clean, ro.v_ref)
+        still = [replace(p, carried=None) for p in inst.reference.patches(1)]
+        v = ForwardModel(inst.reference.mesh, still, inst.reference.ground, ro.forward.z).voltages(ro.conductivity, ro.protocol)
+        np.testing.assert_allclose(ro.v_ref, v, rtol=0, atol=1e-10 * np.abs(v).max())
+    finally:
+        inst.free()
