@@ -924,7 +924,8 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
         raise SceneError(f"unknown section(s): {', '.join(unknown)}; known are {', '.join(sorted(known))}")
 
     t = _Table(data.get("chamber", {}), "chamber")
-    surface = t.raw("surface_file", None)
+    t.seen.add("surface_file")
+    surface = t.data.get("surface_file")
     _read("chamber", "surface_file", "value", None, "a watertight triangle surface (.stl, .obj, .ply, .off), base on z = 0; "
           "relative to the scene file")
     if surface is not None:
