@@ -10,6 +10,8 @@ path: ``chamber_surface(dome)`` welds any dome to the base and returns a waterti
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -225,10 +227,16 @@ def user_surface(chamber: Chamber) -> trimesh.Trimesh:
 
 
 def _surface(chamber: Chamber) -> SurfaceFile:
-    sf = read_surface(chamber.surface_file, chamber.surface_unit)
+    sf = _read_surface(chamber.surface_file, chamber.surface_unit, Path(chamber.surface_file).stat().st_mtime_ns)
     if sf.sha256 != chamber.surface_sha256:
         raise ValueError(f"chamber.surface_file = {chamber.surface_file!r}: the file changed since the scene was read")
     return sf
+
+
+@lru_cache(maxsize=4)
+def _read_surface(path: str, unit: float, mtime_ns: int) -> SurfaceFile:
+    """:func:`~jointsim.scene.read_surface`, once per file version (the mesher and the membrane both ask)."""
+    return read_surface(path, unit)
 
 
 def flat_disc(base_radius: float, n_rim: int = 96) -> DomeSurface:

@@ -2,7 +2,9 @@
 
 A scene is a TOML file whose keys carry their unit (``radius_mm``, ``current_ua``).
 ``load_scene`` converts everything to SI (m, S/m, A, Ω·m², Hz) and rejects a bad value with a
-:class:`SceneError` that names the key and its allowed range, before any solver runs.
+:class:`SceneError` that names the key and its allowed range, before any solver runs. Files a
+scene names are read and checked here too: a protocol's patterns, and a user's chamber surface
+(:func:`read_surface`: closed, not self-intersecting, its base on z = 0).
 """
 
 from __future__ import annotations
