@@ -18,7 +18,7 @@ import trimesh
 
 from .scene import Chamber, Scene, SurfaceFile, read_surface, ring_positions
 
-__all__ = ["DomeSurface", "ElectrodeLayout", "cap_height", "chamber_cap", "user_dome", "user_surface", "spherical_cap", "isotropic_cap", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
+__all__ = ["DomeSurface", "ElectrodeLayout", "symmetries", "cap_height", "chamber_cap", "user_dome", "user_surface", "spherical_cap", "isotropic_cap", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
 
 
 @dataclass(frozen=True)
@@ -94,6 +94,49 @@ def electrode_layout(scene: Scene) -> ElectrodeLayout:
     centres = np.vstack([ring, np.zeros((1, 3))])
     radii = np.append(np.full(e.count, e.diameter / 2), e.ground_diameter / 2)
     return ElectrodeLayout(centres, radii, ground=e.count)
+
+
+def symmetries(layout: ElectrodeLayout, chamber: Chamber, max_order: int = 64, tol: float = 1e-9) -> dict[str, np.ndarray]:
+    """The isometries of the base plane that map the ideal chamber (its outline: the circle, a
+    pad's ellipse, a user's polygon) and the electrode layout onto themselves while keeping the
+    reference electrode in place: turns about the axis by 360°/k (k ≤ ``max_order``) and mirrors
+    in lines through it (the x and y axes, and through each electrode and midway between two),
+    each as the permutation P of the electrodes it makes (electrode i goes to P[i]), by name
+    ("turn 22.5 deg", "mirror 0 deg"). Positions match to ``tol`` × the base radius."""
+    xy = layout.centres[:, :2]
+    key = np.column_stack([layout.radii, layout.membrane, layout.face, np.nan_to_num(layout.centres[:, 2]) * layout.face])
+    scale = tol * chamber.base_radius
+    outline = np.asarray(chamber.outline) if chamber.outline else None
+
+    def permutation(m: np.ndarray) -> np.ndarray | None:
+        moved = xy @ m.T
+        d = np.linalg.norm(moved[:, None] - xy[None], axis=2) + 1e9 * (np.abs(key[:, None] - key[None]) > tol).any(axis=2)
+        P = np.argmin(d, axis=1)
+        if d[np.arange(len(P)), P].max() > scale or len(set(P.tolist())) < len(P) or P[layout.ground] != layout.ground:
+            return None
+        if outline is not None:  # the user's polygon onto itself
+            q = outline @ m.T
+            if np.linalg.norm(q[:, None] - outline[None], axis=2).min(axis=1).max() > scale:
+                return None
+        elif chamber.base_radius_y is not None and not (np.allclose(np.abs(m), np.eye(2), atol=1e-12)):
+            return None  # a pad: only its two mirrors and the half turn
+        return P
+
+    out: dict[str, np.ndarray] = {}
+    for k in range(2, max_order + 1):
+        t = 2 * np.pi / k
+        P = permutation(np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]))
+        if P is not None:
+            out[f"turn {360 / k:g} deg"] = P
+    angles = {0.0, np.pi / 2} | {float(np.arctan2(y, x) % np.pi) for x, y in xy if np.hypot(x, y) > scale}
+    ring = sorted(angles)
+    angles |= {(a + b) / 2 for a, b in zip(ring, ring[1:] + [ring[0] + np.pi])}
+    for a in sorted({round(a % np.pi, 12) for a in angles}):
+        c, s_ = np.cos(2 * a), np.sin(2 * a)
+        P = permutation(np.array([[c, s_], [s_, -c]]))
+        if P is not None:
+            out[f"mirror {np.degrees(a):.4g} deg"] = P
+    return out
 
 
 def cap_height(base_radius: float, height: float, rho: np.ndarray) -> np.ndarray:

@@ -275,3 +275,24 @@ def test_a_smaller_dome_with_eight_electrodes_reads_a_press():
         assert 0 < dv[0] < dv[1]
     finally:
         inst.free()
+
+
+def test_the_symmetries_of_a_design_are_found_from_its_layout_and_chamber():
+    """jointsim.geometry.symmetries: the paper's ring has the 16 mirrors and the turns by
+    360°/k for k | 16 (22.5° moving electrode i to i + 1), the ground kept; the pad only its two
+    mirrors and the half turn; the floating grid only the mirror that keeps its last electrode
+    (the solver's reference) where it is."""
+    from jointsim.geometry import electrode_layout, symmetries
+    from jointsim.scene import SCENES_DIR
+
+    paper = load_scene(SCENES_DIR / "paper_sensor.toml")
+    sym = symmetries(electrode_layout(paper), paper.chamber)
+    assert {k for k in sym if k.startswith("turn")} == {"turn 180 deg", "turn 90 deg", "turn 45 deg", "turn 22.5 deg"}
+    assert sum(k.startswith("mirror") for k in sym) == 16
+    np.testing.assert_array_equal(sym["turn 22.5 deg"], np.append((np.arange(16) + 1) % 16, 16))
+    pad = load_scene(SCENES_DIR / "elongated_pad.toml")
+    assert set(symmetries(electrode_layout(pad), pad.chamber)) == {"turn 180 deg", "mirror 0 deg", "mirror 90 deg"}
+    grid = load_scene(SCENES_DIR / "grid5x5.toml")
+    layout = electrode_layout(grid)
+    for P in symmetries(layout, grid.chamber).values():
+        assert P[layout.ground] == layout.ground
