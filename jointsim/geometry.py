@@ -10,13 +10,11 @@ path: ``chamber_surface(dome)`` welds any dome to the base and returns a waterti
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
 import trimesh
 
-from .scene import Chamber, Scene, SurfaceFile, read_surface, ring_positions
+from .scene import Chamber, Scene, SurfaceFile, read_surface, ring_positions, top_height
 
 __all__ = ["DomeSurface", "ElectrodeLayout", "symmetries", "cap_height", "chamber_cap", "user_dome", "user_surface", "spherical_cap", "isotropic_cap", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
 
@@ -87,8 +85,11 @@ def electrode_layout(scene: Scene) -> ElectrodeLayout:
             return ElectrodeLayout(np.column_stack([d[:, :2], np.zeros(len(d))]), d[:, 2].copy(), ground=len(d) - 1)
         on = np.asarray(e.on_membrane, bool)
         c = scene.chamber
-        rho = np.hypot(d[:, 0], d[:, 1] / c.y_scale)  # on a pad: where on the round cap the point came from
-        z = np.where(on, cap_height(c.base_radius, c.dome_height, rho), 0.0)
+        if c.surface_file is not None:  # a user's top: its height above each footprint
+            z = np.where(on, top_height(read_surface(c.surface_file, c.surface_unit), d[:, :2]), 0.0)
+        else:
+            rho = np.hypot(d[:, 0], d[:, 1] / c.y_scale)  # on a pad: where on the round cap the point came from
+            z = np.where(on, cap_height(c.base_radius, c.dome_height, rho), 0.0)
         return ElectrodeLayout(np.column_stack([d[:, :2], z]), d[:, 2].copy(), len(d) - 1, on, e.membrane_patch)
     ring = np.column_stack([ring_positions(e.count, e.ring_radius, e.first_angle_deg), np.zeros(e.count)])
     centres = np.vstack([ring, np.zeros((1, 3))])
@@ -270,16 +271,10 @@ def user_surface(chamber: Chamber) -> trimesh.Trimesh:
 
 
 def _surface(chamber: Chamber) -> SurfaceFile:
-    sf = _read_surface(chamber.surface_file, chamber.surface_unit, Path(chamber.surface_file).stat().st_mtime_ns)
+    sf = read_surface(chamber.surface_file, chamber.surface_unit)
     if sf.sha256 != chamber.surface_sha256:
         raise ValueError(f"chamber.surface_file = {chamber.surface_file!r}: the file changed since the scene was read")
     return sf
-
-
-@lru_cache(maxsize=4)
-def _read_surface(path: str, unit: float, mtime_ns: int) -> SurfaceFile:
-    """:func:`~jointsim.scene.read_surface`, once per file version (the mesher and the membrane both ask)."""
-    return read_surface(path, unit)
 
 
 def flat_disc(base_radius: float, n_rim: int = 96) -> DomeSurface:

@@ -9,6 +9,7 @@ scene names are read and checked here too: a protocol's patterns, and a user's c
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -186,7 +187,36 @@ class SurfaceFile:
 SURFACE_SUFFIXES = (".stl", ".obj", ".ply", ".off")
 
 
+def top_height(sf: SurfaceFile, xy: np.ndarray) -> np.ndarray:
+    """The height (k,) m of the top of a user's chamber above the points ``xy`` (k, 2) m of its
+    base (its highest face there; NaN where none is above)."""
+    p = sf.vertices[sf.faces[~sf.base]]
+    t = p[..., :2]
+    d1, d2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    det = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+    out = np.full(len(xy), np.nan)
+    for i, q in enumerate(np.atleast_2d(xy)):
+        r = q - t[:, 0]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            l1 = (r[:, 0] * d2[:, 1] - r[:, 1] * d2[:, 0]) / det
+            l2 = (d1[:, 0] * r[:, 1] - d1[:, 1] * r[:, 0]) / det
+        inside = (det != 0) & (l1 >= -1e-12) & (l2 >= -1e-12) & (l1 + l2 <= 1 + 1e-12)
+        if inside.any():
+            z = p[inside, 0, 2] + l1[inside] * (p[inside, 1, 2] - p[inside, 0, 2]) + l2[inside] * (p[inside, 2, 2] - p[inside, 0, 2])
+            out[i] = z.max()
+    return out
+
+
 def read_surface(path: str | Path, unit: float = MM) -> SurfaceFile:
+    """Read a user's chamber (once per version of the file: :func:`_read_surface`)."""
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"chamber.surface_file = {str(path)!r}: no such file")
+    return _read_surface(str(path), float(unit), path.stat().st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=4)
+def _read_surface(path: str, unit: float, mtime_ns: int) -> SurfaceFile:
     """Read a user's chamber: a watertight, consistently wound triangle surface (STL, OBJ, PLY,
     OFF; lengths in ``unit`` m) whose flat base lies on z = 0 and whose other faces (the top,
     where the membrane is built) meet the base along one loop around the axis. Raises
@@ -695,10 +725,16 @@ def _layout(t: "_Table", base_r: float, height: float, base_ry: float,
                 r = u.number("radius_mm", 15.0, 0.0, base_r)
                 phase = math.radians(u.number("phase_deg", 0.0, -360.0, 360.0))
                 pts = [(r * math.cos(phase + 2 * math.pi * k / n), r * math.sin(phase + 2 * math.pi * k / n)) for k in range(n)]
+            elif kind == "membrane" and outline:
+                # a user's top has no polar angle: the ring is given by where it lies above the base
+                if "polar_angle_deg" in g:
+                    raise SceneError(f"{name}.polar_angle_deg: a chamber from chamber.surface_file has no cap; give "
+                                     "radius_mm, the ring's radius seen from above")
+                n = u.integer("count", 16, 1, MAX_ELECTRODES)
+                r = u.number("radius_mm", 0.0, 0.0, base_r)
+                phase = math.radians(u.number("phase_deg", 0.0, -360.0, 360.0))
+                pts = [(r * math.cos(phase + 2 * math.pi * k / n), r * math.sin(phase + 2 * math.pi * k / n)) for k in range(n)]
             elif kind == "membrane":
-                if outline:
-                    raise SceneError(f"{name}: electrodes on the membrane are placed by the cap's polar angle; a chamber "
-                                     "from chamber.surface_file has no cap (not supported there yet)")
                 n = u.integer("count", 16, 1, MAX_ELECTRODES)
                 # along the surface: the disc ends EDGE_CLEARANCE_MM short of the rim
                 top = math.degrees(rim_angle - (d / 2 + EDGE_CLEARANCE_MM) / sphere)
@@ -743,6 +779,8 @@ def _layout(t: "_Table", base_r: float, height: float, base_ry: float,
     # on the membrane: the points of the cap (mm), to be apart along it (chords: a little short of arcs)
     round_xy = c * [1.0, base_r / base_ry]  # where on the round cap a point of a pad came from
     lifted = np.column_stack([c, np.sqrt(np.maximum(sphere**2 - (round_xy**2).sum(axis=1), 0.0)) - (sphere - height)])
+    if outline and membrane.any():  # on a user's top: its height above each footprint
+        lifted[:, 2] = np.where(membrane, top_height(read_surface(chamber.surface_file, chamber.surface_unit), c * MM) / MM, 0.0)
     if outline:
         if (bad := np.flatnonzero(~chamber.inside(c * MM, (r + EDGE_CLEARANCE_MM) * MM) & ~face)).size:
             k = int(bad[0])

@@ -239,3 +239,34 @@ def test_a_cap_given_as_a_file_is_the_parametric_cap(tmp_path):
         top = model.first_contact_height(np.array([5e-3, 0.0]))
         forces.append(model.press(np.array([5e-3, 0.0, top - 1e-3])).force[2])
     assert forces[1] == pytest.approx(forces[0], rel=1e-6)
+
+
+def test_electrodes_on_the_membrane_of_a_users_top(tmp_path):
+    """On a user's chamber (the paper's cap from a file) a [[electrodes.membrane]] ring is given
+    by its radius seen from above: its discs lie on the top, 15 mm from the axis, each πr², and
+    they read a voltage at rest; a polar angle (the cap's own measure) is refused there."""
+    import trimesh
+
+    from jointsim.eit.forward import ForwardModel
+    from jointsim.eit.protocol import scene_protocol
+    from jointsim.mesh.chamber import chamber_mesh, reference_surface
+
+    paper = load_scene(SCENES_DIR / "paper_sensor.toml").with_mesh_preset("test")
+    surf = reference_surface(paper)
+    trimesh.Trimesh(surf.vertices * 1e3, surf.faces, process=False).export(tmp_path / "cap.obj", digits=12)
+    text = ('extends = "paper_sensor"\nname = "cap_file_membrane"\n[chamber]\nsurface_file = "cap.obj"\n[electrodes]\nreference = 0\n'
+            '[[electrodes.disc]]\nxy_mm = [0.0, 0.0]\ndiameter_mm = 4.0\n[[electrodes.membrane]]\ncount = 8\n{ring}\ndiameter_mm = 2.0\n'
+            '[drive]\nskip = 4\n[mesh]\npreset = "test"\n')
+    (tmp_path / "s.toml").write_text(text.format(ring="radius_mm = 15.0"))
+    scene = load_scene(tmp_path / "s.toml")
+    ch = chamber_mesh(scene)
+    nodes = ch.mesh.nodes
+    for p in ch.electrodes[:8]:
+        assert p.carried is not None and p.total_area == pytest.approx(np.pi * 1e-6, rel=1e-12)
+        centre = (p.m1[..., None] * nodes[p.faces]).sum(axis=(0, 1)) / p.total_area
+        assert np.hypot(*centre[:2]) == pytest.approx(15e-3, abs=0.1e-3) and centre[2] > 4e-3
+    v = ForwardModel.from_chamber(ch, scene).voltages(0.37, scene_protocol(scene))
+    assert v.shape == (64,) and np.all(np.isfinite(v)) and np.abs(v).max() > 0
+    (tmp_path / "s.toml").write_text(text.format(ring="polar_angle_deg = 30.0"))
+    with pytest.raises(SceneError, match=r"electrodes.membrane\[0\].polar_angle_deg: a chamber from chamber.surface_file has no cap"):
+        load_scene(tmp_path / "s.toml")
