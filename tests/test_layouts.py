@@ -66,9 +66,10 @@ def test_generators_make_their_electrodes_in_order_with_the_reference_last():
     ({"ring": [{"count": 3, "radius_mm": 10}]}, r"electrodes.reference = None"),
     ({"reference": 0, "count": 16, "ring": [{"count": 3, "radius_mm": 10}]}, r"electrodes.count: describes the paper's ring"),
     ({"reference": 0, "ring": [{"count": 3, "radius_mm": 10, "colour": "red"}]}, r"unknown key\(s\) in \[electrodes.ring\[0\]\]: colour"),
-    ({"reference": 0, "ring": [{"count": 2, "radius_mm": 10}]}, r"make 2 electrodes; a layout has 3 to"),
+    ({"reference": 0, "ring": [{"count": 1, "radius_mm": 10}]}, r"make 1 electrodes; a layout has 2 to"),
+    ({"reference": 0, "ring": [{"count": 2, "radius_mm": 10}]}, r"\[drive\]: 1 driven electrode: give the protocol as data"),
     ({"reference": 0, "grid": [{"pitch_mm": 1.9, "diameter_mm": 2.0, "within_mm": 5}]}, r"electrodes.grid\[0\] electrode \d+ and .* overlap"),
-    ({"reference": 0, "grid": [{"pitch_mm": 1.0, "diameter_mm": 0.5}]}, r"the generators make 1\d\d\d electrodes; a layout has 3 to 129"),
+    ({"reference": 0, "grid": [{"pitch_mm": 1.0, "diameter_mm": 0.5}]}, r"the generators make 1\d\d\d electrodes; a layout has 2 to 129"),
 ])
 def test_a_bad_layout_is_refused_naming_the_electrode(electrodes, match):
     with pytest.raises(SceneError, match=match):
