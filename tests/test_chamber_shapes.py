@@ -270,3 +270,44 @@ def test_electrodes_on_the_membrane_of_a_users_top(tmp_path):
     (tmp_path / "s.toml").write_text(text.format(ring="polar_angle_deg = 30.0"))
     with pytest.raises(SceneError, match=r"electrodes.membrane\[0\].polar_angle_deg: a chamber from chamber.surface_file has no cap"):
         load_scene(tmp_path / "s.toml")
+
+
+def test_a_map_tells_the_shapes_and_the_electrodes_apart(cylinder, tmp_path):
+    """The sensor fingerprint a calibration map is checked against holds the new designs: a pad
+    is not the round dome (chamber.base_radius_y), rigid membrane electrodes are not stretching
+    ones, and a user's chamber is its file's content (its SHA-256), not where the file lies."""
+    import shutil
+
+    from jointsim.calibration.fingerprint import fingerprint_differences, sensor_fingerprint
+
+    paper, pad = (load_scene(SCENES_DIR / f"{n}.toml") for n in ("paper_sensor", "elongated_pad"))
+    assert any(d.startswith("chamber.base_radius_y") for d in fingerprint_differences(sensor_fingerprint(pad), sensor_fingerprint(paper)))
+    m16 = load_scene(SCENES_DIR / "membrane16.toml")
+    rigid = replace(m16, electrodes=replace(m16.electrodes, membrane_patch="rigid"))
+    assert [d.split(":")[0] for d in fingerprint_differences(sensor_fingerprint(rigid), sensor_fingerprint(m16))] == ["electrodes.membrane_patch"]
+    moved = tmp_path / "elsewhere"
+    moved.mkdir()
+    for name in ("cyl.stl", "cylinder.toml"):
+        shutil.copy(cylinder / name, moved / name)
+    a, b = load_scene(cylinder / "cylinder.toml"), load_scene(moved / "cylinder.toml")
+    assert a.chamber.surface_file != b.chamber.surface_file
+    assert fingerprint_differences(sensor_fingerprint(a), sensor_fingerprint(b)) == []
+
+
+@pytest.mark.parametrize("name, channels", [("membrane16", 256), ("elongated_pad", 144), ("small_dome8", 64)])
+def test_palpate_runs_on_the_new_designs(tmp_path, name, channels):
+    """`jointsim palpate` on each new example design at the test preset: the record holds the
+    design's channel count, and the figures are written."""
+    import subprocess
+    import sys
+
+    from jointsim.io.records import open_records
+
+    out = tmp_path / name
+    cmd = [sys.executable, "-m", "jointsim", "palpate", str(SCENES_DIR / f"{name}.toml"), "--mesh", "test", "--rim-vertices", "32",
+           "--layers", "1", "--target-diameters-mm", "6", "--depth-mm", "0.5", "--hold-s", "0", "--out", str(out), "--no-progress"]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+    rec = open_records(out / "palpation.h5")
+    assert rec["voltages"].shape == (len(rec), channels) and np.abs(rec["dv_clean"]).max() > 0
+    assert (out / "fig4a_voltages.png").is_file() and (out / "fig4b_images.png").is_file()

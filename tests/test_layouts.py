@@ -137,7 +137,8 @@ def test_a_layout_runs_through_the_instrument(test_chamber):
         inst.free()
 
 
-@pytest.mark.parametrize("name", ["paper_sensor", "paper_sensor_stiffness", "ring16_inner8", "grid5x5"])
+@pytest.mark.parametrize("name", ["paper_sensor", "paper_sensor_stiffness", "ring16_inner8", "grid5x5", "membrane16",
+                                  "small_dome8", "elongated_pad"])
 def test_every_shipped_scene_loads_and_reads_back_from_its_provenance_text(name):
     import tomllib
 

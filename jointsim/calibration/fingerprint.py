@@ -46,7 +46,8 @@ OPTIONAL_KEYS: dict[str, Any] = {
     "mesh.element_order": 1, "membrane.moulding": "cap", "electrodes.discs": [], "electrodes.reference": True,
     "drive.measure": "reference", "drive.stim": None, "drive.meas": None, "reconstruction.lambda_radius": 7.5e-3,
     "reconstruction.lambda_depth": 3e-3, "reconstruction.lambda_xy": [0.0, 0.0],
-    **{f"{section}.{key}": before for (section, key), before in LATER_DEFAULTS.items()},
+    # (a user's chamber by its file's SHA-256 and outline, wherever the file lies)
+    **{f"{section}.{key}": before for (section, key), before in LATER_DEFAULTS.items() if key != "surface_file"},
 }
 # sections values were recorded in before they moved (scene.MOVED_KEYS): read there when a
 # record has no section of their own
