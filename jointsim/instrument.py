@@ -49,8 +49,7 @@ from .mesh.electrodes import ElectrodePatch, disc_patches, layout_patches
 from .mesh.morph import MIN_QUALITY_RATIO, ChamberMorpher, DeformedChamber, MeshInversionError, deform_chamber
 from .metrics import ImageMetrics, image_metrics
 from .reconstruction.grid import ChamberGrid
-from .reconstruction.tikhonov import LAPLACIAN_RIDGE, SVD, Reconstructor, choose_lambda, prior_matrix
-from .reconstruction.tv import TVImager, difference_operator
+from .reconstruction.tikhonov import SVD, Reconstructor, choose_lambda, prior_matrix
 from .scene import Scene
 from .timing import timed
 
@@ -236,25 +235,17 @@ class Imager:
     jacobian: np.ndarray
     reconstructor: Reconstructor
     cell_noise: np.ndarray
-    tv: TVImager | None = None
 
     @classmethod
     def choose(cls, grid: ChamberGrid, J: np.ndarray, dv_for_lambda: np.ndarray, method: str, dv_noise_std: float,
                seed: int, prior: str = "tikhonov") -> "Imager":
         """λ by ``method`` cross-validation on the noisy frames ``dv_for_lambda`` (k, n_meas),
-        for the image ``prior`` (:data:`~jointsim.reconstruction.tikhonov.PRIORS`; "tv": λ and
-        the starting image the Laplacian's, then :class:`~jointsim.reconstruction.tv.TVImager`;
-        its images normalised by the Laplacian's cell noise)."""
-        L = grid.laplacian() if prior in ("laplacian", "tv") else None
-        P = prior_matrix(prior, J, L)
+        for the image ``prior`` (:data:`~jointsim.reconstruction.tikhonov.PRIORS`)."""
+        P = prior_matrix(prior, J, grid.laplacian() if prior == "laplacian" else None)
         svd = SVD.of(J) if P is None else SVD.generalized(J, P)
         choice = choose_lambda(svd, dv_for_lambda, method, seed=seed)
         rec = Reconstructor(svd.reconstruction_matrix(choice.lam), choice)
-        tv = None
-        if prior == "tv":
-            lam2 = choice.lam**2
-            tv = TVImager(J, difference_operator(L), lam2, lam2 * LAPLACIAN_RIDGE * float(L.diagonal().mean()))
-        return cls(grid, J, rec, rec.noise_std(dv_noise_std), tv)
+        return cls(grid, J, rec, rec.noise_std(dv_noise_std))
 
     def image(self, dv: np.ndarray, true_centre: np.ndarray | None = None,
               target_volume: float | None = None) -> tuple[np.ndarray, np.ndarray, ImageMetrics | None]:
@@ -262,8 +253,6 @@ class Imager:
         their :class:`ImageMetrics` (None when the image is all zero; ``true_centre`` (3,) m with
         NaN and ``target_volume`` 0 count as not known)."""
         image = self.reconstructor.image(dv)
-        if self.tv is not None:
-            image = self.tv.image(dv, image)
         normalised = image / self.cell_noise
         metrics = None
         if np.any(image):

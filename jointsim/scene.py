@@ -1324,7 +1324,7 @@ def load_scene(path: str | Path) -> Scene:
 PALPATION_MODES = ("position", "force", "compliant")
 MESH_UPDATES = ("auto", "morph", "remesh")
 LAMBDA_METHODS = ("kfold", "loo", "gcv", "lcurve")
-IMAGE_PRIORS = ("tikhonov", "noser", "laplacian", "tv")  # as jointsim.reconstruction.tikhonov.PRIORS (tested)
+IMAGE_PRIORS = ("tikhonov", "noser", "laplacian")  # as jointsim.reconstruction.tikhonov.PRIORS (tested)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1335,7 +1335,7 @@ IMAGE_PRIORS = ("tikhonov", "noser", "laplacian", "tv")  # as jointsim.reconstru
 class ReconstructionSpec:
     """The instrument's reconstruction (SI): Tikhonov images on ``cells`` voxels of the
     reference chamber with the ``prior`` (zeroth order "tikhonov", the paper's; "noser";
-    "laplacian"; "tv", total variation from the Laplacian's image: jointsim.reconstruction.tikhonov.PRIORS), λ chosen once by ``lambda_method`` cross-validation on the noisy
+    "laplacian": jointsim.reconstruction.tikhonov.PRIORS), λ chosen once by ``lambda_method`` cross-validation on the noisy
     δV of a representative press: a geometric indentation of the untouched sensor by a sphere
     of ``lambda_radius`` m, ``lambda_depth`` m past first contact, at ``lambda_xy`` (m). Every
     job on the sensor (palpation, datasets, ``forward``) images with it, as a real instrument

@@ -28,10 +28,8 @@ METHODS = ("kfold", "loo", "gcv", "lcurve")
 # the image's prior ‖x‖²_P: "tikhonov" P = I (zeroth order, the paper's); "noser" P = diag(JᵀJ)
 # (Cheney et al. 1990: each cell weighed by its sensitivity, which undoes the zeroth order's
 # pull of the image towards the electrodes); "laplacian" P = L + εI, L the voxel graph
-# Laplacian (first-order smoothness; ε = 1e-3 × its mean diagonal keeps P definite); "tv" total
-# variation (jointsim.reconstruction.tv), from the Laplacian's image and λ
-LAPLACIAN_RIDGE = 1e-3
-PRIORS = ("tikhonov", "noser", "laplacian", "tv")
+# Laplacian (first-order smoothness; ε = 1e-3 × its mean diagonal keeps P definite)
+PRIORS = ("tikhonov", "noser", "laplacian")
 
 
 def prior_matrix(name: str, J: np.ndarray, laplacian: sp.spmatrix | None = None) -> sp.csr_matrix | None:
@@ -41,10 +39,10 @@ def prior_matrix(name: str, J: np.ndarray, laplacian: sp.spmatrix | None = None)
         return None
     if name == "noser":
         return sp.diags(np.einsum("ij,ij->j", J, J)).tocsr()
-    if name in ("laplacian", "tv"):  # tv: its smooth start (jointsim.reconstruction.tv)
+    if name == "laplacian":
         if laplacian is None:
             raise ValueError("prior 'laplacian': the cells' graph Laplacian is needed")
-        eps = LAPLACIAN_RIDGE * float(laplacian.diagonal().mean())
+        eps = 1e-3 * float(laplacian.diagonal().mean())
         return (laplacian + eps * sp.identity(laplacian.shape[0])).tocsr()
     raise ValueError(f"prior = {name!r}: one of {', '.join(PRIORS)}")
 
