@@ -14,7 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from .scene import Chamber, Scene, SurfaceFile, read_surface, ring_positions, top_height
+from ._surface import SurfaceFile, top_height
+from .scene import Chamber, Scene, read_surface, ring_positions
 
 __all__ = ["DomeSurface", "ElectrodeLayout", "symmetries", "cap_height", "chamber_cap", "user_dome", "user_surface", "spherical_cap", "isotropic_cap", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
 

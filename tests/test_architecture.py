@@ -15,7 +15,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "jointsim"
 # Top-level parts of the package, bottom to top. A part may import parts of lower rank only;
 # parts of equal rank are siblings that do not import each other.
 LAYERS: list[set[str]] = [
-    {"_cudss"},  # the GPU's sparse direct solver, below linalg (optional: nvmath-python)
+    {"_cudss", "_surface"},  # the GPU's sparse direct solver, below linalg (optional: nvmath-python); a user's surface file, below scene
     {"_cores", "_warp", "scene", "linalg", "timing"},  # settings, shared numerics, the stage timer
     {"geometry"},  # the sensor's shapes and electrode layout
     {"mesh"},  # tetrahedral meshes of the chamber
