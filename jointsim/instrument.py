@@ -49,7 +49,7 @@ from .mesh.electrodes import ElectrodePatch, disc_patches, layout_patches
 from .mesh.morph import MIN_QUALITY_RATIO, ChamberMorpher, DeformedChamber, MeshInversionError, deform_chamber
 from .metrics import ImageMetrics, image_metrics
 from .reconstruction.grid import ChamberGrid
-from .reconstruction.tikhonov import SVD, Reconstructor, choose_lambda, prior_matrix
+from .reconstruction.tikhonov import DEPTH_EXPONENT, SVD, Reconstructor, choose_lambda, prior_matrix
 from .scene import Scene
 from .timing import timed
 
@@ -238,10 +238,12 @@ class Imager:
 
     @classmethod
     def choose(cls, grid: ChamberGrid, J: np.ndarray, dv_for_lambda: np.ndarray, method: str, dv_noise_std: float,
-               seed: int, prior: str = "tikhonov") -> "Imager":
+               seed: int, prior: str = "tikhonov", depth_exponent: float = DEPTH_EXPONENT) -> "Imager":
         """λ by ``method`` cross-validation on the noisy frames ``dv_for_lambda`` (k, n_meas),
-        for the image ``prior`` (:data:`~jointsim.reconstruction.tikhonov.PRIORS`)."""
-        P = prior_matrix(prior, J, grid.laplacian() if prior == "laplacian" else None)
+        for the image ``prior`` (:data:`~jointsim.reconstruction.tikhonov.PRIORS`; "depth" with
+        ``depth_exponent``)."""
+        P = prior_matrix(prior, J, grid.laplacian() if prior == "laplacian" else None, grid.centroid[:, 2], depth_exponent,
+                         0.5 * float(np.cbrt(grid.voxel_volume)))
         svd = SVD.of(J) if P is None else SVD.generalized(J, P)
         choice = choose_lambda(svd, dv_for_lambda, method, seed=seed)
         rec = Reconstructor(svd.reconstruction_matrix(choice.lam), choice)
@@ -424,7 +426,7 @@ class Instrument:
         with timed(t, "lambda"):
             press, dv = inst._representative_press()
             noisy = dv[None] + stream(seed, "lambda").normal(0.0, readout.dv_noise_std, (LAMBDA_REPEATS, readout.n_meas))
-            imager = Imager.choose(grid, J, noisy, spec.lambda_method, readout.dv_noise_std, seed, spec.prior)
+            imager = Imager.choose(grid, J, noisy, spec.lambda_method, readout.dv_noise_std, seed, spec.prior, spec.depth_exponent)
         return replace(inst, imager=imager, lambda_press=press)
 
     # -- the frame step ---------------------------------------------------------------------

@@ -392,7 +392,7 @@ class Scene:
 # scene values added to the format after stores, maps and studies were first written, with the
 # behaviour before they existed: identities leave them out at that value
 LATER_DEFAULTS: dict[tuple[str, str], Any] = {("reconstruction", "prior"): "tikhonov", ("mesh", "rim_refinement"): 1.0,
-                                          ("chamber", "base_radius_y"): None, ("chamber", "surface_file"): None,
+                                          ("chamber", "base_radius_y"): None, ("reconstruction", "depth_exponent"): 2.0, ("chamber", "surface_file"): None,
                                           ("chamber", "surface_sha256"): None, ("chamber", "surface_unit"): MM,
                                           ("chamber", "outline"): (), ("electrodes", "face_z"): (),
                                           ("mesh", "dome_rim_vertices"): 0, ("electrodes", "on_membrane"): (),
@@ -1158,7 +1158,7 @@ def load_scene(path: str | Path) -> Scene:
 PALPATION_MODES = ("position", "force", "compliant")
 MESH_UPDATES = ("auto", "morph", "remesh")
 LAMBDA_METHODS = ("kfold", "loo", "gcv", "lcurve")
-IMAGE_PRIORS = ("tikhonov", "noser", "laplacian")  # as jointsim.reconstruction.tikhonov.PRIORS (tested)
+IMAGE_PRIORS = ("tikhonov", "noser", "laplacian", "depth")  # as jointsim.reconstruction.tikhonov.PRIORS (tested)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1169,7 +1169,8 @@ IMAGE_PRIORS = ("tikhonov", "noser", "laplacian")  # as jointsim.reconstruction.
 class ReconstructionSpec:
     """The instrument's reconstruction (SI): Tikhonov images on ``cells`` voxels of the
     reference chamber with the ``prior`` (zeroth order "tikhonov", the paper's; "noser";
-    "laplacian": jointsim.reconstruction.tikhonov.PRIORS), λ chosen once by ``lambda_method`` cross-validation on the noisy
+    "laplacian"; "depth", cells near the base weighted up by ((z + z₀)/H)^−``depth_exponent``:
+    jointsim.reconstruction.tikhonov.PRIORS), λ chosen once by ``lambda_method`` cross-validation on the noisy
     δV of a representative press: a geometric indentation of the untouched sensor by a sphere
     of ``lambda_radius`` m, ``lambda_depth`` m past first contact, at ``lambda_xy`` (m). Every
     job on the sensor (palpation, datasets, ``forward``) images with it, as a real instrument
@@ -1181,6 +1182,7 @@ class ReconstructionSpec:
     lambda_depth: float = 3 * MM
     lambda_xy: tuple[float, float] = (0.0, 0.0)
     prior: str = "tikhonov"
+    depth_exponent: float = 2.0
 
 
 def _reconstruction(data: dict[str, Any], base_r: float, height: float, thick: float, chamber: Chamber = Chamber()) -> ReconstructionSpec:
@@ -1189,13 +1191,16 @@ def _reconstruction(data: dict[str, Any], base_r: float, height: float, thick: f
     cells = t.integer("cells", 7000, 100, 200_000)
     lam = t.choice("lambda_method", "kfold", LAMBDA_METHODS)
     prior = t.choice("prior", "tikhonov", IMAGE_PRIORS)
+    exponent = t.number("depth_exponent", 2.0, 0.0, 8.0)  # the "depth" prior's (results/image_priors.md)
+    if exponent != 2.0 and prior != "depth":
+        raise SceneError(f"reconstruction.depth_exponent = {exponent:g}: only for prior = \"depth\"")
     radius = _sphere_radius(t, "lambda_target_radius_mm", "lambda_target_diameter_mm", 7.5, base_r)
     depth = t.number("lambda_depth_mm", min(3.0, height / 2), 0.0, height + thick, lo_open=True)
     xy = _number_list("reconstruction.lambda_xy_mm", t.raw("lambda_xy_mm", [0.0, 0.0]), 2, -base_r, base_r, True)
     if not chamber.inside(np.array(xy) * MM, 1e-12)[0]:
         raise SceneError(f"reconstruction.lambda_xy_mm = {list(xy)}: must lie within the base ({_outline(chamber)})")
     t.finish()
-    return ReconstructionSpec(cells, lam, radius * MM, depth * MM, (xy[0] * MM, xy[1] * MM), prior)
+    return ReconstructionSpec(cells, lam, radius * MM, depth * MM, (xy[0] * MM, xy[1] * MM), prior, exponent)
 
 
 # keys that moved to another section: (old section, key) -> (new section, key). Scenes written

@@ -28,15 +28,27 @@ METHODS = ("kfold", "loo", "gcv", "lcurve")
 # the image's prior ‖x‖²_P: "tikhonov" P = I (zeroth order, the paper's); "noser" P = diag(JᵀJ)
 # (Cheney et al. 1990: each cell weighed by its sensitivity, which undoes the zeroth order's
 # pull of the image towards the electrodes); "laplacian" P = L + εI, L the voxel graph
-# Laplacian (first-order smoothness; ε = 1e-3 × its mean diagonal keeps P definite)
-PRIORS = ("tikhonov", "noser", "laplacian")
+# Laplacian (first-order smoothness; ε = 1e-3 × its mean diagonal keeps P definite); "depth"
+# P = diag(((z + z₀)/H)^−q), z a cell's height above the base (where the electrodes are), H the
+# highest cell's, z₀ half a voxel, q the exponent: a cell near the base costs more, which counters
+# the pull of the image towards the electrodes (its CoM sits ~3 mm low under Tikhonov;
+# results/image_priors.md), as geophysics' depth weighting does for surface sensors
+PRIORS = ("tikhonov", "noser", "laplacian", "depth")
+DEPTH_EXPONENT = 2.0  # [reconstruction] depth_exponent's default
 
 
-def prior_matrix(name: str, J: np.ndarray, laplacian: sp.spmatrix | None = None) -> sp.csr_matrix | None:
+def prior_matrix(name: str, J: np.ndarray, laplacian: sp.spmatrix | None = None, heights: np.ndarray | None = None,
+                 exponent: float = DEPTH_EXPONENT, half_voxel: float = 0.0) -> sp.csr_matrix | None:
     """P of the prior ``name`` (:data:`PRIORS`; None for "tikhonov", the identity) for the
-    Jacobian ``J`` (n_meas, n_cells) on cells with graph Laplacian ``laplacian``."""
+    Jacobian ``J`` (n_meas, n_cells) on cells with graph Laplacian ``laplacian``, at
+    ``heights`` (n_cells,) m above the base ("depth", with ``exponent`` and ``half_voxel``, m)."""
     if name == "tikhonov":
         return None
+    if name == "depth":
+        if heights is None:
+            raise ValueError("prior 'depth': the cells' heights are needed")
+        z = np.asarray(heights, float) + half_voxel
+        return sp.diags((z / z.max()) ** (-float(exponent))).tocsr()
     if name == "noser":
         return sp.diags(np.einsum("ij,ij->j", J, J)).tocsr()
     if name == "laplacian":
