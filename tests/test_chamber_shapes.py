@@ -311,3 +311,20 @@ def test_palpate_runs_on_the_new_designs(tmp_path, name, channels):
     rec = open_records(out / "palpation.h5")
     assert rec["voltages"].shape == (len(rec), channels) and np.abs(rec["dv_clean"]).max() > 0
     assert (out / "fig4a_voltages.png").is_file() and (out / "fig4b_images.png").is_file()
+
+
+def test_jointsim_forward_keeps_a_scenes_patterns_given_as_data(cylinder, tmp_path):
+    """`jointsim forward` on the cylinder scene measures with its own patterns (one injection,
+    one measurement: it forced skip-N before), the voltage I·R, and says so."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "fw"
+    r = subprocess.run([sys.executable, "-m", "jointsim", "forward", str(cylinder / "cylinder.toml"), "--no-jacobian", "--out", str(out)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "the scene's patterns" in r.stdout
+    with np.load(out / "forward.npz") as f:
+        v = f["voltages"]
+    A = 0.5 * 64 * 25e-6 * math.sin(2 * math.pi / 64)
+    assert v.shape == (1,) and v[0] == pytest.approx(1e-3 * (10e-3 / (0.37 * A) + 3e-3 / A), rel=1e-5)
