@@ -246,7 +246,11 @@ def chamber_cap(chamber: Chamber, n_rim: int = 96, apex_edge: float | None = Non
     as the file triangulates it (:func:`user_dome`; ``n_rim`` then has no say)."""
     if chamber.surface_file is not None:
         return user_dome(chamber)
-    cap = isotropic_cap(chamber.base_radius, chamber.dome_height, n_rim, apex_edge)
+    return _as_pad(isotropic_cap(chamber.base_radius, chamber.dome_height, n_rim, apex_edge), chamber)
+
+
+def _as_pad(cap: DomeSurface, chamber: Chamber) -> DomeSurface:
+    """The round ``cap`` stretched along y to ``chamber``'s pad (itself for a round dome)."""
     if chamber.base_radius_y is None:
         return cap
     v = cap.vertices.copy()
@@ -340,15 +344,12 @@ DOME_RIM_VERTICES = 96  # a multiple of 16: a 22.5° rotation maps the dome tria
 
 
 def dome_from_scene(scene: Scene, n_rim: int = DOME_RIM_VERTICES) -> DomeSurface:
-    """The undeformed inner dome surface of ``scene`` (structured in polar rings; a pad's
-    stretched along y)."""
+    """The undeformed inner dome surface of ``scene``: structured in polar rings (a pad's
+    stretched along y), or a user's top as its file triangulates it."""
     c = scene.chamber
-    cap = spherical_cap(c.base_radius, c.dome_height, n_rim)
-    if c.base_radius_y is None:
-        return cap
-    v = cap.vertices.copy()
-    v[:, 1] *= c.y_scale
-    return DomeSurface(v, cap.faces, cap.rim)
+    if c.surface_file is not None:
+        return user_dome(c)
+    return _as_pad(spherical_cap(c.base_radius, c.dome_height, n_rim), c)
 
 
 def chamber_from_scene(scene: Scene, n_rim: int = DOME_RIM_VERTICES) -> trimesh.Trimesh:

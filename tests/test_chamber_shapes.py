@@ -328,3 +328,24 @@ def test_jointsim_forward_keeps_a_scenes_patterns_given_as_data(cylinder, tmp_pa
         v = f["voltages"]
     A = 0.5 * 64 * 25e-6 * math.sin(2 * math.pi / 64)
     assert v.shape == (1,) and v[0] == pytest.approx(1e-3 * (10e-3 / (0.37 * A) + 3e-3 / A), rel=1e-5)
+
+
+def test_the_protocol_study_presses_a_users_own_top(cylinder, tmp_path):
+    """The protocol study's geometric press runs on a user's chamber that is no cap (the flat-
+    topped cylinder, four base discs and a central ground): its dome is the file's top, not a
+    spherical cap of the same size."""
+    import shutil
+
+    from jointsim.studies.protocol_study import StudyConfig, run_protocol_study
+
+    shutil.copy(cylinder / "cyl.stl", tmp_path / "cyl.stl")
+    (tmp_path / "s.toml").write_text(
+        'name = "cylinder_discs"\n[chamber]\nsurface_file = "cyl.stl"\nmembrane_thickness_mm = 1.0\n[electrodes]\nreference = 4\n'
+        '[[electrodes.ring]]\ncount = 4\nradius_mm = 3.0\ndiameter_mm = 1.0\n[[electrodes.disc]]\nxy_mm = [0.0, 0.0]\ndiameter_mm = 1.0\n'
+        '[drive]\nskip = 1\n[mesh]\npreset = "test"\n[dataset]\nr_max_mm = 1.5\n[target]\ndiameter_mm = 4.0\n'
+        '[reconstruction]\nlambda_target_diameter_mm = 4.0\nlambda_depth_mm = 0.5\n')
+    scene = load_scene(tmp_path / "s.toml")
+    cfg = StudyConfig(skips=(1,), positions=((0.0, 0.0),), target_radius=2e-3, depth=0.5e-3, noise_repeats=2, n_cells=500,
+                      mesh_floor=False)
+    dv = run_protocol_study(scene, cfg).dv_clean[1]
+    assert dv.shape == (1, 16) and np.abs(dv).max() > 0
