@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SurfaceError", "SurfaceFile", "SURFACE_SUFFIXES", "surface_file", "top_height", "segment_distance", "in_polygon",
+__all__ = ["SurfaceError", "SurfaceFile", "SURFACE_SUFFIXES", "surface_file", "highest_above", "top_height", "segment_distance", "in_polygon",
            "crossing_faces"]
 
 MM = 1e-3
@@ -112,23 +112,34 @@ class SurfaceFile:
 SURFACE_SUFFIXES = (".stl", ".obj", ".ply", ".off")
 
 
+def highest_above(p: np.ndarray, xy: np.ndarray) -> tuple[int, np.ndarray] | None:
+    """The highest of the triangles ``p`` (k, 3, 3) whose projection on z = 0 holds the point
+    ``xy`` (2,), and the point's barycentrics (3,) on it; None where none does."""
+    t = p[..., :2]
+    d1, d2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    det = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+    ok = det != 0
+    r = np.asarray(xy, float) - t[:, 0]
+    safe = np.where(ok, det, 1.0)
+    l1 = np.where(ok, (r[:, 0] * d2[:, 1] - r[:, 1] * d2[:, 0]) / safe, -1.0)
+    l2 = np.where(ok, (d1[:, 0] * r[:, 1] - d1[:, 1] * r[:, 0]) / safe, -1.0)
+    lam = np.column_stack([1 - l1 - l2, l1, l2])
+    inside = np.flatnonzero(ok & (lam >= -1e-12).all(axis=1))
+    if not inside.size:
+        return None
+    k = int(inside[np.argmax(np.einsum("ka,ka->k", lam[inside], p[inside, :, 2]))])
+    bary = np.clip(lam[k], 0.0, 1.0)
+    return k, bary / bary.sum()
+
+
 def top_height(sf: SurfaceFile, xy: np.ndarray) -> np.ndarray:
     """The height (k,) m of the top of a user's chamber above the points ``xy`` (k, 2) m of its
     base (its highest face there; NaN where none is above)."""
     p = sf.vertices[sf.faces[~sf.base]]
-    t = p[..., :2]
-    d1, d2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
-    det = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
-    out = np.full(len(xy), np.nan)
+    out = np.full(len(np.atleast_2d(xy)), np.nan)
     for i, q in enumerate(np.atleast_2d(xy)):
-        r = q - t[:, 0]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            l1 = (r[:, 0] * d2[:, 1] - r[:, 1] * d2[:, 0]) / det
-            l2 = (d1[:, 0] * r[:, 1] - d1[:, 1] * r[:, 0]) / det
-        inside = (det != 0) & (l1 >= -1e-12) & (l2 >= -1e-12) & (l1 + l2 <= 1 + 1e-12)
-        if inside.any():
-            z = p[inside, 0, 2] + l1[inside] * (p[inside, 1, 2] - p[inside, 0, 2]) + l2[inside] * (p[inside, 2, 2] - p[inside, 0, 2])
-            out[i] = z.max()
+        if (hit := highest_above(p, q)) is not None:
+            out[i] = hit[1] @ p[hit[0], :, 2]
     return out
 
 

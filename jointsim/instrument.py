@@ -332,13 +332,8 @@ def deployed_chamber(scene: Scene, dome: DomeSurface | None = None, **kw) -> Cha
         return chamber_mesh(scene, **kw)
     if dome is None:
         model = _resting_membrane(scene)
-        dome = InnerSurface.of(model, _rim_radius(scene), inflated=True, y_scale=scene.chamber.y_scale).dome(None)
+        dome = InnerSurface.of(model, scene.chamber, inflated=True).dome(None)
     return mesh_chamber(chamber_surface(dome), electrode_layout(scene), scene.mesh, **kw)
-
-
-def _rim_radius(scene: Scene) -> float | None:
-    """The base radius the membrane's rim is put back onto (None: a user's polygon, left as it is)."""
-    return None if scene.chamber.surface_file is not None else scene.chamber.base_radius
 
 
 def _resting_membrane(scene: Scene, device: str = "cpu") -> MembraneModel:
@@ -397,7 +392,7 @@ class Instrument:
             with timed(t, "membrane"):
                 model = _resting_membrane(scene, device) if membrane is None else membrane
                 inflated_u = model.u[: model.mesh.n_nodes].copy() if flat else None
-                surface = InnerSurface.of(model, _rim_radius(scene), inflated=flat, y_scale=scene.chamber.y_scale)
+                surface = InnerSurface.of(model, scene.chamber, inflated=flat)
                 membrane_dome = surface.dome(None)  # the inner surface the morpher maps from
                 reference_dome = surface.dome(model.u)
         with timed(t, "chamber"):

@@ -12,7 +12,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Iterator
 
-from ..scene import MESH_PRESETS, SCENES_DIR, Scene, load_scene
+from ..scene import MESH_PRESETS, SCENES_DIR, Chamber, Scene, load_scene
 from ..timing import timed
 
 DEFAULT_SCENE = SCENES_DIR / "paper_sensor.toml"
@@ -47,6 +47,19 @@ def target_radius_mm(args: argparse.Namespace, default: float) -> float:
     if not 0 < radius <= 100:
         raise ValueError(f"target radius = {radius} mm: must be in (0, 100]")
     return radius
+
+
+def contact_within(chamber: Chamber, xy_mm: tuple[float, float], flag: str) -> None:
+    """Refuse, naming ``flag``, a contact point ``xy_mm`` outside ``chamber``'s base."""
+    if all(map(math.isfinite, xy_mm)) and chamber.inside([[xy_mm[0] * 1e-3, xy_mm[1] * 1e-3]], 1e-12)[0]:
+        return
+    if chamber.outline:
+        where = "the base's outline (the rim of chamber.surface_file)"
+    elif chamber.base_radius_y is None:
+        where = f"the base radius {chamber.base_radius * 1e3:g} mm of the axis"
+    else:
+        where = f"the base's ellipse of semi-axes {chamber.base_radius * 1e3:g} x {chamber.base_radius_y * 1e3:g} mm"
+    raise ValueError(f"{flag}: the contact must lie within {where}")
 
 
 def add_progress_argument(p: argparse.ArgumentParser) -> None:

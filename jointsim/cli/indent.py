@@ -6,7 +6,6 @@ chamber surface (npz) to --out."""
 from __future__ import annotations
 
 import argparse
-import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -14,7 +13,8 @@ from tqdm import tqdm
 
 from ..scene import membrane_layers, membrane_rim_vertices
 from .common import (
-    add_progress_argument, add_scene_arguments, add_target_size_arguments, progress_off, scene_from_args, target_radius_mm,
+    add_progress_argument, add_scene_arguments, add_target_size_arguments, contact_within, progress_off, scene_from_args,
+    target_radius_mm,
 )
 
 OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
@@ -40,11 +40,7 @@ def run(args: argparse.Namespace) -> int:
     from ..studies.indentation import indentation_sweep
 
     scene = scene_from_args(args)
-    c = scene.chamber
-    if not (math.isfinite(args.x_mm) and math.isfinite(args.y_mm) and c.inside([[args.x_mm * 1e-3, args.y_mm * 1e-3]], 1e-12)[0]):
-        where = (f"the base radius {c.base_radius * 1e3:g} mm of the axis" if c.base_radius_y is None else
-                 f"the base's ellipse of semi-axes {c.base_radius * 1e3:g} x {c.base_radius_y * 1e3:g} mm")
-        raise ValueError(f"--x-mm, --y-mm = {args.x_mm:g}, {args.y_mm:g}: the contact must lie within {where}")
+    contact_within(scene.chamber, (args.x_mm, args.y_mm), f"--x-mm, --y-mm = {args.x_mm:g}, {args.y_mm:g}")
     if not args.depth_mm > 0:
         raise ValueError(f"--depth-mm = {args.depth_mm}: must be > 0")
     device = warp_device(args.device, "--device")

@@ -18,7 +18,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..scene import PALPATION_MODES, membrane_layers, membrane_rim_vertices, scene_toml
-from .common import add_overwrite_argument, add_progress_argument, add_solver_argument, add_scene_arguments, float_list, overwrite, progress_off, scene_from_args, use_solver
+from .common import (add_overwrite_argument, add_progress_argument, add_solver_argument, add_scene_arguments, contact_within, float_list,
+                     overwrite, progress_off, scene_from_args, use_solver)
 
 OUTPUT = "folder"  # what --out names (checked before any work: cli.common.check_output)
 HELP = "virtual palpation with the MuJoCo rig (paper Fig. 4): HDF5 frames, VTU series, PNG, summary"
@@ -82,10 +83,7 @@ def configure(args: argparse.Namespace):
         spec = replace(spec, hold=args.hold_s)
     if args.xy_mm is not None:
         xy = float_list("--xy-mm", args.xy_mm, count=2)
-        if not c.inside([[xy[0] * 1e-3, xy[1] * 1e-3]], 1e-12)[0]:
-            where = (f"the base radius {c.base_radius * 1e3:g} mm" if c.base_radius_y is None else
-                     f"the base's ellipse of semi-axes {c.base_radius * 1e3:g} x {c.base_radius_y * 1e3:g} mm")
-            raise ValueError(f"--xy-mm = {args.xy_mm!r}: two numbers 'x,y' in mm within {where}")
+        contact_within(c, xy, f"--xy-mm = {args.xy_mm!r}")
         spec = replace(spec, xy=(xy[0] * 1e-3, xy[1] * 1e-3))
     noise = scene.noise
     if args.seed is not None:

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import DomeSurface
+from ..scene import Chamber
 from .dome import MembraneModel
 
 __all__ = ["InnerSurface"]
@@ -34,11 +35,11 @@ class InnerSurface:
     u0: np.ndarray
 
     @classmethod
-    def of(cls, model: MembraneModel, base_radius: float | None, inflated: bool = False, y_scale: float = 1.0) -> "InnerSurface":
-        """The inner surface of ``model`` on a base of ``base_radius`` (its semi-axis along y
-        ``y_scale`` × that for an elongated pad; None: a polygon, the rim left where it is);
-        ``inflated``: its reference is the model's current (inflated, untouched) state instead
-        of the moulded one."""
+    def of(cls, model: MembraneModel, chamber: Chamber, inflated: bool = False) -> "InnerSurface":
+        """The inner surface of ``model`` on the base of ``chamber`` (its rim put back on the
+        base's circle or a pad's ellipse; a user's polygon left as it is, its edge midpoints on
+        it); ``inflated``: its reference is the model's current (inflated, untouched) state
+        instead of the moulded one."""
         # the model's inner sub-triangles (the pressure term's surface)
         tris = np.asarray(model.inner_tris)
         nodes, local = np.unique(tris, return_inverse=True)
@@ -49,12 +50,13 @@ class InnerSurface:
         # circle for a flat sheet, whose whole inner surface lies in the base plane)
         rim = np.flatnonzero(model.fixed[nodes, 0])
         rim = rim[np.argsort(np.arctan2(X[rim, 1], X[rim, 0]))]
-        if base_radius is None:  # a user's chamber: its rim is the file's polygon, edge midpoints on it
+        a = chamber.base_radius
+        if chamber.outline:  # a user's chamber: its rim is the file's polygon
             pass
-        elif y_scale == 1.0:
-            X[rim, :2] *= base_radius / np.hypot(X[rim, 0], X[rim, 1])[:, None]
+        elif chamber.base_radius_y is None:
+            X[rim, :2] *= a / np.hypot(X[rim, 0], X[rim, 1])[:, None]
         else:  # onto the ellipse along the ray from the axis
-            X[rim, :2] /= np.hypot(X[rim, 0] / base_radius, X[rim, 1] / (base_radius * y_scale))[:, None]
+            X[rim, :2] /= np.hypot(X[rim, 0] / a, X[rim, 1] / (a * chamber.y_scale))[:, None]
         X[rim, 2] = 0.0
         return cls(nodes, np.ascontiguousarray(faces), rim, X, u0)
 

@@ -32,7 +32,7 @@ import trimesh
 
 from ..geometry import DOME_RIM_VERTICES, ElectrodeLayout, chamber_cap, chamber_surface, electrode_layout, user_surface
 from ..scene import MeshSpec, Scene
-from .electrodes import ElectrodePatch, carry_patches, disc_patches, layout_patches, plane_face_patch
+from .electrodes import ElectrodePatch, carry_patches, disc_patches, layout_patches
 from .tetmesh import MeshQuality, TetMesh, mesh_quality
 
 __all__ = ["ChamberMesh", "mesh_chamber", "chamber_mesh", "reference_surface", "cache_dir"]
@@ -167,12 +167,8 @@ def mesh_chamber(
     if carry_from is None or not layout.membrane.any():
         return ChamberMesh(mesh, layout_patches(mesh, layout), layout, key)
     carried = _node_map(carry_from.mesh.nodes, mesh.nodes)
-    patches = carry_patches(carry_from.electrodes, carried)
-    base = np.flatnonzero(layout.clipped)
-    for i, patch in zip(base, disc_patches(mesh, layout.centres[base], layout.radii[base])):
-        patches[i] = patch
-    for i in np.flatnonzero(layout.face):
-        patches[i] = plane_face_patch(mesh, 2, float(layout.face_z[i]))
+    own = layout_patches(mesh, layout, only=~layout.membrane)
+    patches = [p if p is not None else o for p, o in zip(carry_patches(carry_from.electrodes, carried), own)]
     return ChamberMesh(mesh, patches, layout, key, carried)
 
 

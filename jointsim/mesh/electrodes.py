@@ -28,6 +28,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .._surface import highest_above
 from ..geometry import ElectrodeLayout
 from ..scene import MEMBRANE_PATCHES
 from .tetmesh import TetMesh
@@ -216,32 +217,37 @@ def surface_disc_patch(mesh: TetMesh, centre_xy: np.ndarray, radius: float, *, r
     return ElectrodePatch(dome[near[keep]], *(m[keep] for m in moments), carried=carried)
 
 
-def layout_patches(mesh: TetMesh, layout: ElectrodeLayout, quadratic: bool = False) -> list[ElectrodePatch]:
-    """The patches of every electrode of ``layout`` on ``mesh``, in its order (:func:`place_discs`;
-    a full-face electrode: :func:`plane_face_patch` on its plane)."""
-    patches = place_discs(mesh, layout.centres, np.where(layout.face, 1.0, layout.radii), layout.membrane & ~layout.face,
-                          layout.membrane_patch, quadratic, skip=layout.face)
-    for i in np.flatnonzero(layout.face):
+def layout_patches(mesh: TetMesh, layout: ElectrodeLayout, quadratic: bool = False,
+                   only: np.ndarray | None = None) -> list[ElectrodePatch]:
+    """The patches of the electrodes of ``layout`` on ``mesh``, in its order: its discs
+    (:func:`place_discs`) and its full faces (:func:`plane_face_patch`); with ``only`` (n_el,)
+    bool, those it marks (None for the others)."""
+    want = np.ones(layout.n_electrodes, bool) if only is None else np.asarray(only, bool)
+    patches: list[ElectrodePatch | None] = [None] * layout.n_electrodes
+    disc = np.flatnonzero(want & ~layout.face)
+    placed = place_discs(mesh, layout.centres[disc], layout.radii[disc], layout.membrane[disc], layout.membrane_patch, quadratic)
+    for i, patch in zip(disc, placed):
+        patches[i] = patch
+    for i in np.flatnonzero(want & layout.face):
         patches[i] = plane_face_patch(mesh, 2, float(layout.face_z[i]))
-    return patches
+    return patches  # type: ignore[return-value]
 
 
 def place_discs(mesh: TetMesh, centres: np.ndarray, radii: np.ndarray, membrane: np.ndarray | None = None,
-                membrane_patch: str = "stretch", quadratic: bool = False, skip: np.ndarray | None = None) -> list[ElectrodePatch]:
+                membrane_patch: str = "stretch", quadratic: bool = False) -> list[ElectrodePatch]:
     """Disc electrodes (``centres`` (n, 3), ``radii`` (n,) m) on ``mesh``: on the base clipped
     (:func:`disc_patches`), where ``membrane`` (n,) bool is set on the dome above (x, y)
     (:func:`surface_disc_patch`, which has P2 moments always; ``membrane_patch`` one of
-    :data:`MEMBRANE_PATCHES`); where ``skip`` (n,) bool is set, None (placed by the caller)."""
+    :data:`MEMBRANE_PATCHES`)."""
     if membrane_patch not in MEMBRANE_PATCHES:
         raise ValueError(f"membrane_patch = {membrane_patch!r}: allowed values are {list(MEMBRANE_PATCHES)}")
     centres, radii = np.asarray(centres, float), np.asarray(radii, float)
     on = np.zeros(len(radii), bool) if membrane is None else np.asarray(membrane, bool)
-    off = np.zeros(len(radii), bool) if skip is None else np.asarray(skip, bool)
     patches: list[ElectrodePatch | None] = [None] * len(radii)
-    base = np.flatnonzero(~on & ~off)
+    base = np.flatnonzero(~on)
     for i, patch in zip(base, disc_patches(mesh, centres[base], radii[base], quadratic=quadratic)):
         patches[i] = patch
-    for i in np.flatnonzero(on & ~off):
+    for i in np.flatnonzero(on):
         patches[i] = surface_disc_patch(mesh, centres[i, :2], float(radii[i]), rigid=membrane_patch == "rigid")
     return patches  # type: ignore[return-value]
 
@@ -268,22 +274,11 @@ def _areas(p: np.ndarray) -> np.ndarray:
 
 
 def _above(p: np.ndarray, xy: np.ndarray) -> tuple[int, np.ndarray]:
-    """The highest of the triangles ``p`` (k, 3, 3) whose projection on z = 0 holds ``xy``, and
-    the point's barycentrics (3,) on it."""
-    t = p[..., :2]
-    d1, d2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
-    det = _cross2(d1, d2)
-    ok = np.abs(det) > 0
-    r = xy - t[:, 0]
-    l1 = np.where(ok, _cross2(r, d2) / np.where(ok, det, 1), -1)
-    l2 = np.where(ok, _cross2(d1, r) / np.where(ok, det, 1), -1)
-    lam = np.column_stack([1 - l1 - l2, l1, l2])
-    inside = np.flatnonzero(ok & (lam >= -1e-12).all(axis=1))
-    if not inside.size:
+    """The highest of the dome's triangles ``p`` (k, 3, 3) above ``xy`` and the point's
+    barycentrics on it (:func:`~jointsim._surface.highest_above`), or the error."""
+    if (hit := highest_above(p, xy)) is None:
         raise ValueError(f"electrode on the membrane at ({xy[0] * 1e3:g}, {xy[1] * 1e3:g}) mm: no dome face lies above it")
-    z = np.einsum("ka,ka->k", lam[inside], p[inside, :, 2])
-    k = int(inside[np.argmax(z)])
-    return k, np.clip(lam[k], 0.0, 1.0) / np.clip(lam[k], 0.0, 1.0).sum()
+    return hit
 
 
 def _surface_moments(p: np.ndarray, centre: np.ndarray, radius: float, quadratic: bool) -> tuple[np.ndarray, ...]:

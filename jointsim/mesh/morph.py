@@ -396,8 +396,8 @@ def _without(chamber: ChamberMesh, nodes: np.ndarray, keep: np.ndarray, tag: str
     electrodes = [replace(e, faces=new[e.faces]) for e in chamber.electrodes]
     carried = None
     if chamber.carried is not None:  # a node dropped here is no longer where it was carried to
-        ok = chamber.carried >= 0
-        carried = np.where(ok, np.where(used[np.where(ok, chamber.carried, 0)], new[np.where(ok, chamber.carried, 0)], -1), -1)
+        at = np.maximum(chamber.carried, 0)
+        carried = np.where((chamber.carried >= 0) & used[at], new[at], -1)
     return replace(chamber, mesh=TetMesh(nodes[used], new[tets]), electrodes=electrodes, key=f"{chamber.key}-{tag}",
                    carried=carried)
 
