@@ -17,7 +17,7 @@ import trimesh
 from ._surface import SurfaceFile, top_height
 from .scene import Chamber, Scene, read_surface, ring_positions
 
-__all__ = ["DomeSurface", "ElectrodeLayout", "symmetries", "cap_height", "chamber_cap", "user_dome", "user_surface", "spherical_cap", "isotropic_cap", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
+__all__ = ["DomeSurface", "ElectrodeLayout", "symmetries", "cap_height", "chamber_cap", "user_dome", "user_surface", "spherical_cap", "isotropic_cap", "refine_near", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
 
 
 @dataclass(frozen=True)
@@ -237,6 +237,91 @@ def isotropic_cap(base_radius: float, height: float, n_rim: int = 96, apex_edge:
     last = start[n_rings - 1] + np.arange(counts[-1])
     faces.append(np.column_stack([last, np.roll(last, -1), np.full(counts[-1], len(verts) - 1)]))
     return DomeSurface(verts, np.vstack(faces).astype(np.int64), np.arange(n_rim))
+
+
+def refine_near(cap: DomeSurface, about: np.ndarray, radius: float, levels: int) -> DomeSurface:
+    """``cap`` (a spherical cap, :func:`isotropic_cap`) refined ``levels`` times about the
+    in-plane point ``about`` (2,) m: each level splits every face whose centroid lies within
+    its radius of ``about`` (seen from above) into four (red), and a neighbour left with one
+    split edge into two (green), so the surface stays conforming; a neighbour with two or three
+    split edges is split into four too. The finest level covers ``radius`` m; each coarser one
+    reaches two of its own edges further, so a level's green faces lie outside the next
+    level's region and are never split again (their angles stay those of one bisection). New
+    vertices lie on the cap's sphere (on the rim circle for a rim edge). Faces keep their
+    orientation, the rim stays anticlockwise, and the vertices of ``cap`` keep their indices."""
+    if levels < 0:
+        raise ValueError(f"levels = {levels}: must be >= 0")
+    if not radius > 0:
+        raise ValueError(f"radius = {radius}: must be > 0 m")
+    v = np.asarray(cap.vertices, float)
+    f = np.asarray(cap.faces, np.int64)
+    rim = np.asarray(cap.rim, np.int64)
+    a = float(np.hypot(v[rim, 0], v[rim, 1]).mean())
+    # the cap's sphere: centre (0, 0, zc) through the rim circle and the apex
+    h = float(v[:, 2].max())
+    zc = h - (a * a + h * h) / (2 * h)
+    about = np.asarray(about, float)
+    near = np.hypot(*(v[f].mean(axis=1)[:, :2] - about).T) <= radius + 1.5 * _mean_edge(v, f)
+    edge = _mean_edge(v, f[near]) if near.any() else _mean_edge(v, f)
+    reach = [radius + 2 * edge * sum(0.5**j for j in range(l, levels - 1)) for l in range(levels)]
+    for l in range(levels):
+        v, f, rim = _split_within(v, f, rim, about, reach[l], a, zc)
+    return DomeSurface(v, f, rim)
+
+
+def _mean_edge(v: np.ndarray, f: np.ndarray) -> float:
+    return float(np.linalg.norm(v[f] - v[np.roll(f, 1, axis=1)], axis=2).mean())
+
+
+def _split_within(v: np.ndarray, f: np.ndarray, rim: np.ndarray, about: np.ndarray, reach: float, a: float,
+                  zc: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One level of :func:`refine_near`: red faces within ``reach`` of ``about``, closed by red
+    and green faces."""
+    red = np.hypot(*(v[f].mean(axis=1)[:, :2] - about).T) <= reach
+    e = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1), axis=2)  # (m, 3, 2), edge k opposite corner k+2
+    edges, inv = np.unique(e.reshape(-1, 2), axis=0, return_inverse=True)
+    inv = inv.reshape(-1, 3)
+    while True:  # closure: a face with two or more split edges is split into four
+        split = np.zeros(len(edges), bool)
+        split[inv[red].ravel()] = True
+        more = ~red & (split[inv].sum(axis=1) >= 2)
+        if not more.any():
+            break
+        red |= more
+    # the new vertices: split edges' midpoints on the sphere, a rim edge's on the rim circle
+    ends = v[edges[split]]
+    mid = ends.mean(axis=1)
+    on_rim = np.all(ends[:, :, 2] == 0.0, axis=1)
+    c = np.array([0.0, 0.0, zc])
+    R = np.linalg.norm(ends[:, 0] - c, axis=1)
+    d = mid - c
+    mid[~on_rim] = c + (R[:, None] * d / np.linalg.norm(d, axis=1, keepdims=True))[~on_rim]
+    mid[on_rim, :2] *= a / np.hypot(mid[on_rim, 0], mid[on_rim, 1])[:, None]
+    mid[on_rim, 2] = 0.0
+    index = np.full(len(edges), -1)
+    index[split] = len(v) + np.arange(split.sum())
+    m = index[inv]  # (faces, 3): the midpoint of edge (k, k+1), or -1
+    A, B, C = f[:, 0], f[:, 1], f[:, 2]
+    ab, bc, ca = m[:, 0], m[:, 1], m[:, 2]
+    r = red
+    out = [f[~red & (m.max(axis=1) < 0)],
+           np.column_stack([A[r], ab[r], ca[r]]), np.column_stack([ab[r], B[r], bc[r]]),
+           np.column_stack([ca[r], bc[r], C[r]]), np.column_stack([ab[r], bc[r], ca[r]])]
+    green = ~red & (m.max(axis=1) >= 0)
+    k = np.argmax(m[green], axis=1)  # the split edge (k, k+1)
+    g = np.take_along_axis(f[green], (k[:, None] + np.arange(3)) % 3, axis=1)  # rotated so it is edge (0, 1)
+    mg = m[green, k]
+    out += [np.column_stack([g[:, 0], mg, g[:, 2]]), np.column_stack([mg, g[:, 1], g[:, 2]])]
+    # the rim: a split rim edge's midpoint between its ends
+    nxt = np.roll(rim, -1)
+    key = {tuple(sorted(p)): i for i, p in enumerate(edges[split].tolist())}
+    new_rim = []
+    for p, q in zip(rim.tolist(), nxt.tolist()):
+        new_rim.append(p)
+        i = key.get((min(p, q), max(p, q)))
+        if i is not None:
+            new_rim.append(len(v) + i)
+    return np.vstack([v, mid]), np.vstack(out).astype(np.int64), np.asarray(new_rim, np.int64)
 
 
 def chamber_cap(chamber: Chamber, n_rim: int = 96, apex_edge: float | None = None) -> DomeSurface:

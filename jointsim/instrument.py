@@ -426,6 +426,23 @@ class Instrument:
 
     # -- the frame step ---------------------------------------------------------------------
 
+    def on_membrane(self, model: MembraneModel) -> "Instrument":
+        """This instrument read through another membrane of its scene, ``model`` (inflated and
+        untouched; meshed otherwise, e.g. refined under a press: :func:`~jointsim.geometry.refine_near`):
+        its inner surface, the morpher remapped onto it (the chamber, its factor and the readout
+        are shared: :meth:`free` the original, not this) and the reference chamber under it.
+        Only for a membrane moulded as a cap: the chamber of one moulded flat is its membrane's."""
+        if self.surface is None or self.scene.membrane.moulding != "cap":
+            raise ValueError("on_membrane: only for an instrument of a membrane moulded as a cap")
+        surface = InnerSurface.of(model, self.scene.chamber)
+        morpher = self.morpher.remapped(surface.dome(None))
+        gap, allowed = morpher.surface_gap, CHAMBER_FIT * self.scene.chamber.membrane_thickness
+        if gap > allowed:
+            raise ValueError(f"on_membrane: the chamber's dome lies up to {gap * 1e3:.3g} mm off the membrane's inner "
+                             f"surface (allowed {allowed * 1e3:.3g} mm)")
+        reference_dome = surface.dome(model.u)
+        return replace(self, surface=surface, morpher=morpher, reference_dome=reference_dome, reference=morpher(reference_dome))
+
     def dome(self, u: np.ndarray | None) -> DomeSurface:
         """The membrane's inner surface under its displacement ``u`` (n_P2, 3) (None: moulded)."""
         if self.surface is None:

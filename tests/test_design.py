@@ -13,6 +13,7 @@ from jointsim.design.bounds import Bounds, fisher, median_error, nuisance_prior,
 from jointsim.design.sensitivity import TARGET, parameter_names, press_sensitivity
 from jointsim.instrument import Instrument
 from jointsim.mechanics.build import membrane_from_scene
+from jointsim.scene import SCENES_DIR
 
 
 @pytest.fixture(scope="module")
@@ -198,6 +199,7 @@ def test_design_study_command_end_to_end(tmp_path, capsys):
         assert (out / f).exists(), f
     text = (out / "summary.md").read_text()
     assert "| paper_sensor (all) | 74.2 | 1 | 1 |" in text
+    assert "refined about its contact" in text and "paper_sensor 2×" in text  # the default
     rows = (out / "paper_sensor" / "bounds.csv").read_text().splitlines()
     assert len(rows) == 2 and rows[0].startswith("diameter_mm,x_mm")
     capsys.readouterr()
@@ -213,6 +215,12 @@ def test_design_study_command_end_to_end(tmp_path, capsys):
     assert float(after[col]) == pytest.approx(float(before[col]) / 2, rel=2e-5)  # the CSV keeps 6 digits
     assert main(["design-study", "--depths-mm", "2,1", "--out", str(tmp_path / "x")]) == 2
     assert "--depths-mm = '2,1': increasing" in capsys.readouterr().err
+    assert main(["design-study", "--contact-levels", "9", "--out", str(tmp_path / "x")]) == 2
+    assert "--contact-levels = 9: must be in 0..4" in capsys.readouterr().err
+    # a pad's membrane is not refined about the contact: read as meshed, and said so
+    assert main(["design-study", str(SCENES_DIR / "elongated_pad.toml"), *args[1:-2], "--out", str(tmp_path / "pad")]) == 0
+    assert "elongated_pad: read at --contact-levels 0" in capsys.readouterr().out
+    assert "elongated_pad 0×" in (tmp_path / "pad" / "summary.md").read_text()
 
 
 def test_the_calibration_goals_are_read_in_either_csv_form(tmp_path):
@@ -253,3 +261,39 @@ def test_a_press_the_mechanics_cannot_take_is_stored_and_said(test_chamber, tmp_
                           on_missed=lambda i, why: missed.append((i, why)))
     assert missed == [(0, "UnreachablePose: beyond what the dome can take (a test)")]
     assert open_records(h5)["reached"].tolist() == [0]
+
+
+def test_an_instrument_reads_through_a_membrane_refined_under_the_press(coarse):
+    """Instrument.on_membrane: the same chamber and readout through another membrane of the
+    scene. On a membrane meshed as the instrument's own it measures what the instrument does, bit
+    for bit (the morpher's closest points are the same); on one refined under the press
+    (geometry.refine_near) the untouched sensor's voltages are those of the coarse membrane to
+    the inflated surfaces' difference, and the press's δV agrees with the coarse one in shape
+    (the refined contact changes its size by the discretisation error, not its pattern).
+    Freeing the copy's morpher leaves the shared factor to the original."""
+    from jointsim.geometry import chamber_cap, refine_near
+
+    scene, inst = coarse
+    rigid = replace(scene, target=replace(scene.target, kind="rigid"))
+    xy, d = np.array([2e-3, 1e-3]), 1.5e-3
+    same = inst.on_membrane(membrane_from_scene(rigid))
+    u = _pressed(scene, xy, d)
+    v0 = inst.readout.voltages(inst.morpher(inst.dome(u)), True)
+    np.testing.assert_array_equal(same.readout.voltages(same.morpher(same.dome(u)), True), v0)
+
+    dome = refine_near(chamber_cap(scene.chamber, 32), xy, 4e-3, 2)
+    fine = membrane_from_scene(rigid, dome=dome)
+    fine.force_rtol = 0.0
+    on_fine = inst.on_membrane(fine)
+    v_ref = on_fine.readout.voltages(on_fine.reference, True)
+    v_ref0 = inst.readout.voltages(inst.reference, True)
+    assert np.linalg.norm(v_ref - v_ref0) <= 1e-4 * np.linalg.norm(v_ref0)  # measured 1.8e-5
+    _press(fine, xy, d)
+    dv_fine = on_fine.readout.voltages(on_fine.morpher(on_fine.dome(fine.u)), True) - v_ref
+    dv = v0 - v_ref0
+    cos = dv @ dv_fine / (np.linalg.norm(dv) * np.linalg.norm(dv_fine))
+    # measured: cosine 0.99997, size 0.978 of the coarse δV
+    assert cos > 0.999 and 0.9 < np.linalg.norm(dv_fine) / np.linalg.norm(dv) < 1.1
+    on_fine.morpher.free()
+    same.morpher.free()
+    np.testing.assert_array_equal(inst.readout.voltages(inst.morpher(inst.dome(u)), True), v0)

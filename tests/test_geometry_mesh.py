@@ -255,3 +255,50 @@ def test_hemispherical_caps_are_built_whatever_the_rounding(r):
         assert np.isfinite(v).all()
         np.testing.assert_allclose(np.linalg.norm(v - [0, 0, 0], axis=1), r, rtol=1e-9)
         assert v[:, 2].min() == pytest.approx(0.0, abs=1e-12) and v[:, 2].max() == pytest.approx(r)
+
+
+@pytest.mark.parametrize("about, levels", [((6e-3, 3e-3), 1), ((6e-3, 3e-3), 3), ((19e-3, 0.0), 2), ((0.0, 0.0), 2)])
+def test_a_cap_refined_near_a_point_stays_the_cap(about, levels):
+    """refine_near splits the faces about a point (four within the finest radius, closed by
+    bisected ones): the surface is still a watertight, consistently wound cap welded to the
+    base, every new vertex on the cap's sphere (or on the rim circle), the old vertices and
+    their indices kept, the faces near the point ``2^levels`` times smaller, none far from it
+    touched, and no angle below half the coarse mesh's smallest (one bisection of a face)."""
+    from jointsim.geometry import refine_near
+
+    a, h = 20e-3, 12e-3
+    cap = isotropic_cap(a, h, 64)
+    fine = refine_near(cap, np.array(about), 4e-3, levels)
+    v, f = np.asarray(fine.vertices), np.asarray(fine.faces)
+    np.testing.assert_array_equal(v[: len(cap.vertices)], cap.vertices)
+    surf = chamber_surface(fine)
+    assert surf.is_watertight and surf.is_winding_consistent and surf.volume > 0
+    R = (a * a + h * h) / (2 * h)
+    off = np.abs(np.linalg.norm(v - [0, 0, h - R], axis=1) - R)
+    assert off.max() < 1e-12
+    rim = np.asarray(fine.rim)
+    np.testing.assert_allclose(np.hypot(v[rim, 0], v[rim, 1]), a, rtol=1e-12)
+    assert not v[rim, 2].any()
+    turn = np.unwrap(np.arctan2(v[rim, 1], v[rim, 0]))
+    assert np.all(np.diff(turn) > 0) and turn[-1] - turn[0] < 2 * np.pi  # anticlockwise, once round
+    # the faces within the finest radius are 4^levels times smaller; far ones are the coarse ones
+    def areas(v, f):
+        return 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+
+    def dist(v, f):
+        return np.hypot(*(v[f].mean(axis=1)[:, :2] - about).T)
+
+    c_area, f_area = areas(cap.vertices, cap.faces), areas(v, f)
+    c_dist, f_dist = dist(cap.vertices, cap.faces), dist(v, f)
+    assert np.median(f_area[f_dist < 2e-3]) == pytest.approx(np.median(c_area[c_dist < 2e-3]) / 4**levels, rel=0.35)
+    far_coarse = {tuple(sorted(t)) for t in np.asarray(cap.faces)[c_dist > 12e-3].tolist()}
+    assert far_coarse <= {tuple(sorted(t)) for t in f.tolist()}
+
+    def min_angle(v, f):
+        p = v[f]
+        ang = [np.arccos(np.einsum("ij,ij->i", p[:, (k + 1) % 3] - p[:, k], p[:, (k + 2) % 3] - p[:, k])
+                         / np.linalg.norm(p[:, (k + 1) % 3] - p[:, k], axis=1) / np.linalg.norm(p[:, (k + 2) % 3] - p[:, k], axis=1))
+               for k in range(3)]
+        return np.degrees(np.min(ang))
+
+    assert min_angle(v, f) >= 0.45 * min_angle(np.asarray(cap.vertices), np.asarray(cap.faces))

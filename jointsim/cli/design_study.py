@@ -9,6 +9,7 @@ import argparse
 import shlex
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from tqdm import tqdm
@@ -32,6 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--spacing-mm", type=float, default=3.0, help="spacing of the polar grid of target centres (default 3)")
     p.add_argument("--r-max-mm", type=float, help="grid radius (default: the outermost electrode's centre)")
     p.add_argument("--hold-frames", type=int, default=1, help="frames averaged per press (default 1)")
+    p.add_argument("--contact-levels", type=int, default=2,
+                   help="read each press through a membrane this many times finer about its contact (default 2; 0: the "
+                        "scene's membrane as meshed, whose coarse contact makes size bounds optimistic). A round dome "
+                        "moulded as a cap only: other designs are read at 0, and said so")
     p.add_argument("--snr-db", default="", help="further SNRs to tabulate, comma-separated (the scene's is always)")
     p.add_argument("--workers", type=int, help="local worker processes (default: one per core)")
     p.add_argument("--estimators", type=Path, metavar="GOALS_CSV",
@@ -41,7 +46,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..design.report import GOALS, required_snr, write_comparison, write_design
-    from ..design.study import Plan, plan_presses, run_design
+    from ..design.sensitivity import contact_zone
+    from ..design.study import MAX_CONTACT_LEVELS, Plan, plan_presses, run_design
     from ..io.records import open_records
     from ..scene import MESH_PRESETS, load_scene, scene_toml
 
@@ -55,6 +61,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--spacing-mm = {args.spacing_mm:g}: must be > 0")
     if args.hold_frames < 1:
         raise ValueError(f"--hold-frames = {args.hold_frames}: must be >= 1")
+    if not 0 <= args.contact_levels <= MAX_CONTACT_LEVELS:
+        raise ValueError(f"--contact-levels = {args.contact_levels}: must be in 0..{MAX_CONTACT_LEVELS}")
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers = {args.workers}: must be >= 1")
     if args.estimators is not None and not args.estimators.is_file():
@@ -62,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
     lo, hi = SNR_RANGE_DB
     snrs = float_list("--snr-db", args.snr_db, lo - 1e-9, hi) if args.snr_db.strip() else ()
     plan = Plan(tuple(d * 1e-3 for d in diameters), tuple(d * 1e-3 for d in depths), args.spacing_mm * 1e-3,
-                None if args.r_max_mm is None else args.r_max_mm * 1e-3, hold_frames=args.hold_frames)
+                None if args.r_max_mm is None else args.r_max_mm * 1e-3, hold_frames=args.hold_frames,
+                contact_levels=args.contact_levels)
     scenes = []
     for path in args.scenes:
         scene = load_scene(path)
@@ -70,15 +79,22 @@ def run(args: argparse.Namespace) -> int:
             scene = scene.with_mesh_preset(args.mesh_preset)
         if depths[-1] * 1e-3 >= 0.9 * scene.chamber.dome_height:
             raise ValueError(f"--depths-mm: {depths[-1]:g} mm is past 0.9 x the dome height of {path}")
-        scenes.append((path, scene))
-    names = [s.name for _, s in scenes]
+        scenes.append((path, scene, plan))
+        if plan.contact_levels:
+            try:
+                contact_zone(scene, diameters[0] * 5e-4, (0.0, 0.0), depths[-1] * 1e-3)
+            except ValueError as e:
+                print(f"jointsim design-study: {scene.name}: read at --contact-levels 0 ({e}); its size bounds are optimistic")
+                scenes[-1] = (path, scene, replace(plan, contact_levels=0))
+    names = [s.name for _, s, _ in scenes]
     if len(set(names)) != len(names):
         raise ValueError(f"scenes: two designs share a name ({names}); give each scene its own name")
     command = "jointsim design-study " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["design-study"] else "jointsim design-study"
     rows, needed, timings, where = [], {}, {}, {}
-    for path, scene in scenes:
+    for path, scene, plan in scenes:
         n = len(plan_presses(scene, plan))
-        print(f"jointsim design-study: {scene.name} (mesh {scene.mesh.preset}), {n} presses x {len(depths)} depths")
+        print(f"jointsim design-study: {scene.name} (mesh {scene.mesh.preset}, membrane refined {plan.contact_levels}x about "
+              f"the contact), {n} presses x {len(depths)} depths")
         todo = [0]  # presses this run computes (the rest were stored)
         t0 = time.perf_counter()
         with tqdm(total=n, unit="press", desc=f"design study {scene.name}", disable=progress_off(args)) as bar:
@@ -106,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
               f"{s.median['position_marginal'] * 1e3:.3g} mm, depth {s.median['depth_marginal'] * 1e3:.3g} mm, "
               f"diameter {s.median['diameter_marginal'] * 1e3:.3g} mm ({s.reached}/{s.presses} reached)")
     est = None if args.estimators is None else (scenes[0][1].name, args.estimators)
-    written = write_comparison(args.out, rows, needed, command, timings, est, where)
+    written = write_comparison(args.out, rows, needed, command, timings, est, where,
+                               {scene.name: plan.contact_levels for _, scene, plan in scenes})
     print(f"  wrote {written[0]}")
     return 0

@@ -199,21 +199,26 @@ def by_contact_radius(b: DesignBounds, column: str = "position_median_marginal")
 def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[str, dict[str, float]], command: str,
                      timings: dict[str, tuple[np.ndarray, float, int, int, str]] | None = None,
                      estimators: tuple[str, Path] | None = None,
-                     where: dict[str, DesignBounds] | None = None) -> list[Path]:
+                     where: dict[str, DesignBounds] | None = None, refined: dict[str, int] | None = None) -> list[Path]:
     """``out``/summary.md and summary.csv: the designs side by side (``rows``: a summary and
     what it covers), the SNR each needs to meet each goal (``needed``[design][quantity]), what
     each design cost (``timings``[design]: the stored press times s, and this run's wall s,
     presses computed and workers, and the store's data digest), and a calibration's estimators beside the first design's
-    bound (``estimators``: the design's name and the calibration's goals.csv)."""
+    bound (``estimators``: the design's name and the calibration's goals.csv); ``refined``[design]:
+    how many times its membrane was refined about each press's contact."""
     lines = ["# Design study: what each design can measure", "", f"Command: `{command}`", "",
              "Cramér–Rao bounds through the coupled model (jointsim.design): an unbiased estimator's error cannot be "
              "smaller. *median*: over the presses (target centres × depths) of an efficient estimator's median |error|; "
              "*P95*: the 95th percentile of the RMS bound. *known*: the sensor's nuisances known exactly; *marginal*: "
              "marginalised over the scene's [dataset] randomisation as a prior. Position is the contact point's, "
-             "size the sphere's diameter. All in mm.", "",
-             "| design | SNR dB | presses | reached | position median (known / marg.) | position P95 marg. | depth median (known / marg.) "
-             "| depth P95 marg. | diameter median (known / marg.) | diameter P95 marg. |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "size the sphere's diameter. All in mm.", ""]
+    if refined:
+        lines += ["Each press read through a membrane refined about its contact (jointsim.design.sensitivity.contact_membrane; "
+                  "0: the scene's membrane as meshed, whose size bounds are optimistic): "
+                  + ", ".join(f"{d} {n}×" for d, n in refined.items()) + ".", ""]
+    lines += ["| design | SNR dB | presses | reached | position median (known / marg.) | position P95 marg. | depth median (known / marg.) "
+              "| depth P95 marg. | diameter median (known / marg.) | diameter P95 marg. |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     csv_rows = []
     for s, what in rows:
         lines.append(f"| {s.design} ({what}) | {s.snr_db:g} | {s.presses} | {s.reached} | "

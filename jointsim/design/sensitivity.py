@@ -29,6 +29,14 @@ and the frames of the press; their parameters θ = (x, y, d, R) of the target an
   the saline's conductivity (ln σ), each electrode's contact impedance (ln z_l, the ground's
   included) and its centre in the base plane (x_l, y_l).
 
+The membrane's mesh must resolve the contact. Node-to-sphere contact on a membrane whose
+P2 nodes lie ~1 mm apart (64 rim vertices) makes the derivatives ripple as nodes enter the
+contact, and a contact a few nodes wide gains or loses whole nodes as the sphere grows: a size
+signal the mesh makes, not the sensor (results/design_study/convergence.md). A press is
+therefore read through a membrane refined about its contact (:func:`contact_membrane`,
+:func:`~jointsim.geometry.refine_near`): the same chamber and readout, its morpher remapped
+onto the refined surface (:meth:`~jointsim.instrument.Instrument.on_membrane`).
+
 A frame's noise is the instrument's: white, ``noise_std`` per channel per frame
 (:attr:`~jointsim.instrument.Readout.noise_std`, the scene's SNR re the mean standing |V|).
 """
@@ -36,22 +44,63 @@ A frame's noise is the instrument's: white, ``noise_std`` per channel per frame
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..eit.parameters import conductivity_sensitivity, contact_impedance_sensitivity, electrode_position_sensitivity, moved_discs
+from ..eit.parameters import (
+    conductivity_sensitivity,
+    contact_impedance_sensitivity,
+    electrode_position_sensitivity,
+    moved_discs,
+)
+from ..geometry import chamber_cap, refine_near
 from ..instrument import Instrument
+from ..mechanics.build import membrane_from_scene
 from ..mechanics.dome import MembraneModel
 from ..mechanics.touch import touch
+from ..scene import Scene
 
-__all__ = ["TARGET", "ELECTRODE_STEP", "PressSensitivity", "parameter_names", "press_sensitivity", "electrode_moves"]
+__all__ = ["TARGET", "ELECTRODE_STEP", "CONTACT_MARGIN", "PressSensitivity", "parameter_names", "press_sensitivity", "electrode_moves",
+           "contact_zone", "contact_membrane"]
 
 TARGET = ("x", "y", "depth", "radius")  # the target's parameters, m
 # m: an electrode's move either way for its position derivative (a difference of clipped moments,
 # no solve; tests/test_parameters.py); the moves made once (electrode_moves) must use the step
 # press_sensitivity divides by
 ELECTRODE_STEP = 1e-5
+
+
+# m: how far the refined zone reaches past the sphere's geometric contact at the deepest depth:
+# a node pitch of the coarse membrane, so the contact's sideways moves stay inside it
+CONTACT_MARGIN = 1e-3
+
+
+def contact_zone(scene: Scene, radius: float, xy: np.ndarray, depth: float) -> tuple[np.ndarray, float]:
+    """(the in-plane point (2,) m where a sphere of ``radius`` m coming down at ``xy`` first
+    touches ``scene``'s moulded cap (on the line between the two spheres' centres), the radius
+    m of the zone to refine about it: the sphere's geometric contact √(2Rd − d²) at ``depth``
+    plus :data:`CONTACT_MARGIN`). Only for a round cap moulding: a ValueError naming the scene's
+    keys otherwise."""
+    c = scene.chamber
+    if scene.membrane.moulding != "cap" or c.base_radius_y is not None or c.surface_file is not None:
+        raise ValueError("contact_levels: a membrane refined about the contact is for a round dome moulded as a cap "
+                         "(not membrane.moulding = \"flat\", chamber.base_radius_y_mm or chamber.surface_file)")
+    outer = (c.base_radius**2 + c.dome_height**2) / (2 * c.dome_height) + c.membrane_thickness
+    touch_xy = np.asarray(xy, float) * outer / (outer + radius)
+    d = min(float(depth), radius)
+    return touch_xy, math.sqrt(2 * radius * d - d * d) + CONTACT_MARGIN
+
+
+def contact_membrane(scene: Scene, radius: float, xy: np.ndarray, depth: float, levels: int) -> MembraneModel:
+    """The membrane of ``scene`` (inflated, untouched, pressed by a rigid sphere of ``radius``
+    m) meshed ``levels`` times finer about where that sphere coming down at ``xy`` touches, out
+    to its contact at ``depth`` m (:func:`contact_zone`; :func:`~jointsim.geometry.refine_near`
+    on the scene's cap at [membrane] rim_vertices)."""
+    about, zone = contact_zone(scene, radius, xy, depth)
+    dome = refine_near(chamber_cap(scene.chamber, scene.membrane.rim_vertices), about, zone, levels)
+    rigid = replace(scene, target=replace(scene.target, kind="rigid"))
+    return membrane_from_scene(rigid, target_radius=radius, dome=dome)
 
 
 def parameter_names(n_electrodes: int) -> tuple[str, ...]:

@@ -33,11 +33,12 @@ from ..mechanics.newton import NewtonError
 from ..mesh.morph import MeshInversionError
 from ..scene import Scene
 from .bounds import Bounds, fisher, median_error, nuisance_prior, press_bounds
-from .sensitivity import ELECTRODE_STEP, TARGET, electrode_moves, parameter_names, press_sensitivity
+from .sensitivity import ELECTRODE_STEP, TARGET, contact_membrane, contact_zone, electrode_moves, parameter_names, press_sensitivity
 
 __all__ = ["Plan", "press_grid", "plan_presses", "design_schema", "run_design", "DesignBounds", "design_bounds"]
 
 SCHEMA_NAME, SCHEMA_VERSION = "design_sensitivity", 1
+MAX_CONTACT_LEVELS = 4  # each level has about 4x the faces in the zone: 4 is ~16x a 64-rim pitch
 
 
 @dataclass(frozen=True)
@@ -45,7 +46,9 @@ class Plan:
     """The presses of a design study: sphere ``diameters`` m, ``depths`` m past first contact,
     target centres on a polar grid of ``spacing`` m out to ``r_max`` m (None: the outermost
     electrode's centre); the noise model: ``reference_frames`` averaged into the reference,
-    ``hold_frames`` into a press's frame."""
+    ``hold_frames`` into a press's frame; ``contact_levels``: each press read through a
+    membrane that many times finer about its contact (:func:`~.sensitivity.contact_membrane`;
+    0: the scene's membrane as meshed)."""
 
     diameters: tuple[float, ...] = (8e-3, 15e-3, 30e-3)
     depths: tuple[float, ...] = (1e-3, 2e-3, 3e-3)
@@ -53,6 +56,7 @@ class Plan:
     r_max: float | None = None
     reference_frames: int = 50
     hold_frames: int = 1
+    contact_levels: int = 0
 
     def __post_init__(self) -> None:
         if not self.diameters or any(not d > 0 for d in self.diameters):
@@ -63,6 +67,8 @@ class Plan:
             raise ValueError(f"spacing = {self.spacing}: must be > 0 m")
         if self.reference_frames < 1 or self.hold_frames < 1:
             raise ValueError("reference_frames, hold_frames: must be >= 1")
+        if not 0 <= self.contact_levels <= MAX_CONTACT_LEVELS:
+            raise ValueError(f"contact_levels = {self.contact_levels}: must be in 0..{MAX_CONTACT_LEVELS}")
 
     def outer_radius(self, scene: Scene) -> float:
         if self.r_max is not None:
@@ -146,11 +152,16 @@ def _run_press(path: str, scene: Scene, plan: Plan, index: int, diameter: float,
     with _LOCK:
         t0 = time.perf_counter()
         inst, moves = _setup(scene)
-        model = _model(scene, inst, diameter / 2)
         store = attach(path)
         why = ""
+        on = inst
         try:
-            ps = press_sensitivity(inst, model, xy, np.asarray(plan.depths), moves=moves)
+            if plan.contact_levels:
+                model = contact_membrane(scene, diameter / 2, xy, max(plan.depths), plan.contact_levels)
+                on = inst.on_membrane(model)
+            else:
+                model = _model(scene, inst, diameter / 2)
+            ps = press_sensitivity(on, model, xy, np.asarray(plan.depths), moves=moves)
             J = ps.jacobian
             rec = {"diameter": diameter, "xy": xy, "reached": 1, "depths": ps.depths, "contact": ps.contact,
                    "contact_jacobian": ps.contact_jacobian, "force": ps.force, "noise_std": ps.noise_std,
@@ -162,6 +173,9 @@ def _run_press(path: str, scene: Scene, plan: Plan, index: int, diameter: float,
             # the model may stand anywhere after a failed press: start the next one afresh
             _WORKER["models"].clear()
             rec = _nan_record(store.schema, diameter, xy, time.perf_counter() - t0)
+        finally:
+            if on is not inst:
+                on.morpher.free()  # its own closest points; the factor stays with the instrument's
         store.put(index, rec)
         store.flush()
         return index, bool(rec["reached"]), why
@@ -180,12 +194,16 @@ def run_design(scene: Scene, plan: Plan, out: str | Path, *, workers: int | None
     as not reached)."""
     presses = plan_presses(scene, plan)
     n = len(presses)
+    if plan.contact_levels:
+        contact_zone(scene, presses[0][0] / 2, presses[0][1], max(plan.depths))  # refused in one line before any work
     inst_meas = _n_meas(scene)
     names = parameter_names(len(electrode_layout(scene).radii))
     schema = design_schema(inst_meas, len(names), len(plan.depths))
     # what shapes the stored derivatives; not the frame counts, which the bounds take from the file
-    shape = ("diameters", "depths", "spacing", "r_max")
-    params = {"plan": {k: list(v) if isinstance(v, tuple) else v for k, v in plan.__dict__.items() if k in shape},
+    shape = ("diameters", "depths", "spacing", "r_max", "contact_levels")
+    # a study without refinement keeps the identity it had before contact_levels existed
+    params = {"plan": {k: list(v) if isinstance(v, tuple) else v for k, v in plan.__dict__.items()
+                       if k in shape and not (k == "contact_levels" and v == 0)},
               "parameters": list(names), "scene_digest": scene.digest()}
     final = Path(out)
     final = final if final.suffix in (".h5", ".hdf5") else final.with_suffix(".h5")

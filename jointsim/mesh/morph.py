@@ -19,6 +19,7 @@ took and why.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 from dataclasses import dataclass, replace
 from typing import Callable
@@ -189,11 +190,24 @@ class ChamberMorpher:
         self._free = np.ones(mesh.n_nodes, bool)
         self._free[np.unique(mesh.boundary_faces)] = False
         self._solve = None
+        self._owner = True  # whether free() releases the factor (a remapped copy shares it)
         if self._free.any():
             K = _stiffness(mesh)[self._free]
             self._K_ft = K[:, self.top].tocsr()  # the only fixed nodes that move
             self._solve = factorize(K[:, self._free], backend)
         self.reference_quality = element_quality(mesh.nodes, mesh.tets)
+
+    def remapped(self, dome: DomeSurface) -> "ChamberMorpher":
+        """This morpher for another reference surface ``dome`` of the same chamber (a membrane
+        meshed otherwise): the dome nodes' closest points are found anew, the interior
+        Laplacian's factor is shared (freeing the copy leaves it to this morpher)."""
+        other = copy.copy(self)
+        other.dome = dome
+        tri, other._bary, dist = closest_on_surface(dome.vertices, dome.faces, self.chamber.mesh.nodes[self.top])
+        other.surface_gap = float(dist.max()) if len(dist) else 0.0
+        other._corners = np.asarray(dome.faces)[tri]
+        other._owner = False
+        return other
 
     def displacement(self, deformed: DomeSurface) -> np.ndarray:
         """Nodal displacement (n_nodes, 3) of the chamber mesh that follows ``deformed``."""
@@ -241,7 +255,7 @@ class ChamberMorpher:
 
     def free(self) -> None:
         """Release the factorisation; the morpher cannot morph afterwards."""
-        if self._solve is not None:
+        if self._solve is not None and self._owner:
             self._solve.free()
 
     def __enter__(self) -> "ChamberMorpher":
