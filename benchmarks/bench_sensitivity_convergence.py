@@ -1,14 +1,17 @@
-"""How a press's derivatives (jointsim.design.sensitivity) converge with the membrane's and the
-chamber's resolution and with the difference step, and what that does to the size bound.
+"""How a press's derivatives (jointsim.design.sensitivity) converge with the membrane's
+resolution about the contact, the membrane's and the chamber's resolution elsewhere, and the
+difference step, and what that does to the size bound.
 
     python benchmarks/bench_sensitivity_convergence.py   # writes results/design_study/convergence.{md,json}
 
 Presses: spheres of 8, 15 and 30 mm diameter on the axis and at (6, 3) mm, 1 and 2 mm past first
-contact, on the paper's sensor. Cases: the membrane at 64 (the dataset preset's), 92 (the paper
-preset's) and 128 rim vertices on the dataset chamber; 92 on the paper chamber; the central
-difference along du/dθ with a 10 µm (the default) and a 5 µm probe. Per press and target parameter
-(x, y, depth, radius at fixed depth): the relative change ‖J_a − J_b‖/‖J_b‖ of its column between
-resolutions, and the diameter's Cramér–Rao bound (nuisances known, 74.2 dB) in each case.
+contact, on the paper's sensor. Cases (chamber mesh preset / membrane rim vertices / levels of
+refinement about the contact / probe µm): the dataset preset's membrane (64 rim vertices) refined
+0 to 3 times about the contact (jointsim.design.sensitivity.contact_membrane); refined twice on a
+128-rim membrane (a second resolution away from the contact), on the paper preset's chamber, and
+with a 5 µm probe instead of 10. Per press and target parameter (x, y, depth, radius at fixed
+depth): the relative change ‖J_a − J_b‖/‖J_b‖ of its column against the finest case
+(dataset/64/3/10), and the diameter's Cramér–Rao bound (nuisances known, 74.2 dB) in each case.
 """
 
 from __future__ import annotations
@@ -27,31 +30,31 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from jointsim.design.bounds import fisher, nuisance_prior, press_bounds  # noqa: E402
-from jointsim.design.sensitivity import TARGET, press_sensitivity  # noqa: E402
+from jointsim.design.sensitivity import TARGET, contact_membrane, press_sensitivity  # noqa: E402
 from jointsim.instrument import Instrument  # noqa: E402
-from jointsim.mechanics.build import membrane_from_scene  # noqa: E402
 from jointsim.scene import SCENES_DIR, load_scene  # noqa: E402
 
 DIAMETERS = (8e-3, 15e-3, 30e-3)
 POSITIONS = ((0.0, 0.0), (6e-3, 3e-3))
 DEPTHS = (1e-3, 2e-3)
-CASES = (("dataset", 64, 10e-6), ("dataset", 64, 5e-6), ("dataset", 92, 10e-6), ("dataset", 128, 10e-6),
-         ("paper", 92, 10e-6))
+CASES = (("dataset", 64, 0, 10e-6), ("dataset", 64, 1, 10e-6), ("dataset", 64, 2, 10e-6), ("dataset", 64, 2, 5e-6),
+         ("dataset", 128, 2, 10e-6), ("paper", 64, 2, 10e-6), ("dataset", 64, 3, 10e-6))
+REFERENCE = "dataset/64/3/10"
 OUT = ROOT / "results" / "design_study"
 
 
-def run_case(preset: str, rim: int, probe: float) -> dict:
+def run_case(preset: str, rim: int, levels: int, probe: float) -> dict:
     scene = load_scene(SCENES_DIR / "paper_sensor.toml").with_mesh_preset(preset)
     scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=rim))
     t0 = time.perf_counter()
     inst = Instrument.build(scene, imaging=False)
     out = {"setup_s": time.perf_counter() - t0, "presses": []}
-    rigid = replace(scene, target=replace(scene.target, kind="rigid"))
     for d in DIAMETERS:
-        model = membrane_from_scene(rigid, target_radius=d / 2)
         for xy in POSITIONS:
             t = time.perf_counter()
-            ps = press_sensitivity(inst, model, np.array(xy), np.array(DEPTHS), probe=probe)
+            model = contact_membrane(scene, d / 2, np.array(xy), max(DEPTHS), levels)
+            on = inst.on_membrane(model)
+            ps = press_sensitivity(on, model, np.array(xy), np.array(DEPTHS), probe=probe)
             prior = nuisance_prior(scene, ps.names)
             bounds = []
             for k in range(len(DEPTHS)):
@@ -59,22 +62,24 @@ def run_case(preset: str, rim: int, probe: float) -> dict:
                 F = fisher(ps.jacobian_ref.T @ ps.jacobian_ref, J.T @ J, ps.noise_std, reference_frames=50)
                 bounds.append(press_bounds(F, prior, ps.contact_jacobian[k]).rms("known")["diameter"])
             out["presses"].append({"diameter": d, "xy": list(xy), "target_jacobian": ps.jacobian[:, :, :4].tolist(),
-                                   "diameter_bound_known": bounds, "seconds": time.perf_counter() - t})
+                                   "diameter_bound_known": bounds, "seconds": time.perf_counter() - t,
+                                   "membrane_nodes": int(model.mesh.n_nodes)})
     inst.free()
     return out
 
 
 def main() -> None:
     results = {}
-    for preset, rim, probe in CASES:
-        key = f"{preset}/{rim}/{probe * 1e6:g}"
+    for preset, rim, levels, probe in CASES:
+        key = f"{preset}/{rim}/{levels}/{probe * 1e6:g}"
         print("case", key, flush=True)
-        results[key] = run_case(preset, rim, probe)
-    ref = "dataset/128/10"
+        results[key] = run_case(preset, rim, levels, probe)
+    ref = REFERENCE
     lines = ["# Convergence of the press derivatives (jointsim.design.sensitivity)", "",
              "Command: `python benchmarks/bench_sensitivity_convergence.py`  ", f"Machine: {machine()}", "",
-             "Cases: chamber mesh preset / membrane rim vertices / probe µm. Relative change of each target column "
-             f"of ∂V/∂θ against `{ref}` (the finest membrane, same chamber), per press and depth; the last columns "
+             "Cases: chamber mesh preset / membrane rim vertices / levels of refinement about the contact / probe µm. "
+             f"Relative change of each target column of ∂V/∂θ against `{ref}` (the finest membrane, same chamber), "
+             "per press and depth; the last columns "
              "give the diameter's RMS Cramér–Rao bound (nuisances known, 74.2 dB) in mm.", ""]
     cases = list(results)
     hdr = "| press | depth mm | " + " | ".join(f"{c}: x, y, depth, radius" for c in cases if c != ref) + " | " + \
@@ -99,8 +104,9 @@ def main() -> None:
     for c in cases:
         if c != ref:
             lines.append(f"- `{c}` against `{ref}`: " + ", ".join(f"{n} {100 * w:.1f} %" for n, w in zip(TARGET, worst[c])))
-    lines += ["", "Time per press (3 depths' derivatives, s): " + ", ".join(
-        f"`{c}` {np.mean([p['seconds'] for p in results[c]['presses']]):.1f}" for c in cases)]
+    lines += ["", "Time per press (2 depths' derivatives, the refined membrane built, s) and the membrane's nodes (mean): " + ", ".join(
+        f"`{c}` {np.mean([p['seconds'] for p in results[c]['presses']]):.1f} s, "
+        f"{np.mean([p['membrane_nodes'] for p in results[c]['presses']]):.0f}" for c in cases)]
     OUT.mkdir(parents=True, exist_ok=True)
     atomic_write(OUT / "convergence.json", json.dumps(results))
     atomic_write(OUT / "convergence.md", "\n".join(lines) + "\n")

@@ -156,7 +156,7 @@ def _run_press(path: str, scene: Scene, plan: Plan, index: int, diameter: float,
         why = ""
         on = inst
         try:
-            if plan.contact_levels:
+            if plan.contact_levels:  # a membrane of its own; the chamber, morph factor and readout shared
                 model = contact_membrane(scene, diameter / 2, xy, max(plan.depths), plan.contact_levels)
                 on = inst.on_membrane(model)
             else:
@@ -173,9 +173,6 @@ def _run_press(path: str, scene: Scene, plan: Plan, index: int, diameter: float,
             # the model may stand anywhere after a failed press: start the next one afresh
             _WORKER["models"].clear()
             rec = _nan_record(store.schema, diameter, xy, time.perf_counter() - t0)
-        finally:
-            if on is not inst:
-                on.morpher.free()  # its own closest points; the factor stays with the instrument's
         store.put(index, rec)
         store.flush()
         return index, bool(rec["reached"]), why
