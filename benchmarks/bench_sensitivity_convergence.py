@@ -3,6 +3,7 @@ resolution about the contact, the membrane's and the chamber's resolution elsewh
 difference step, and what that does to the size bound.
 
     python benchmarks/bench_sensitivity_convergence.py   # writes results/design_study/convergence.{md,json}
+    python benchmarks/bench_sensitivity_convergence.py --report-only   # the .md again from the .json
 
 Presses: spheres of 8, 15 and 30 mm diameter on the axis and at (6, 3) mm, 1 and 2 mm past first
 contact, on the paper's sensor. Cases (chamber mesh preset / membrane rim vertices / levels of
@@ -16,6 +17,7 @@ depth): the relative change ‖J_a − J_b‖/‖J_b‖ of its column against th
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
@@ -68,12 +70,36 @@ def run_case(preset: str, rim: int, levels: int, probe: float) -> dict:
     return out
 
 
+# (case, against, what the pair measures)
+PAIRS = (("dataset/64/2/5", "dataset/64/2/10", "the probe, 5 against 10 µm"),
+         ("paper/64/2/10", "dataset/64/2/10", "the chamber mesh, paper against dataset preset"),
+         ("dataset/128/2/10", "dataset/64/3/10", "two membranes with the same 0.25 mm edge at the contact (128 rim twice "
+          "refined, 64 rim three times): the membrane away from the contact"),
+         ("dataset/64/1/10", "dataset/64/2/10", "one level of refinement against two"),
+         ("dataset/64/2/10", "dataset/64/3/10", "two levels (the design study's default) against three"))
+
+
+def pair_changes(results: dict, a: str, b: str) -> tuple[np.ndarray, np.ndarray]:
+    """(largest, median) over the presses and depths of ‖J_a − J_b‖/‖J_b‖ per target column."""
+    rel = []
+    for pa, pb in zip(results[a]["presses"], results[b]["presses"]):
+        Ja, Jb = np.asarray(pa["target_jacobian"]), np.asarray(pb["target_jacobian"])
+        rel += list(np.linalg.norm(Ja - Jb, axis=1) / np.linalg.norm(Jb, axis=1))
+    return np.max(rel, axis=0), np.median(rel, axis=0)
+
+
 def main() -> None:
-    results = {}
-    for preset, rim, levels, probe in CASES:
-        key = f"{preset}/{rim}/{levels}/{probe * 1e6:g}"
-        print("case", key, flush=True)
-        results[key] = run_case(preset, rim, levels, probe)
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--report-only", action="store_true", help="rewrite convergence.md from the stored convergence.json")
+    args = ap.parse_args()
+    if args.report_only:
+        results = json.loads((OUT / "convergence.json").read_text())
+    else:
+        results = {}
+        for preset, rim, levels, probe in CASES:
+            key = f"{preset}/{rim}/{levels}/{probe * 1e6:g}"
+            print("case", key, flush=True)
+            results[key] = run_case(preset, rim, levels, probe)
     ref = REFERENCE
     lines = ["# Convergence of the press derivatives (jointsim.design.sensitivity)", "",
              "Command: `python benchmarks/bench_sensitivity_convergence.py`  ", f"Machine: {machine()}", "",
@@ -104,11 +130,17 @@ def main() -> None:
     for c in cases:
         if c != ref:
             lines.append(f"- `{c}` against `{ref}`: " + ", ".join(f"{n} {100 * w:.1f} %" for n, w in zip(TARGET, worst[c])))
+    lines += ["", "Pairs (largest / median change over the presses and depths; x, y, depth, radius):", ""]
+    for a, b, what in PAIRS:
+        big, med = pair_changes(results, a, b)
+        lines.append(f"- `{a}` against `{b}` ({what}): " + ", ".join(
+            f"{n} {100 * w:.2g} / {100 * m:.2g} %" for n, w, m in zip(TARGET, big, med)))
     lines += ["", "Time per press (2 depths' derivatives, the refined membrane built, s) and the membrane's nodes (mean): " + ", ".join(
         f"`{c}` {np.mean([p['seconds'] for p in results[c]['presses']]):.1f} s, "
         f"{np.mean([p['membrane_nodes'] for p in results[c]['presses']]):.0f}" for c in cases)]
     OUT.mkdir(parents=True, exist_ok=True)
-    atomic_write(OUT / "convergence.json", json.dumps(results))
+    if not args.report_only:
+        atomic_write(OUT / "convergence.json", json.dumps(results))
     atomic_write(OUT / "convergence.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 
