@@ -1,10 +1,10 @@
 """Does an estimator reach the Cramér–Rao bound? A nonlinear least-squares fit through the
 simulator, over noisy frames of the nominal sensor, against the bound of jointsim.design.
 
-    python benchmarks/bench_bound_efficiency.py [--draws 40]   # writes results/design_study/efficiency.{md,json}
+    python benchmarks/bench_bound_efficiency.py [--draws 20]   # writes results/design_study/efficiency.{md,json}
 
 Presses (paper's sensor, dataset fidelity, 74.2 dB, one frame, nuisances known; the membrane
-refined twice about the contact, as the design study reads it), each 2 mm past first contact: 8 mm spheres at (9, 0) and (6, 3) mm, 15 and 30 mm ones at (6, 3) mm. Not on the
+refined twice about the contact, as the design study reads it), each 2 mm past first contact: spheres of 8, 15 and 30 mm at (6, 3) mm. Not on the
 axis: there depth and size are nearly collinear and one frame bounds the diameter only to tens of
 millimetres (results/design_study/convergence.md), where no estimator is unbiased and a
 Cramér–Rao bound says nothing. Per draw: one noisy frame y =
@@ -12,7 +12,7 @@ f(θ₀) + n, n white at the scene's noise; the fit starts from θ₀ offset by 
 in (x, y, depth, radius) and takes Gauss–Newton steps with the Jacobian of the start,
 θ ← θ + (JᵀJ)⁻¹Jᵀ(y − f(θ)), every residual from the simulator (the membrane pressed afresh,
 chamber morphed, forward solved; pressed on from the previous fit's state, which the check
-``path_rms_over_sigma`` shows changes nothing) until the step is below 5 % of the bound (the equilibria's own
+``path_rms_over_sigma`` shows changes nothing) until the step is below 10 % of the bound (the equilibria's own
 tolerance moves a fit by less). f's depth is past the
 smooth surface's first contact (as the bound's is): the centre's height follows the surface's
 slope from θ₀. An efficient estimator's RMS error equals the bound; the issue asks for 1.5×.
@@ -43,7 +43,7 @@ from jointsim.mechanics.touch import touch  # noqa: E402
 from jointsim.instrument import Instrument  # noqa: E402
 from jointsim.scene import SCENES_DIR, load_scene  # noqa: E402
 
-PRESSES = ((8e-3, (9e-3, 0.0), 2e-3), (8e-3, (6e-3, 3e-3), 2e-3), (15e-3, (6e-3, 3e-3), 2e-3), (30e-3, (6e-3, 3e-3), 2e-3))
+PRESSES = ((8e-3, (6e-3, 3e-3), 2e-3), (15e-3, (6e-3, 3e-3), 2e-3), (30e-3, (6e-3, 3e-3), 2e-3))
 OFFSET = np.array([50e-6, -50e-6, 30e-6, 300e-6])
 OUT = ROOT / "results" / "design_study"
 
@@ -97,14 +97,14 @@ def fit(f: Simulator, y: np.ndarray, start: np.ndarray, J: np.ndarray, crb: np.n
     for it in range(1, max_iter + 1):
         step = pinv @ (y - f(theta))
         theta = theta + step
-        if np.all(np.abs(step) < 0.05 * crb):
+        if np.all(np.abs(step) < 0.1 * crb):
             return theta, it
     return theta, max_iter
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--draws", type=int, default=40)
+    ap.add_argument("--draws", type=int, default=20)
     ap.add_argument("--contact-levels", type=int, default=2)
     args = ap.parse_args()
     scene = load_scene(SCENES_DIR / "paper_sensor.toml")
@@ -136,18 +136,23 @@ def main() -> None:
                                 for i, h in enumerate(np.diag(crb))])
         crb_fd = np.sqrt(np.diag(np.linalg.inv(J_fd.T @ J_fd)) * sigma**2)
         tangent_vs_fd = (np.linalg.norm(J0 - J_fd, axis=0) / np.linalg.norm(J_fd, axis=0)).tolist()
-        est, iters = [], []
-        max_iter = 10
+        est, iters, ideal = [], [], []
+        max_iter = 6
+        lin = np.linalg.pinv(J0)
         for _ in range(args.draws):
-            y = y0 + rng.normal(0.0, sigma, y0.shape)
+            n = rng.normal(0.0, sigma, y0.shape)
+            y = y0 + n
             th, it = fit(f, y, start, J_start, crb, max_iter)
             est.append(th)
             iters.append(it)
+            ideal.append(lin @ n)  # the efficient estimator of the linearised model, on the same draw
             print(f"  draw {len(est)}: error {np.round((th - theta0) / crb, 2)} bounds, {it} iterations", flush=True)
         err = np.array(est) - theta0
         rms = np.sqrt((err**2).mean(axis=0))
+        rms_ideal = np.sqrt((np.array(ideal) ** 2).mean(axis=0))
         rows.append({"diameter": diameter, "xy": list(xy), "depth": depth, "crb_rms": crb.tolist(), "fit_rms": rms.tolist(),
-                     "fit_bias": err.mean(axis=0).tolist(), "ratio": (rms / crb).tolist(), "iterations_mean": float(np.mean(iters)),
+                     "fit_bias": err.mean(axis=0).tolist(), "ratio": (rms / crb).tolist(),
+                     "ideal_ratio": (rms_ideal / crb).tolist(), "fit_over_ideal": (rms / rms_ideal).tolist(), "iterations_mean": float(np.mean(iters)),
                      "not_converged": int(np.sum(np.array(iters) >= max_iter)), "crb_fd_rms": crb_fd.tolist(),
                      "tangent_vs_fd": tangent_vs_fd, "path_rms_over_sigma": path,
                      "simulator_calls": f.calls, "seconds": time.perf_counter() - t0, "draws": args.draws})
@@ -161,9 +166,14 @@ def main() -> None:
              f"draws: ±{100 * se:.0f} %).", "",
              "The bound from the simulator's own central differences at θ₀ (steps of one bound) is given beside, and how far the "
              "tangent derivatives' columns differ from those differences.", "",
-             "| press | x: bound / fit | y | depth | diameter | ratios x, y, depth, diameter | mean bias (µm) | GN iterations (not converged) "
+             "Beside the ratios, the same for the efficient estimator of the linearised model on the same noise draws, "
+             "(J₀ᵀJ₀)⁻¹J₀ᵀn (how far the draws themselves stray from the bound: with the errors of all four parameters "
+             "along one direction, 20 draws are one variable's), and the fit's RMS over that estimator's (the fit's "
+             "efficiency with the draws' luck divided out).", "",
+             "| press | x: bound / fit | y | depth | diameter | ratios x, y, depth, diameter | the linearised estimator's ratios "
+             "| fit / linearised | mean bias (µm) | GN iterations (not converged) "
              "| bound from differences: x, y, depth, diameter | tangent vs differences |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         b, e = np.array(r["crb_rms"]) * 1e6, np.array(r["fit_rms"]) * 1e6
         b[3] *= 2
@@ -171,6 +181,7 @@ def main() -> None:
         cells = [f"{b[i]:.3g} / {e[i]:.3g}" for i in range(4)]
         lines.append(f"| {r['diameter'] * 1e3:g} mm at {tuple(round(v * 1e3, 1) for v in r['xy'])} mm, {r['depth'] * 1e3:g} mm deep | "
                      + " | ".join(cells) + " | " + ", ".join(f"{v:.2f}" for v in r["ratio"]) + " | "
+                     + ", ".join(f"{v:.2f}" for v in r["ideal_ratio"]) + " | " + ", ".join(f"{v:.2f}" for v in r["fit_over_ideal"]) + " | "
                      + ", ".join(f"{v * 1e6:.2g}" for v in r["fit_bias"]) + f" | {r['iterations_mean']:.1f} ({r['not_converged']}) | "
                      + ", ".join(f"{v:.3g}" for v in np.array(r["crb_fd_rms"]) * 1e6 * np.array([1, 1, 1, 2])) + " | "
                      + ", ".join(f"{100 * v:.1f} %" for v in r["tangent_vs_fd"]) + " |")

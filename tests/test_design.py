@@ -200,6 +200,7 @@ def test_design_study_command_end_to_end(tmp_path, capsys):
     text = (out / "summary.md").read_text()
     assert "| paper_sensor (all) | 74.2 | 1 | 1 |" in text
     assert "refined about its contact" in text and "paper_sensor 2×" in text  # the default
+    assert "| paper_sensor (15 mm) | 74.2 | 1 | 1 |" in text and "| paper_sensor (1.5 mm deep) | 74.2 | 1 | 1 |" in text
     rows = (out / "paper_sensor" / "bounds.csv").read_text().splitlines()
     assert len(rows) == 2 and rows[0].startswith("diameter_mm,x_mm")
     capsys.readouterr()

@@ -114,10 +114,9 @@ def run(args: argparse.Namespace) -> int:
         timings[scene.name] = (study["seconds"], wall, todo[0], workers, study.data_sha256)
         frames = {"reference_frames": plan.reference_frames, "hold_frames": plan.hold_frames}
         written, summaries, where[scene.name] = write_design(args.out / scene.name, scene, study, snrs, **frames)
-        what = ["all"] + [f"{d:g} mm" for d in diameters] + ["all"] * (len(summaries) - 1 - len(diameters))
-        rows += list(zip(summaries, what))
+        rows += summaries
         needed[scene.name] = required_snr(study, scene, GOALS, **frames)
-        s = summaries[0]
+        s = summaries[0][0]
         print(f"  at {s.snr_db:g} dB, efficient median error (nuisances marginalised): position "
               f"{s.median['position_marginal'] * 1e3:.3g} mm, depth {s.median['depth_marginal'] * 1e3:.3g} mm, "
               f"diameter {s.median['diameter_marginal'] * 1e3:.3g} mm ({s.reached}/{s.presses} reached)")

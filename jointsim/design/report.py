@@ -37,13 +37,16 @@ class Summary:
     presses: int
 
 
-def summarise(name: str, b: DesignBounds, diameter: float | None = None) -> Summary:
-    """The :class:`Summary` of ``b`` (over one ``diameter`` m only, where given)."""
+def summarise(name: str, b: DesignBounds, diameter: float | None = None, depth: float | None = None) -> Summary:
+    """The :class:`Summary` of ``b`` (over one ``diameter`` m, or one ``depth`` m, only, where given)."""
     c = b.columns
-    sel = np.isfinite(c["position_rms_marginal"])
+    within = np.ones(len(b), bool)
     if diameter is not None:
-        sel &= np.isclose(c["diameter"], diameter)
-    total = int(np.isclose(c["diameter"], diameter).sum()) if diameter is not None else len(b)
+        within &= np.isclose(c["diameter"], diameter)
+    if depth is not None:
+        within &= np.isclose(c["depth"], depth)
+    sel = within & np.isfinite(c["position_rms_marginal"])
+    total = int(within.sum())
     med, p95 = {}, {}
     for kind in ("known", "marginal"):
         for q in QUANTITIES:
@@ -140,10 +143,11 @@ def _map_figure(path: Path, scene: Scene, b: DesignBounds, column: str, title: s
 
 
 def write_design(out: Path, scene: Scene, path: Path | Records, snrs: tuple[float, ...] = (),
-                 **frames: int) -> tuple[list[Path], list[Summary], DesignBounds]:
+                 **frames: int) -> tuple[list[Path], list[tuple[Summary, str]], DesignBounds]:
     """Write ``out``/bounds.csv and the maps of the study at ``path`` (or its records already
-    read); its summaries at the scene's SNR and at ``snrs``, and its bounds at the scene's SNR.
-    ``frames``: reference_frames, hold_frames (:func:`~.study.design_bounds`)."""
+    read); its summaries with what each covers (all presses, each diameter, each depth, at the
+    scene's SNR; all at each of ``snrs``), and its bounds at the scene's SNR. ``frames``:
+    reference_frames, hold_frames (:func:`~.study.design_bounds`)."""
     out.mkdir(parents=True, exist_ok=True)
     b = design_bounds(path, scene, **frames)
     written = [_write_csv(out / "bounds.csv", b.columns)]
@@ -151,11 +155,12 @@ def write_design(out: Path, scene: Scene, path: Path | Records, snrs: tuple[floa
                                "contact position: an efficient estimator's median error"))
     written.append(_map_figure(out / "diameter_bound.png", scene, b, "diameter_median_marginal",
                                "diameter: an efficient estimator's median error"))
-    summaries = [summarise(scene.name, b)]
-    summaries += [summarise(scene.name, b, d) for d in np.unique(b.columns["diameter"])]
+    summaries = [(summarise(scene.name, b), "all")]
+    summaries += [(summarise(scene.name, b, diameter=d), f"{d * 1e3:g} mm") for d in np.unique(b.columns["diameter"])]
+    summaries += [(summarise(scene.name, b, depth=d), f"{d * 1e3:g} mm deep") for d in np.unique(b.columns["depth"])]
     for snr in snrs:
         if not math.isclose(snr, scene.noise.snr_db):
-            summaries.append(summarise(scene.name, design_bounds(path, scene, snr_db=snr, **frames)))
+            summaries.append((summarise(scene.name, design_bounds(path, scene, snr_db=snr, **frames)), "all"))
     return written, summaries, b
 
 
