@@ -52,7 +52,7 @@ class Plan:
 
     diameters: tuple[float, ...] = (8e-3, 15e-3, 30e-3)
     depths: tuple[float, ...] = (1e-3, 2e-3, 3e-3)
-    spacing: float = 3e-3
+    spacing: float = 6e-3
     r_max: float | None = None
     reference_frames: int = 50
     hold_frames: int = 1
