@@ -298,3 +298,47 @@ def test_an_instrument_reads_through_a_membrane_refined_under_the_press(coarse):
     on_fine.morpher.free()
     same.morpher.free()
     np.testing.assert_array_equal(inst.readout.voltages(inst.morpher(inst.dome(u)), True), v0)
+
+
+def test_a_press_read_together_shares_its_position_and_size():
+    """press_fisher: K frames that share x, y, R and the nuisances, each with a depth of its own.
+    One frame is fisher() itself; where no frame's voltages depend on its depth, the shared
+    parameters' information is the frames' sum (the depths drop out); and a depth each costs
+    the shared parameters something against one depth for all (the joint bound lies between
+    the frames summed with their depths tied and the best single frame)."""
+    from jointsim.design.bounds import press_fisher
+    from jointsim.design.study import _joint_bounds
+
+    rng = np.random.default_rng(7)
+    P, K, M = 7, 3, 40
+    J = rng.normal(size=(K, M, P))
+    # each frame's depth column close to a multiple of its radius column (as a shallow press's
+    # are), the multiple its own: tied, the depths would tell size apart; untied, less
+    J[:, :, 2] = J[:, :, 3] * np.array([0.5, 1.0, 2.0])[:, None] + 0.05 * J[:, :, 2]
+    J_ref = rng.normal(size=(M, P))
+    J_ref[:, :4] = 0.0  # the target does not touch the reference
+    infos = np.einsum("kmp,kmq->kpq", J, J)
+    info_ref = J_ref.T @ J_ref
+    F1 = press_fisher(info_ref, infos[:1], 0.5, reference_frames=10)
+    np.testing.assert_allclose(F1, fisher(info_ref, infos[0], 0.5, reference_frames=10), rtol=1e-14)
+    prior = np.concatenate([np.full(P - 4, 0.3), np.full(K - 1, np.inf)])
+    G = np.eye(2, 4)
+    # no depth information anywhere: the shared parameters' information sums
+    flat = J.copy()
+    flat[:, :, 2] = 0.0
+    fi = np.einsum("kmp,kmq->kpq", flat, flat)
+    Fj = press_fisher(info_ref, fi, 1.0, reference_frames=10)
+    shared = [0, 1, 3]
+    summed = fisher(info_ref, fi.sum(axis=0), 1.0, reference_frames=10)
+    np.testing.assert_allclose(Fj[np.ix_(shared, shared)], summed[np.ix_(shared, shared)], rtol=1e-12)
+    # the bounds: between the depths tied (one depth for all: more information) and one frame alone
+    b = _joint_bounds(press_fisher(info_ref, infos, 1.0, reference_frames=10), prior, G)
+    tied = press_bounds(fisher(info_ref, infos.sum(axis=0), 1.0, reference_frames=10), prior[: P - 4], G)
+    for k in range(K):
+        one = press_bounds(fisher(info_ref, infos[k], 1.0, reference_frames=10), prior[: P - 4], G)
+        for kind in ("known", "marginal"):
+            assert b.rms(kind)["diameter"] <= one.rms(kind)["diameter"] * (1 + 1e-12)
+    for kind in ("known", "marginal"):
+        # strictly: these random frames tell their depths apart, and a depth each is three unknowns
+        assert b.rms(kind)["diameter"] > 1.01 * tied.rms(kind)["diameter"]
+        assert b.rms(kind)["position"] >= tied.rms(kind)["position"] * (1 - 1e-12)

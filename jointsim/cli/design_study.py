@@ -46,9 +46,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..design.report import GOALS, required_snr, write_comparison, write_design
+    from ..design.report import GOALS, required_snr, summarise, write_comparison, write_design
     from ..design.sensitivity import contact_zone
-    from ..design.study import MAX_CONTACT_LEVELS, Plan, plan_presses, run_design
+    from ..design.study import MAX_CONTACT_LEVELS, Plan, plan_presses, press_joint_bounds, run_design
     from ..io.records import open_records
     from ..scene import MESH_PRESETS, load_scene, scene_toml
 
@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     if len(set(names)) != len(names):
         raise ValueError(f"scenes: two designs share a name ({names}); give each scene its own name")
     command = "jointsim design-study " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["design-study"] else "jointsim design-study"
-    rows, needed, timings, where = [], {}, {}, {}
+    rows, needed, timings, where, joint = [], {}, {}, {}, {}
     for path, scene, plan in scenes:
         n = len(plan_presses(scene, plan))
         print(f"jointsim design-study: {scene.name} (mesh {scene.mesh.preset}, membrane refined {plan.contact_levels}x about "
@@ -117,12 +117,13 @@ def run(args: argparse.Namespace) -> int:
         written, summaries, where[scene.name] = write_design(args.out / scene.name, scene, study, snrs, **frames)
         rows += summaries
         needed[scene.name] = required_snr(study, scene, GOALS, **frames)
+        joint[scene.name] = summarise(scene.name, press_joint_bounds(study, scene, **frames))
         s = summaries[0][0]
         print(f"  at {s.snr_db:g} dB, efficient median error (nuisances marginalised): position "
               f"{s.median['position_marginal'] * 1e3:.3g} mm, depth {s.median['depth_marginal'] * 1e3:.3g} mm, "
               f"diameter {s.median['diameter_marginal'] * 1e3:.3g} mm ({s.reached}/{s.presses} reached)")
     est = None if args.estimators is None else (scenes[0][1].name, args.estimators)
     written = write_comparison(args.out, rows, needed, command, timings, est, where,
-                               {scene.name: plan.contact_levels for _, scene, plan in scenes})
+                               {scene.name: plan.contact_levels for _, scene, plan in scenes}, joint)
     print(f"  wrote {written[0]}")
     return 0

@@ -36,7 +36,7 @@ import numpy as np
 from ..scene import Scene
 from .sensitivity import TARGET
 
-__all__ = ["HEAD_PRIOR", "Bounds", "nuisance_prior", "fisher", "press_bounds", "median_error"]
+__all__ = ["HEAD_PRIOR", "Bounds", "nuisance_prior", "fisher", "press_fisher", "press_bounds", "median_error"]
 
 HEAD_PRIOR = 0.2  # ln of the reservoir head: ±20 % (1 mm of a 5 mm saline column; ASSUMED)
 
@@ -73,6 +73,27 @@ def fisher(info_ref: np.ndarray, info: np.ndarray, noise_std: float, *, referenc
     noise, ``info_ref`` = J_refᵀJ_ref and ``info`` = J_kᵀJ_k (P, P), and one frame's
     ``noise_std`` V."""
     return (reference_frames * np.asarray(info_ref) + hold_frames * np.asarray(info)) / (noise_std * noise_std)
+
+
+def press_fisher(info_ref: np.ndarray, infos: np.ndarray, noise_std: float, *, reference_frames: int,
+                 hold_frames: int = 1) -> np.ndarray:
+    """F of a press's K frames read together: the target's x, y and radius and the nuisances are
+    the same in every frame, each frame has a depth of its own. ``infos`` (K, P, P) are the
+    frames' J_kᵀJ_k, ``info_ref`` the reference's, at unit noise. The parameters are ordered as
+    :func:`fisher`'s with the deepest frame's depth in the depth slot, then the other frames'
+    depths (P + K − 1 in all), so :func:`press_bounds` reads them as one frame's, the extra
+    depths given no prior (``inf``)."""
+    infos = np.asarray(infos, float)
+    K, P = infos.shape[0], infos.shape[1]
+    depth = TARGET.index("depth")
+    F = np.zeros((P + K - 1, P + K - 1))
+    F[:P, :P] = reference_frames * np.asarray(info_ref, float)
+    for k in range(K):
+        idx = np.arange(P)
+        if k < K - 1:
+            idx[depth] = P + k
+        F[np.ix_(idx, idx)] += hold_frames * infos[k]
+    return F / (noise_std * noise_std)
 
 
 def _inverse(F: np.ndarray) -> np.ndarray:

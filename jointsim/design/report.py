@@ -204,13 +204,16 @@ def by_contact_radius(b: DesignBounds, column: str = "position_median_marginal")
 def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[str, dict[str, float]], command: str,
                      timings: dict[str, tuple[np.ndarray, float, int, int, str]] | None = None,
                      estimators: tuple[str, Path] | None = None,
-                     where: dict[str, DesignBounds] | None = None, refined: dict[str, int] | None = None) -> list[Path]:
+                     where: dict[str, DesignBounds] | None = None, refined: dict[str, int] | None = None,
+                     joint: dict[str, Summary] | None = None) -> list[Path]:
     """``out``/summary.md and summary.csv: the designs side by side (``rows``: a summary and
     what it covers), the SNR each needs to meet each goal (``needed``[design][quantity]), what
     each design cost (``timings``[design]: the stored press times s, and this run's wall s,
     presses computed and workers, and the store's data digest), and a calibration's estimators beside the first design's
     bound (``estimators``: the design's name and the calibration's goals.csv); ``refined``[design]:
-    how many times its membrane was refined about each press's contact."""
+    how many times its membrane was refined about each press's contact; ``joint``[design]: the
+    summary of its presses' frames read together (:func:`~.study.press_joint_bounds`), which a
+    calibration's per-press route is set beside."""
     lines = ["# Design study: what each design can measure", "", f"Command: `{command}`", "",
              "Cramér–Rao bounds through the coupled model (jointsim.design): an unbiased estimator's error cannot be "
              "smaller. *median*: over the presses (target centres × depths) of an efficient estimator's median |error|; "
@@ -249,20 +252,34 @@ def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[st
             pos, dia = by_contact_radius(b), by_contact_radius(b, "diameter_median_marginal")
             lines.append(f"| {design} | " + " | ".join("–" if math.isnan(p) else f"{_mm(p)} / {_mm(d)}"
                                                       for p, d in zip(pos, dia)) + " |")
+    if joint:
+        lines += ["", "## A press's frames read together", "",
+                  "The frames of a press's depths fitted as one (its position and size shared, a depth each), nuisances "
+                  "marginalised, at each design's SNR: the efficient estimator's median error over the presses, against "
+                  "one frame's (over the presses × depths). Position is the contact point's at the deepest depth; mm.", "",
+                  "| design | position: one frame / the press | depth: one frame / the press's deepest | "
+                  "diameter: one frame / the press |", "|---|---|---|---|"]
+        for design, j in joint.items():
+            one = next(s for s, what in rows if s.design == design and what == "all")
+            lines.append(f"| {design} | " + " | ".join(f"{_mm(one.median[f'{q}_marginal'])} / {_mm(j.median[f'{q}_marginal'])}"
+                                                      for q in QUANTITIES) + " |")
     if estimators is not None:
         design, goals = estimators
         base = next(s for s, what in rows if s.design == design and what == "all")
         lines += ["", f"## The calibration's estimators beside the bound ({design})", "",
                   f"Held-out medians from `{goals}` (presses drawn over the dataset's ranges, its SNR band about "
                   "74 dB, the sensor randomised) against an efficient estimator's median with the nuisances "
-                  "marginalised over the same randomisation (this study's presses). A ratio near 1: the estimator "
+                  "marginalised over the same randomisation (this study's presses; a route fitting a press's frames "
+                  "together against the press's bound). A ratio near 1: the estimator "
                   "reads what the sensor holds; far above: the estimator, not the sensor, limits it.", "",
                   "| route | " + " | ".join(f"{q}: estimator / bound (ratio)" for q in QUANTITIES) + " |",
                   "|---|" + "---|" * len(QUANTITIES)]
         for route, vals in estimator_rows(goals).items():
             cells = []
+            # a route that reads a press's frames together is held to the press's bound
+            against = joint[design] if joint and design in joint and "(press)" in route else base
             for q in QUANTITIES:
-                b = base.median[f"{q}_marginal"]
+                b = against.median[f"{q}_marginal"]
                 v = vals.get(q)
                 cells.append("–" if v is None else f"{_mm(v)} / {_mm(b)} ({v / b:.3g}×)")
             lines.append(f"| {route} | " + " | ".join(cells) + " |")

@@ -32,10 +32,11 @@ from ..mechanics.dome import UnreachablePose
 from ..mechanics.newton import NewtonError
 from ..mesh.morph import MeshInversionError
 from ..scene import Scene
-from .bounds import Bounds, fisher, median_error, nuisance_prior, press_bounds
+from .bounds import Bounds, fisher, median_error, nuisance_prior, press_bounds, press_fisher
 from .sensitivity import ELECTRODE_STEP, TARGET, contact_membrane, contact_zone, electrode_moves, parameter_names, press_sensitivity
 
-__all__ = ["Plan", "press_grid", "plan_presses", "design_schema", "run_design", "DesignBounds", "design_bounds"]
+__all__ = ["Plan", "press_grid", "plan_presses", "design_schema", "run_design", "DesignBounds", "design_bounds",
+           "press_joint_bounds"]
 
 SCHEMA_NAME, SCHEMA_VERSION = "design_sensitivity", 1
 MAX_CONTACT_LEVELS = 4  # each level has about 4x the faces in the zone: 4 is ~16x a 64-rim pitch
@@ -299,6 +300,52 @@ def design_bounds(study: str | Path | Records, scene: Scene, *, snr_db: float | 
             for kind in ("known", "marginal"):
                 _bound_columns(cols, b, kind)
     return DesignBounds({k: np.asarray(v, float) for k, v in cols.items()}, snr)
+
+
+def press_joint_bounds(study: str | Path | Records, scene: Scene, *, snr_db: float | None = None, reference_frames: int = 50,
+                       hold_frames: int = 1) -> DesignBounds:
+    """The bounds of each press's frames read together (:func:`~.bounds.press_fisher`: the
+    target's position and size shared by the frames of every depth, a depth each), as a
+    :class:`DesignBounds` with one row per press: its position is the contact point's at the
+    deepest depth, its depth that depth's; NaN where the press was not reached."""
+    rec = study if isinstance(study, Records) else open_records(study)
+    prov = rec.provenance["params"]
+    names = tuple(prov["parameters"])
+    depths = prov["plan"]["depths"]
+    snr = scene.noise.snr_db if snr_db is None else float(snr_db)
+    scale = 10 ** ((scene.noise.snr_db - snr) / 20)
+    prior = np.concatenate([nuisance_prior(scene, names), np.full(len(depths) - 1, np.inf)])
+    cols: dict[str, list] = {k: [] for k in ("diameter", "x", "y", "contact_x", "contact_y", "contact_r", "depth")}
+    for kind in ("known", "marginal"):
+        for q in ("position", "depth", "diameter"):
+            cols[f"{q}_rms_{kind}"] = []
+            cols[f"{q}_median_{kind}"] = []
+    for i in range(len(rec)):
+        c = rec["contact"][i][-1]
+        for k, v in (("diameter", rec["diameter"][i]), ("x", rec["xy"][i][0]), ("y", rec["xy"][i][1]), ("contact_x", c[0]),
+                     ("contact_y", c[1]), ("contact_r", math.hypot(c[0], c[1])), ("depth", depths[-1])):
+            cols[k].append(v)
+        b = None
+        if rec["reached"][i]:
+            F = press_fisher(rec["info_ref"][i], rec["info"][i], rec["noise_std"][i] * scale,
+                             reference_frames=int(reference_frames), hold_frames=int(hold_frames))
+            b = _joint_bounds(F, prior, rec["contact_jacobian"][i][-1])
+        for kind in ("known", "marginal"):
+            _bound_columns(cols, b, kind)
+    return DesignBounds({k: np.asarray(v, float) for k, v in cols.items()}, snr)
+
+
+def _joint_bounds(F: np.ndarray, prior: np.ndarray, contact_jacobian: np.ndarray) -> Bounds:
+    """:func:`~.bounds.press_bounds` of a press's joint ``F`` whose parameters after the
+    nuisances are the other frames' depths: free in both kinds (the nuisances-known bound
+    drops the nuisances alone)."""
+    t, n_extra = len(TARGET), int(np.isinf(prior).sum())
+    n_nuis = len(prior) - n_extra
+    marginal = press_bounds(F, prior, contact_jacobian)
+    keep = np.r_[np.arange(t), t + n_nuis + np.arange(n_extra)]
+    known = press_bounds(F[np.ix_(keep, keep)], np.full(n_extra, np.inf), contact_jacobian)
+    return Bounds(known.known if n_extra == 0 else known.marginal, marginal.marginal,
+                  known.contact_known if n_extra == 0 else known.contact_marginal, marginal.contact_marginal)
 
 
 def _bound_columns(cols: dict[str, list], b: Bounds | None, kind: str) -> None:
