@@ -276,22 +276,11 @@ def design_bounds(study: str | Path | Records, scene: Scene, *, snr_db: float | 
     snr = scene.noise.snr_db if snr_db is None else float(snr_db)
     scale = 10 ** ((scene.noise.snr_db - snr) / 20)
     prior = nuisance_prior(scene, names)
-    cols: dict[str, list] = {k: [] for k in ("diameter", "x", "y", "contact_x", "contact_y", "contact_r", "depth")}
-    for kind in ("known", "marginal"):
-        for q in ("position", "depth", "diameter"):
-            cols[f"{q}_rms_{kind}"] = []
-            cols[f"{q}_median_{kind}"] = []
+    cols = _columns()
     for i in range(len(rec)):
         reached = bool(rec["reached"][i])
         for k in range(len(plan["depths"])):
-            cols["diameter"].append(rec["diameter"][i])
-            cols["x"].append(rec["xy"][i][0])
-            cols["y"].append(rec["xy"][i][1])
-            c = rec["contact"][i][k]
-            cols["contact_x"].append(c[0])
-            cols["contact_y"].append(c[1])
-            cols["contact_r"].append(math.hypot(c[0], c[1]))
-            cols["depth"].append(plan["depths"][k])
+            _press_row(cols, rec, i, k, plan["depths"][k])
             b = None
             if reached:
                 sigma = rec["noise_std"][i] * scale
@@ -315,16 +304,9 @@ def press_joint_bounds(study: str | Path | Records, scene: Scene, *, snr_db: flo
     snr = scene.noise.snr_db if snr_db is None else float(snr_db)
     scale = 10 ** ((scene.noise.snr_db - snr) / 20)
     prior = np.concatenate([nuisance_prior(scene, names), np.full(len(depths) - 1, np.inf)])
-    cols: dict[str, list] = {k: [] for k in ("diameter", "x", "y", "contact_x", "contact_y", "contact_r", "depth")}
-    for kind in ("known", "marginal"):
-        for q in ("position", "depth", "diameter"):
-            cols[f"{q}_rms_{kind}"] = []
-            cols[f"{q}_median_{kind}"] = []
+    cols = _columns()
     for i in range(len(rec)):
-        c = rec["contact"][i][-1]
-        for k, v in (("diameter", rec["diameter"][i]), ("x", rec["xy"][i][0]), ("y", rec["xy"][i][1]), ("contact_x", c[0]),
-                     ("contact_y", c[1]), ("contact_r", math.hypot(c[0], c[1])), ("depth", depths[-1])):
-            cols[k].append(v)
+        _press_row(cols, rec, i, len(depths) - 1, depths[-1])
         b = None
         if rec["reached"][i]:
             F = press_fisher(rec["info_ref"][i], rec["info"][i], rec["noise_std"][i] * scale,
@@ -333,6 +315,22 @@ def press_joint_bounds(study: str | Path | Records, scene: Scene, *, snr_db: flo
         for kind in ("known", "marginal"):
             _bound_columns(cols, b, kind)
     return DesignBounds({k: np.asarray(v, float) for k, v in cols.items()}, snr)
+
+
+def _columns() -> dict[str, list]:
+    """A :class:`DesignBounds` table's columns, empty."""
+    names = ["diameter", "x", "y", "contact_x", "contact_y", "contact_r", "depth"]
+    names += [f"{q}_{stat}_{kind}" for kind in ("known", "marginal") for q in ("position", "depth", "diameter")
+              for stat in ("rms", "median")]
+    return {n: [] for n in names}
+
+
+def _press_row(cols: dict[str, list], rec: Records, i: int, k: int, depth: float) -> None:
+    """Press ``i``'s size, centre and contact point at its depth ``k`` (``depth`` m) into ``cols``."""
+    c = rec["contact"][i][k]
+    for name, v in (("diameter", rec["diameter"][i]), ("x", rec["xy"][i][0]), ("y", rec["xy"][i][1]), ("contact_x", c[0]),
+                    ("contact_y", c[1]), ("contact_r", math.hypot(c[0], c[1])), ("depth", depth)):
+        cols[name].append(v)
 
 
 def _joint_bounds(F: np.ndarray, prior: np.ndarray, contact_jacobian: np.ndarray) -> Bounds:
