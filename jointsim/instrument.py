@@ -336,6 +336,15 @@ def deployed_chamber(scene: Scene, dome: DomeSurface | None = None, **kw) -> Cha
     return mesh_chamber(chamber_surface(dome), electrode_layout(scene), scene.mesh, **kw)
 
 
+def _misfit(morpher: ChamberMorpher, scene: Scene) -> str:
+    """Why the chamber under ``morpher`` does not fit its reference membrane surface (its dome
+    lies further off it than ``CHAMBER_FIT`` × the membrane thickness), or "" where it fits."""
+    gap, allowed = morpher.surface_gap, CHAMBER_FIT * scene.chamber.membrane_thickness
+    if gap <= allowed:
+        return ""
+    return f"its dome lies up to {gap * 1e3:.3g} mm off the membrane's inner surface (allowed {allowed * 1e3:.3g} mm)"
+
+
 def _resting_membrane(scene: Scene, device: str = "cpu") -> MembraneModel:
     """The membrane of ``scene`` inflated and untouched (its target made rigid: it is not touched)."""
     return membrane_from_scene(replace(scene, target=replace(scene.target, kind="rigid")), device=device)
@@ -398,11 +407,10 @@ class Instrument:
         with timed(t, "chamber"):
             chamber = deployed_chamber(scene, membrane_dome) if chamber is None else chamber
             morpher = ChamberMorpher(chamber, membrane_dome)
-            gap, allowed = morpher.surface_gap, CHAMBER_FIT * scene.chamber.membrane_thickness
-            if gap > allowed:
+            misfit = _misfit(morpher, scene)
+            if misfit:
                 morpher.free()
-                raise ValueError(f"chamber: its dome lies up to {gap * 1e3:.3g} mm off the membrane's inner surface (allowed "
-                                 f"{allowed * 1e3:.3g} mm); mesh it with deployed_chamber(scene) (membrane.moulding = "
+                raise ValueError(f"chamber: {misfit}; mesh it with deployed_chamber(scene) (membrane.moulding = "
                                  f"{scene.membrane.moulding!r})")
             reference = morpher(reference_dome)
         if protocol is None:
@@ -436,10 +444,9 @@ class Instrument:
             raise ValueError("on_membrane: only for an instrument of a membrane moulded as a cap")
         surface = InnerSurface.of(model, self.scene.chamber)
         morpher = self.morpher.remapped(surface.dome(None))
-        gap, allowed = morpher.surface_gap, CHAMBER_FIT * self.scene.chamber.membrane_thickness
-        if gap > allowed:
-            raise ValueError(f"on_membrane: the chamber's dome lies up to {gap * 1e3:.3g} mm off the membrane's inner "
-                             f"surface (allowed {allowed * 1e3:.3g} mm)")
+        misfit = _misfit(morpher, self.scene)
+        if misfit:
+            raise ValueError(f"on_membrane: {misfit}")
         reference_dome = surface.dome(model.u)
         return replace(self, surface=surface, morpher=morpher, reference_dome=reference_dome, reference=morpher(reference_dome))
 

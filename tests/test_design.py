@@ -306,8 +306,7 @@ def test_a_press_read_together_shares_its_position_and_size():
     parameters' information is the frames' sum (the depths drop out); and a depth each costs
     the shared parameters something against one depth for all (the joint bound lies between
     the frames summed with their depths tied and the best single frame)."""
-    from jointsim.design.bounds import press_fisher
-    from jointsim.design.study import _joint_bounds
+    from jointsim.design.bounds import joint_bounds, press_fisher
 
     rng = np.random.default_rng(7)
     P, K, M = 7, 3, 40
@@ -332,7 +331,7 @@ def test_a_press_read_together_shares_its_position_and_size():
     summed = fisher(info_ref, fi.sum(axis=0), 1.0, reference_frames=10)
     np.testing.assert_allclose(Fj[np.ix_(shared, shared)], summed[np.ix_(shared, shared)], rtol=1e-12)
     # the bounds: between the depths tied (one depth for all: more information) and one frame alone
-    b = _joint_bounds(press_fisher(info_ref, infos, 1.0, reference_frames=10), prior, G)
+    b = joint_bounds(press_fisher(info_ref, infos, 1.0, reference_frames=10), prior, G)
     tied = press_bounds(fisher(info_ref, infos.sum(axis=0), 1.0, reference_frames=10), prior[: P - 4], G)
     for k in range(K):
         one = press_bounds(fisher(info_ref, infos[k], 1.0, reference_frames=10), prior[: P - 4], G)

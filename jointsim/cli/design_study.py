@@ -47,7 +47,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..design.report import GOALS, required_snr, summarise, write_comparison, write_design
-    from ..design.sensitivity import contact_zone
+    from ..design.sensitivity import unrefinable
     from ..design.study import MAX_CONTACT_LEVELS, Plan, plan_presses, press_joint_bounds, run_design
     from ..io.records import open_records
     from ..scene import MESH_PRESETS, load_scene, scene_toml
@@ -81,12 +81,10 @@ def run(args: argparse.Namespace) -> int:
         if depths[-1] * 1e-3 >= 0.9 * scene.chamber.dome_height:
             raise ValueError(f"--depths-mm: {depths[-1]:g} mm is past 0.9 x the dome height of {path}")
         scenes.append((path, scene, plan))
-        if plan.contact_levels:
-            try:
-                contact_zone(scene, diameters[0] * 5e-4, (0.0, 0.0), depths[-1] * 1e-3)
-            except ValueError as e:
-                print(f"jointsim design-study: {scene.name}: read at --contact-levels 0 ({e}); its size bounds are optimistic")
-                scenes[-1] = (path, scene, replace(plan, contact_levels=0))
+        if plan.contact_levels and unrefinable(scene):
+            print(f"jointsim design-study: {scene.name}: read at --contact-levels 0 ({unrefinable(scene)}); "
+                  "its size bounds are optimistic")
+            scenes[-1] = (path, scene, replace(plan, contact_levels=0))
     names = [s.name for _, s, _ in scenes]
     if len(set(names)) != len(names):
         raise ValueError(f"scenes: two designs share a name ({names}); give each scene its own name")

@@ -36,7 +36,7 @@ import numpy as np
 from ..scene import Scene
 from .sensitivity import TARGET
 
-__all__ = ["HEAD_PRIOR", "Bounds", "nuisance_prior", "fisher", "press_fisher", "press_bounds", "median_error"]
+__all__ = ["HEAD_PRIOR", "Bounds", "nuisance_prior", "fisher", "press_fisher", "press_bounds", "joint_bounds", "median_error"]
 
 HEAD_PRIOR = 0.2  # ln of the reservoir head: ±20 % (1 mm of a 5 mm saline column; ASSUMED)
 
@@ -148,6 +148,17 @@ def press_bounds(F: np.ndarray, prior_std: np.ndarray, contact_jacobian: np.ndar
     def through(C: np.ndarray) -> np.ndarray:  # an unbounded parameter leaves the contact unbounded
         return G @ C @ G.T if np.isfinite(C).all() else np.full((2, 2), np.inf)
     return Bounds(known, marginal, through(known), through(marginal))
+
+
+def joint_bounds(F: np.ndarray, prior_std: np.ndarray, contact_jacobian: np.ndarray) -> Bounds:
+    """:func:`press_bounds` of a press's frames read together (:func:`press_fisher`), whose
+    parameters after the nuisances are the other frames' depths (``prior_std`` inf there): the
+    target's, so free in both kinds; the nuisances-known bound drops the nuisances alone."""
+    t, n_extra = len(TARGET), int(np.isinf(prior_std).sum())
+    marginal = press_bounds(F, prior_std, contact_jacobian)
+    keep = np.r_[np.arange(t), len(prior_std) + t - n_extra + np.arange(n_extra)]
+    known = press_bounds(F[np.ix_(keep, keep)], np.full(n_extra, np.inf), contact_jacobian)
+    return Bounds(known.marginal, marginal.marginal, known.contact_marginal, marginal.contact_marginal)
 
 
 _NORMALS = np.random.default_rng(12345).standard_normal((2, 20001))  # fixed: the median below is deterministic

@@ -201,6 +201,11 @@ def by_contact_radius(b: DesignBounds, column: str = "position_median_marginal")
     return out
 
 
+def _over_all(rows: list[tuple[Summary, str]], design: str) -> Summary:
+    """``design``'s summary over all its presses at its own SNR (the first such row)."""
+    return next(s for s, what in rows if s.design == design and what == "all")
+
+
 def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[str, dict[str, float]], command: str,
                      timings: dict[str, tuple[np.ndarray, float, int, int, str]] | None = None,
                      estimators: tuple[str, Path] | None = None,
@@ -260,12 +265,12 @@ def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[st
                   "| design | position: one frame / the press | depth: one frame / the press's deepest | "
                   "diameter: one frame / the press |", "|---|---|---|---|"]
         for design, j in joint.items():
-            one = next(s for s, what in rows if s.design == design and what == "all")
+            one = _over_all(rows, design)
             lines.append(f"| {design} | " + " | ".join(f"{_mm(one.median[f'{q}_marginal'])} / {_mm(j.median[f'{q}_marginal'])}"
                                                       for q in QUANTITIES) + " |")
     if estimators is not None:
         design, goals = estimators
-        base = next(s for s, what in rows if s.design == design and what == "all")
+        base = _over_all(rows, design)
         lines += ["", f"## The calibration's estimators beside the bound ({design})", "",
                   f"Held-out medians from `{goals}` (presses drawn over the dataset's ranges, its SNR band about "
                   "74 dB, the sensor randomised) against an efficient estimator's median with the nuisances "

@@ -62,7 +62,7 @@ from ..mechanics.touch import touch
 from ..scene import Scene
 
 __all__ = ["TARGET", "ELECTRODE_STEP", "CONTACT_MARGIN", "PressSensitivity", "parameter_names", "press_sensitivity", "electrode_moves",
-           "contact_zone", "contact_membrane"]
+           "unrefinable", "contact_zone", "contact_membrane"]
 
 TARGET = ("x", "y", "depth", "radius")  # the target's parameters, m
 # m: an electrode's move either way for its position derivative (a difference of clipped moments,
@@ -76,16 +76,26 @@ ELECTRODE_STEP = 1e-5
 CONTACT_MARGIN = 1e-3
 
 
+def unrefinable(scene: Scene) -> str:
+    """Why ``scene``'s membrane cannot be refined about a contact (:func:`contact_membrane`
+    refines the round cap it is moulded as), or "" where it can."""
+    c = scene.chamber
+    if scene.membrane.moulding != "cap" or c.base_radius_y is not None or c.surface_file is not None:
+        return ("contact_levels: a membrane refined about the contact is for a round dome moulded as a cap "
+                "(not membrane.moulding = \"flat\", chamber.base_radius_y_mm or chamber.surface_file)")
+    return ""
+
+
 def contact_zone(scene: Scene, radius: float, xy: np.ndarray, depth: float) -> tuple[np.ndarray, float]:
     """(the in-plane point (2,) m where a sphere of ``radius`` m coming down at ``xy`` first
     touches ``scene``'s moulded cap (on the line between the two spheres' centres), the radius
     m of the zone to refine about it: the sphere's geometric contact √(2Rd − d²) at ``depth``
     plus :data:`CONTACT_MARGIN`). Only for a round cap moulding: a ValueError naming the scene's
     keys otherwise."""
+    why = unrefinable(scene)
+    if why:
+        raise ValueError(why)
     c = scene.chamber
-    if scene.membrane.moulding != "cap" or c.base_radius_y is not None or c.surface_file is not None:
-        raise ValueError("contact_levels: a membrane refined about the contact is for a round dome moulded as a cap "
-                         "(not membrane.moulding = \"flat\", chamber.base_radius_y_mm or chamber.surface_file)")
     outer = (c.base_radius**2 + c.dome_height**2) / (2 * c.dome_height) + c.membrane_thickness
     touch_xy = np.asarray(xy, float) * outer / (outer + radius)
     d = min(float(depth), radius)

@@ -32,8 +32,9 @@ from ..mechanics.dome import UnreachablePose
 from ..mechanics.newton import NewtonError
 from ..mesh.morph import MeshInversionError
 from ..scene import Scene
-from .bounds import Bounds, fisher, median_error, nuisance_prior, press_bounds, press_fisher
-from .sensitivity import ELECTRODE_STEP, TARGET, contact_membrane, contact_zone, electrode_moves, parameter_names, press_sensitivity
+from .bounds import Bounds, fisher, joint_bounds, median_error, nuisance_prior, press_bounds, press_fisher
+from .sensitivity import (ELECTRODE_STEP, TARGET, contact_membrane, electrode_moves, parameter_names, press_sensitivity,
+                          unrefinable)
 
 __all__ = ["Plan", "press_grid", "plan_presses", "design_schema", "run_design", "DesignBounds", "design_bounds",
            "press_joint_bounds"]
@@ -192,8 +193,8 @@ def run_design(scene: Scene, plan: Plan, out: str | Path, *, workers: int | None
     as not reached)."""
     presses = plan_presses(scene, plan)
     n = len(presses)
-    if plan.contact_levels:
-        contact_zone(scene, presses[0][0] / 2, presses[0][1], max(plan.depths))  # refused in one line before any work
+    if plan.contact_levels and unrefinable(scene):
+        raise ValueError(unrefinable(scene))  # in one line, before any work
     inst_meas = _n_meas(scene)
     names = parameter_names(len(electrode_layout(scene).radii))
     schema = design_schema(inst_meas, len(names), len(plan.depths))
@@ -311,7 +312,7 @@ def press_joint_bounds(study: str | Path | Records, scene: Scene, *, snr_db: flo
         if rec["reached"][i]:
             F = press_fisher(rec["info_ref"][i], rec["info"][i], rec["noise_std"][i] * scale,
                              reference_frames=int(reference_frames), hold_frames=int(hold_frames))
-            b = _joint_bounds(F, prior, rec["contact_jacobian"][i][-1])
+            b = joint_bounds(F, prior, rec["contact_jacobian"][i][-1])
         for kind in ("known", "marginal"):
             _bound_columns(cols, b, kind)
     return DesignBounds({k: np.asarray(v, float) for k, v in cols.items()}, snr)
@@ -331,19 +332,6 @@ def _press_row(cols: dict[str, list], rec: Records, i: int, k: int, depth: float
     for name, v in (("diameter", rec["diameter"][i]), ("x", rec["xy"][i][0]), ("y", rec["xy"][i][1]), ("contact_x", c[0]),
                     ("contact_y", c[1]), ("contact_r", math.hypot(c[0], c[1])), ("depth", depth)):
         cols[name].append(v)
-
-
-def _joint_bounds(F: np.ndarray, prior: np.ndarray, contact_jacobian: np.ndarray) -> Bounds:
-    """:func:`~.bounds.press_bounds` of a press's joint ``F`` whose parameters after the
-    nuisances are the other frames' depths: free in both kinds (the nuisances-known bound
-    drops the nuisances alone)."""
-    t, n_extra = len(TARGET), int(np.isinf(prior).sum())
-    n_nuis = len(prior) - n_extra
-    marginal = press_bounds(F, prior, contact_jacobian)
-    keep = np.r_[np.arange(t), t + n_nuis + np.arange(n_extra)]
-    known = press_bounds(F[np.ix_(keep, keep)], np.full(n_extra, np.inf), contact_jacobian)
-    return Bounds(known.known if n_extra == 0 else known.marginal, marginal.marginal,
-                  known.contact_known if n_extra == 0 else known.contact_marginal, marginal.contact_marginal)
 
 
 def _bound_columns(cols: dict[str, list], b: Bounds | None, kind: str) -> None:

@@ -180,13 +180,10 @@ class ChamberMorpher:
 
     def __init__(self, chamber: ChamberMesh, dome: DomeSurface, *, min_dihedral_deg: float = 1.0, backend: str = "auto"):
         self.chamber = chamber
-        self.dome = dome
         self.min_dihedral_deg = _check_dihedral(min_dihedral_deg)
         mesh = chamber.mesh
         self.top = dome_nodes(mesh)
-        tri, self._bary, dist = closest_on_surface(dome.vertices, dome.faces, mesh.nodes[self.top])
-        self.surface_gap = float(dist.max()) if len(dist) else 0.0  # m: how far the chamber's dome lies off ``dome``
-        self._corners = np.asarray(dome.faces)[tri]  # (n_top, 3) dome vertex indices
+        self._map_onto(dome)
         self._free = np.ones(mesh.n_nodes, bool)
         self._free[np.unique(mesh.boundary_faces)] = False
         self._solve = None
@@ -202,12 +199,16 @@ class ChamberMorpher:
         meshed otherwise): the dome nodes' closest points are found anew, the interior
         Laplacian's factor is shared (freeing the copy leaves it to this morpher)."""
         other = copy.copy(self)
-        other.dome = dome
-        tri, other._bary, dist = closest_on_surface(dome.vertices, dome.faces, self.chamber.mesh.nodes[self.top])
-        other.surface_gap = float(dist.max()) if len(dist) else 0.0
-        other._corners = np.asarray(dome.faces)[tri]
+        other._map_onto(dome)
         other._owner = False
         return other
+
+    def _map_onto(self, dome: DomeSurface) -> None:
+        """The chamber's dome nodes as barycentric points of ``dome``, the reference surface."""
+        self.dome = dome
+        tri, self._bary, dist = closest_on_surface(dome.vertices, dome.faces, self.chamber.mesh.nodes[self.top])
+        self.surface_gap = float(dist.max()) if len(dist) else 0.0  # m: how far the chamber's dome lies off ``dome``
+        self._corners = np.asarray(dome.faces)[tri]  # (n_top, 3) dome vertex indices
 
     def displacement(self, deformed: DomeSurface) -> np.ndarray:
         """Nodal displacement (n_nodes, 3) of the chamber mesh that follows ``deformed``."""
