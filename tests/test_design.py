@@ -341,3 +341,41 @@ def test_a_press_read_together_shares_its_position_and_size():
         # strictly: these random frames tell their depths apart, and a depth each is three unknowns
         assert b.rms(kind)["diameter"] > 1.01 * tied.rms(kind)["diameter"]
         assert b.rms(kind)["position"] >= tied.rms(kind)["position"] * (1 - 1e-12)
+
+
+def test_a_study_of_soft_targets_bounds_their_modulus(tmp_path):
+    """design-study --target-moduli-kpa: one soft press (a 32-rim membrane, the test chamber),
+    its modulus a fifth target parameter, stored with the press; the tables and the map carry
+    the modulus. (Its derivative against re-solved equilibria: tests/test_soft_target.py.) The
+    moduli and the head act on a depth-controlled press only as their ratios (every modulus × s
+    is the head ÷ s), so ∂V/∂ln E + ∂V/∂ln p + ∂V/∂ln μ = 0: with a prior on the head and the
+    membrane's modulus alone, the target's modulus is bounded at any SNR by what those priors
+    leave, and the bound levels off as the SNR rises."""
+    from jointsim.design.study import design_bounds
+    from jointsim.io.records import open_records
+    from jointsim.scene import load_scene
+
+    toml = tmp_path / "soft.toml"
+    toml.write_text(f'extends = "{SCENES_DIR / "paper_sensor.toml"}"\nname = "soft_dome"\n[membrane]\nrim_vertices = 32\nlayers = 1\n')
+    out = tmp_path / "ds"
+    assert main(["design-study", str(toml), "--mesh", "test", "--diameters-mm", "15", "--depths-mm", "1.5",
+                 "--spacing-mm", "4", "--r-max-mm", "0", "--contact-levels", "0", "--target-moduli-kpa", "200",
+                 "--workers", "1", "--out", str(out), "--no-progress"]) == 0
+    text = (out / "summary.md").read_text()
+    assert "## A soft target's Young's modulus" in text and "| soft_dome (E 200 kPa) | 74.2 | 1 |" in text
+    assert "modulus_median_marginal" in (out / "soft_dome" / "bounds.csv").read_text().splitlines()[0]
+    assert (out / "soft_dome" / "modulus_bound.png").exists()
+    h5 = out / "soft_dome" / "sensitivities.h5"
+    rec = open_records(h5)
+    J, info = rec["target_jacobian"][0][0], rec["info"][0][0]
+    assert rec["target_modulus"][0] == 2e5 and J.shape[-1] == 5
+    names = tuple(rec.provenance["params"]["parameters"])
+    e, p, mu = (names.index(n) for n in ("ln_target_modulus", "ln_pressure", "ln_modulus"))
+    assert info[e, e] == pytest.approx(J[:, 4] @ J[:, 4], rel=1e-12) and info[e, e] > 0
+    # the three columns sum to zero: their information matrix is singular along (1, 1, 1)
+    one = np.zeros(len(names))
+    one[[e, p, mu]] = 1.0
+    assert abs(one @ info @ one) <= 1e-12 * info[e, e]
+    scene = load_scene(toml).with_mesh_preset("test")
+    b = [design_bounds(rec, scene, snr_db=snr).columns["modulus_rms_marginal"][0] for snr in (74.2, 120.0, 160.0)]
+    assert b[0] > b[1] >= 0.95 * b[2] > 0 and b[2] == pytest.approx(b[1], rel=0.1)

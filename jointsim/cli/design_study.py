@@ -38,6 +38,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="read each press through a membrane this many times finer about its contact (default 2; 0: the "
                         "scene's membrane as meshed, whose coarse contact makes size bounds optimistic). A round dome "
                         "moulded as a cap only: other designs are read at 0, and said so")
+    p.add_argument("--target-moduli-kpa", default="",
+                   help="press soft (neo-Hookean) spheres of these Young's moduli, comma-separated, instead of rigid "
+                        "ones: their modulus is then bounded too (each soft press costs ~10x a rigid one: use a coarse "
+                        "grid, e.g. --diameters-mm 15 --ray)")
+    p.add_argument("--ray", action="store_true",
+                   help="target centres along the +x axis, --spacing-mm apart, instead of the polar grid (a survey for "
+                        "costly presses: the soft ones)")
     p.add_argument("--snr-db", default="", help="further SNRs to tabulate, comma-separated (the scene's is always)")
     p.add_argument("--workers", type=int, help="local worker processes (default: one per core)")
     p.add_argument("--estimators", type=Path, metavar="GOALS_CSV",
@@ -46,7 +53,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..design.report import GOALS, required_snr, summarise, write_comparison, write_design
+    from ..design.report import goals_of, required_snr, summarise, write_comparison, write_design
     from ..design.sensitivity import unrefinable
     from ..design.study import MAX_CONTACT_LEVELS, Plan, plan_presses, press_joint_bounds, run_design
     from ..io.records import open_records
@@ -70,9 +77,10 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--estimators = {args.estimators}: no such file (a goals.csv written by jointsim calibrate)")
     lo, hi = SNR_RANGE_DB
     snrs = float_list("--snr-db", args.snr_db, lo - 1e-9, hi) if args.snr_db.strip() else ()
+    moduli = float_list("--target-moduli-kpa", args.target_moduli_kpa, 0.0, 1e6) if args.target_moduli_kpa.strip() else ()
     plan = Plan(tuple(d * 1e-3 for d in diameters), tuple(d * 1e-3 for d in depths), args.spacing_mm * 1e-3,
                 None if args.r_max_mm is None else args.r_max_mm * 1e-3, hold_frames=args.hold_frames,
-                contact_levels=args.contact_levels)
+                contact_levels=args.contact_levels, target_moduli=tuple(e * 1e3 for e in moduli), ray=args.ray)
     scenes = []
     for path in args.scenes:
         scene = load_scene(path)
@@ -114,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
         frames = {"reference_frames": plan.reference_frames, "hold_frames": plan.hold_frames}
         written, summaries, where[scene.name] = write_design(args.out / scene.name, scene, study, snrs, **frames)
         rows += summaries
-        needed[scene.name] = required_snr(study, scene, GOALS, **frames)
+        needed[scene.name] = required_snr(study, scene, goals_of(where[scene.name]), **frames)
         joint[scene.name] = summarise(scene.name, press_joint_bounds(study, scene, **frames))
         s = summaries[0][0]
         print(f"  at {s.snr_db:g} dB, efficient median error (nuisances marginalised): position "

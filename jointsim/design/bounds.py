@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..scene import Scene
-from .sensitivity import TARGET
+from .sensitivity import TARGET, target_names
 
 __all__ = ["HEAD_PRIOR", "Bounds", "nuisance_prior", "fisher", "press_fisher", "press_bounds", "joint_bounds", "median_error"]
 
@@ -46,14 +46,14 @@ def _uniform_std(lo: float, hi: float) -> float:
 
 
 def nuisance_prior(scene: Scene, names: tuple[str, ...]) -> np.ndarray:
-    """The prior std of each nuisance in ``names`` (those after :data:`TARGET`), in its unit (ln,
+    """The prior std of each nuisance in ``names`` (those after the target's), in its unit (ln,
     or m for an electrode's centre): the spread of the scene's [dataset] randomisation (a uniform
     range's std; a log-uniform one's std of ln; a disc of radius r: r/2 per coordinate). 0 marks
     a parameter the scene holds exact (known)."""
     d = scene.dataset
     flat = scene.membrane.moulding == "flat"
     out = []
-    for n in names[len(TARGET):]:
+    for n in names[len(target_names(names)):]:
         if n == "ln_pressure":
             out.append(0.0 if flat else HEAD_PRIOR)
         elif n == "ln_modulus":
@@ -116,9 +116,10 @@ def _inverse(F: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Bounds:
-    """Cramér–Rao bounds of the target's parameters (:data:`TARGET`) at one depth of a press:
-    covariances ``known`` and ``marginal`` (4, 4) in m² (nuisances known / marginalised over
-    their prior), and ``contact_known``, ``contact_marginal`` (2, 2): the same for the contact's
+    """Cramér–Rao bounds of the target's parameters (:func:`~.sensitivity.target_names`: x, y,
+    depth, radius and a soft target's ln E) at one depth of a press: covariances ``known`` and
+    ``marginal`` (t, t) in m² (and ln² for ln E; nuisances known / marginalised over their
+    prior), and ``contact_known``, ``contact_marginal`` (2, 2): the same for the contact's
     centre of pressure in the plane (through its derivative)."""
 
     known: np.ndarray
@@ -128,17 +129,22 @@ class Bounds:
 
     def rms(self, which: str = "marginal") -> dict[str, float]:
         """RMS errors m the bound allows: ``position`` (the target's centre), ``contact`` (the
-        contact point), ``depth``, ``diameter``."""
+        contact point), ``depth``, ``diameter``; for a soft target ``modulus``, the RMS of ln E
+        (the relative error of E, to first order)."""
         C = getattr(self, which)
         Cc = getattr(self, f"contact_{which}")
-        return {"position": math.sqrt(C[0, 0] + C[1, 1]), "contact": math.sqrt(np.trace(Cc)),
-                "depth": math.sqrt(C[2, 2]), "diameter": 2 * math.sqrt(C[3, 3])}
+        out = {"position": math.sqrt(C[0, 0] + C[1, 1]), "contact": math.sqrt(np.trace(Cc)),
+               "depth": math.sqrt(C[2, 2]), "diameter": 2 * math.sqrt(C[3, 3])}
+        if len(C) > len(TARGET):
+            out["modulus"] = math.sqrt(C[4, 4])
+        return out
 
 
 def press_bounds(F: np.ndarray, prior_std: np.ndarray, contact_jacobian: np.ndarray) -> Bounds:
     """The :class:`Bounds` of Fisher information ``F`` (P, P) with the nuisances' ``prior_std``
-    (P − 4,) (0: known, dropped; inf: no prior) and the contact's ``contact_jacobian`` (2, 4)."""
-    t = len(TARGET)
+    (P − t,) (0: known, dropped; inf: no prior) and the contact's ``contact_jacobian`` (2, t),
+    t the target's parameters (4, or 5 with a soft target's modulus)."""
+    t = np.shape(contact_jacobian)[-1]
     keep = np.concatenate([np.ones(t, bool), prior_std > 0])
     prior = np.concatenate([np.zeros(t), 1.0 / np.square(prior_std[prior_std > 0])])
     known = _inverse(F[:t, :t])
@@ -154,7 +160,7 @@ def joint_bounds(F: np.ndarray, prior_std: np.ndarray, contact_jacobian: np.ndar
     """:func:`press_bounds` of a press's frames read together (:func:`press_fisher`), whose
     parameters after the nuisances are the other frames' depths (``prior_std`` inf there): the
     target's, so free in both kinds; the nuisances-known bound drops the nuisances alone."""
-    t, n_extra = len(TARGET), int(np.isinf(prior_std).sum())
+    t, n_extra = np.shape(contact_jacobian)[-1], int(np.isinf(prior_std).sum())
     marginal = press_bounds(F, prior_std, contact_jacobian)
     keep = np.r_[np.arange(t), len(prior_std) + t - n_extra + np.arange(n_extra)]
     known = press_bounds(F[np.ix_(keep, keep)], np.full(n_extra, np.inf), contact_jacobian)

@@ -15,19 +15,31 @@ from ..scene import Scene
 from ..io.records import Records
 from .study import DesignBounds, design_bounds
 
-__all__ = ["GOALS", "BANDS", "Summary", "summarise", "required_snr", "write_design", "write_comparison", "estimator_rows",
+__all__ = ["GOALS", "MODULUS_GOAL", "goals_of", "BANDS", "Summary", "summarise", "required_snr", "write_design", "write_comparison", "estimator_rows",
            "by_contact_radius"]
 
-# the calibration goals at 74.2 dB (jointsim.calibration.build.GOALS), median |error| in m
+# the calibration goals at 74.2 dB (jointsim.calibration.build.GOALS), median |error| in m;
+# a soft target's modulus: its relative error (the bound on ln E), 20 %
 GOALS = {"position": 0.5e-3, "depth": 0.5e-3, "diameter": 1.0e-3}
+MODULUS_GOAL = 0.2
 QUANTITIES = ("position", "depth", "diameter")
+
+
+def _quantities(b: "DesignBounds") -> tuple[str, ...]:
+    return QUANTITIES + (("modulus",) if "target_modulus" in b.columns else ())
+
+
+def goals_of(b: "DesignBounds") -> dict[str, float]:
+    """The goals a study is held to: :data:`GOALS`, and :data:`MODULUS_GOAL` where its targets are soft."""
+    return {**GOALS, "modulus": MODULUS_GOAL} if "target_modulus" in b.columns else dict(GOALS)
 
 
 @dataclass(frozen=True)
 class Summary:
     """One design at one SNR: per quantity and bound kind, the median over the reached presses
     and depths of the efficient estimator's median error, and the 95th percentile of the RMS
-    bound, m; ``reached`` of ``presses`` (press × depth) the mechanics could take."""
+    bound, m (the modulus's: of ln E, a relative error, for soft targets); ``reached`` of
+    ``presses`` (press × depth) the mechanics could take."""
 
     design: str
     snr_db: float
@@ -37,27 +49,37 @@ class Summary:
     presses: int
 
 
-def summarise(name: str, b: DesignBounds, diameter: float | None = None, depth: float | None = None) -> Summary:
-    """The :class:`Summary` of ``b`` (over one ``diameter`` m, or one ``depth`` m, only, where given)."""
+def summarise(name: str, b: DesignBounds, diameter: float | None = None, depth: float | None = None,
+              modulus: float | None = None) -> Summary:
+    """The :class:`Summary` of ``b`` (over one ``diameter`` m, one ``depth`` m, or one soft
+    target's ``modulus`` Pa, only, where given)."""
     c = b.columns
     within = np.ones(len(b), bool)
     if diameter is not None:
         within &= np.isclose(c["diameter"], diameter)
     if depth is not None:
         within &= np.isclose(c["depth"], depth)
+    if modulus is not None:
+        within &= np.isclose(c["target_modulus"], modulus)
     sel = within & np.isfinite(c["position_rms_marginal"])
     total = int(within.sum())
     med, p95 = {}, {}
     for kind in ("known", "marginal"):
-        for q in QUANTITIES:
+        for q in _quantities(b):
             m, r = c[f"{q}_median_{kind}"][sel], c[f"{q}_rms_{kind}"][sel]
             med[f"{q}_{kind}"] = float(np.median(m)) if m.size else math.nan
             p95[f"{q}_{kind}"] = float(np.percentile(r, 95)) if r.size else math.nan
     return Summary(name, b.snr_db, med, p95, int(sel.sum()), total)
 
 
+# dB: the highest SNR the required-SNR search tries. Above ~180 dB the data's information swamps
+# the priors by ~1e16 where only a prior separates two parameters (the head and the moduli act on
+# a depth-controlled press only as ratios), and the bounds' Cholesky fails
+SNR_CEILING = 160.0
+
+
 def required_snr(study: Path | Records, scene: Scene, goals: dict[str, float], kind: str = "marginal",
-                 lo: float = 0.0, hi: float = 200.0, resolution: float = 0.5, **frames: int) -> dict[str, float]:
+                 lo: float = 0.0, hi: float = SNR_CEILING, resolution: float = 0.5, **frames: int) -> dict[str, float]:
     """For each quantity of ``goals`` (m), the lowest SNR dB (to ``resolution``, within [``lo``,
     ``hi``]) at which the efficient estimator's median error (median over the presses) is
     within its goal, by bisection (the bounds fall as the SNR rises); ``lo`` where it is met
@@ -86,17 +108,29 @@ def required_snr(study: Path | Records, scene: Scene, goals: dict[str, float], k
     return out
 
 
-def _write_csv(path: Path, columns: dict[str, np.ndarray], mm: bool = True) -> Path:
+def _unit(key: str) -> tuple[str, float]:
+    """A bounds column's unit suffix and scale: mm for lengths, kPa for a target's modulus, and
+    the bounds on ln E as they are (a relative error)."""
+    if key == "target_modulus":
+        return "_kpa", 1e-3
+    if key.startswith("modulus_"):
+        return "", 1.0
+    return "_mm", 1e3
+
+
+def _write_csv(path: Path, columns: dict[str, np.ndarray]) -> Path:
     keys = list(columns)
+    units = [_unit(k) for k in keys]
     with path.open("w", newline="") as f:
         w = csv.writer(f)
-        w.writerow([k + ("_mm" if mm and k not in ("snr_db",) else "") for k in keys])
+        w.writerow([k + u for k, (u, _) in zip(keys, units)])
         for row in zip(*(columns[k] for k in keys)):
-            w.writerow([f"{v * 1e3:.6g}" if mm else f"{v:.6g}" for v in row])
+            w.writerow([f"{v * x:.6g}" for v, (_, x) in zip(row, units)])
     return path
 
 
-def _map_figure(path: Path, scene: Scene, b: DesignBounds, column: str, title: str) -> Path:
+def _map_figure(path: Path, scene: Scene, b: DesignBounds, column: str, title: str, scale: float = 1e3,
+                unit: str = "mm") -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -105,10 +139,12 @@ def _map_figure(path: Path, scene: Scene, b: DesignBounds, column: str, title: s
     from matplotlib.patches import Circle
 
     c = b.columns
-    diameters = np.unique(c["diameter"])
+    # panels: depth × size, or × modulus for soft targets
+    across = "target_modulus" if "target_modulus" in c else "diameter"
+    diameters = np.unique(c[across])
     depths = np.unique(c["depth"])
     layout = electrode_layout(scene)
-    vals = c[column][np.isfinite(c[column])] * 1e3
+    vals = c[column][np.isfinite(c[column])] * scale
     norm = LogNorm(vmin=max(vals.min(), 1e-4), vmax=max(vals.max(), 1e-3)) if vals.size else None
     fig, axes = plt.subplots(len(depths), len(diameters), figsize=(3.4 * len(diameters) + 1.2, 3.3 * len(depths)),
                              squeeze=False, layout="constrained")
@@ -116,12 +152,12 @@ def _map_figure(path: Path, scene: Scene, b: DesignBounds, column: str, title: s
     base = scene.chamber.base_radius * 1e3
     for row, depth in zip(axes, depths):
         for ax, d in zip(row, diameters):
-            sel = np.isclose(c["diameter"], d) & np.isclose(c["depth"], depth)
+            sel = np.isclose(c[across], d) & np.isclose(c["depth"], depth)
             ok = sel & np.isfinite(c[column])
             ax.add_patch(Circle((0, 0), base, fill=False, color="0.6"))
             for (x, y, _), r in zip(layout.centres, layout.radii):
                 ax.add_patch(Circle((x * 1e3, y * 1e3), r * 1e3, fill=False, color="0.3", zorder=1))
-            sc = ax.scatter(c["contact_x"][ok] * 1e3, c["contact_y"][ok] * 1e3, c=c[column][ok] * 1e3, norm=norm,
+            sc = ax.scatter(c["contact_x"][ok] * 1e3, c["contact_y"][ok] * 1e3, c=c[column][ok] * scale, norm=norm,
                             cmap="viridis", s=18, zorder=2)
             miss = sel & ~np.isfinite(c[column])
             ax.plot(c["x"][miss] * 1e3, c["y"][miss] * 1e3, "x", color="r", ms=4, label="not reached (target centre)")
@@ -131,11 +167,12 @@ def _map_figure(path: Path, scene: Scene, b: DesignBounds, column: str, title: s
             ax.set_xlabel("contact x (mm)", fontsize=8)
             ax.set_ylabel("contact y (mm)", fontsize=8)
             ax.tick_params(labelsize=7)
-            ax.set_title(f"{d * 1e3:g} mm sphere, {depth * 1e3:g} mm deep", fontsize=9)
+            what = f"E {d * 1e-3:g} kPa" if across == "target_modulus" else f"{d * 1e3:g} mm sphere"
+            ax.set_title(f"{what}, {depth * 1e3:g} mm deep", fontsize=9)
             if miss.any():
                 ax.legend(loc="lower left", fontsize=6)
     if sc is not None:
-        fig.colorbar(sc, ax=axes.ravel().tolist(), label="mm", shrink=0.6)
+        fig.colorbar(sc, ax=axes.ravel().tolist(), label=unit, shrink=0.6)
     fig.suptitle(f"{scene.name}\n{title} at {b.snr_db:g} dB", fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -158,6 +195,11 @@ def write_design(out: Path, scene: Scene, path: Path | Records, snrs: tuple[floa
     summaries = [(summarise(scene.name, b), "all")]
     summaries += [(summarise(scene.name, b, diameter=d), f"{d * 1e3:g} mm") for d in np.unique(b.columns["diameter"])]
     summaries += [(summarise(scene.name, b, depth=d), f"{d * 1e3:g} mm deep") for d in np.unique(b.columns["depth"])]
+    if "target_modulus" in b.columns:
+        written.append(_map_figure(out / "modulus_bound.png", scene, b, "modulus_median_marginal",
+                                   "soft target's Young's modulus: an efficient estimator's median relative error",
+                                   scale=100.0, unit="%"))
+        summaries += [(summarise(scene.name, b, modulus=e), f"E {e * 1e-3:g} kPa") for e in np.unique(b.columns["target_modulus"])]
     for snr in snrs:
         if not math.isclose(snr, scene.noise.snr_db):
             summaries.append((summarise(scene.name, design_bounds(path, scene, snr_db=snr, **frames)), "all"))
@@ -166,6 +208,10 @@ def write_design(out: Path, scene: Scene, path: Path | Records, snrs: tuple[floa
 
 def _mm(v: float) -> str:
     return "inf" if not math.isfinite(v) else f"{v * 1e3:.3g}"
+
+
+def _pct(v: float) -> str:
+    return "inf" if not math.isfinite(v) else f"{v * 1e2:.3g}"
 
 
 def estimator_rows(goals_csv: Path) -> dict[str, dict[str, float]]:
@@ -241,12 +287,24 @@ def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[st
         csv_rows.append({"design": s.design, "covers": what, "snr_db": s.snr_db, "presses": s.presses, "reached": s.reached,
                          **{f"median_{k}_mm": v * 1e3 for k, v in s.median.items()},
                          **{f"p95_{k}_mm": v * 1e3 for k, v in s.p95.items()}})
+    soft = [(s, what) for s, what in rows if "modulus_marginal" in s.median]
+    if soft:
+        lines += ["", "## A soft target's Young's modulus", "",
+                  "The relative error of E an efficient estimator allows (the bound on ln E), with the target's position, "
+                  "depth and size unknown too; median over the presses × depths of the median error, and the P95 of the "
+                  "RMS bound, %.", "",
+                  "| design | SNR dB | presses | modulus median (known / marg.) | modulus P95 marg. |", "|---|---|---|---|---|"]
+        for s, what in soft:
+            lines.append(f"| {s.design} ({what}) | {s.snr_db:g} | {s.presses} | {_pct(s.median['modulus_known'])} / "
+                         f"{_pct(s.median['modulus_marginal'])} | {_pct(s.p95['modulus_marginal'])} |")
+    quantities = QUANTITIES + (("modulus",) if any("modulus" in req for req in needed.values()) else ())
     lines += ["", "## The SNR each design needs for the goals (an efficient estimator, nuisances marginalised)", "",
-              "Goals (jointsim calibrate's, medians): " + ", ".join(f"{q} {g * 1e3:g} mm" for q, g in GOALS.items()) + ".", "",
-              "| design | " + " | ".join(QUANTITIES) + " |", "|---|" + "---|" * len(QUANTITIES)]
+              "Goals (jointsim calibrate's, medians): " + ", ".join(f"{q} {g * 1e3:g} mm" for q, g in GOALS.items())
+              + (f", a soft target's modulus {MODULUS_GOAL:.0%}" if len(quantities) > len(QUANTITIES) else "") + ".", "",
+              "| design | " + " | ".join(quantities) + " |", "|---|" + "---|" * len(quantities)]
     for design, req in needed.items():
-        lines.append(f"| {design} | " + " | ".join("not below 200 dB" if not math.isfinite(req[q]) else f"{req[q]:.1f} dB"
-                                                    for q in QUANTITIES) + " |")
+        lines.append(f"| {design} | " + " | ".join("–" if q not in req else f"not below {SNR_CEILING:g} dB" if not math.isfinite(req[q])
+                                                    else f"{req[q]:.1f} dB" for q in quantities) + " |")
     if where:
         bands = [f"{lo * 1e3:g}–{hi * 1e3:g} mm" for lo, hi in zip(BANDS[:-1], BANDS[1:])]
         lines += ["", "## Where over the surface (contact point's distance from the axis)", "",
@@ -268,6 +326,11 @@ def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[st
             one = _over_all(rows, design)
             lines.append(f"| {design} | " + " | ".join(f"{_mm(one.median[f'{q}_marginal'])} / {_mm(j.median[f'{q}_marginal'])}"
                                                       for q in QUANTITIES) + " |")
+        soft_joint = {d: j for d, j in joint.items() if "modulus_marginal" in j.median}
+        if soft_joint:
+            lines += ["", "A soft target's modulus, one frame / the press (its modulus shared by the frames): "
+                      + "; ".join(f"{d} {_pct(_over_all(rows, d).median['modulus_marginal'])} / "
+                                  f"{_pct(j.median['modulus_marginal'])} %" for d, j in soft_joint.items()) + "."]
     if estimators is not None:
         design, goals = estimators
         base = _over_all(rows, design)

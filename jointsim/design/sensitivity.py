@@ -25,6 +25,14 @@ and the frames of the press; their parameters θ = (x, y, d, R) of the target an
   against a membrane built with scaled moduli). A membrane moulded flat is inflated to the dome's
   height whatever its modulus, so there neither the modulus nor the head (the inflation sets
   it) changes a depth-controlled press: both columns are zero.
+- a soft target (:class:`~jointsim.mechanics.soft_target.SoftTargetModel`): the same, with its
+  Young's modulus a fifth target parameter (ln E, :data:`TARGET_MODULUS`); its energy is E × that
+  of the unit modulus, so ∂g/∂ln E is its elastic gradient, and its radius scales its body about
+  the centre (:meth:`~jointsim.mechanics.soft_target.SoftTargetModel.target_gradients`). H is
+  then the two bodies' true tangent, the contact's sliding and turning facets included. Every
+  modulus (the membrane's, the penalty with it, the target's) × s is the head ÷ s, so
+  ∂V/∂ln μ = −∂V/∂ln p − ∂V/∂ln E: the target's modulus is read only against the membrane's
+  and the head, as far as their priors fix them.
 - electrical, by the adjoint on the solved lead fields (:mod:`jointsim.eit.parameters`):
   the saline's conductivity (ln σ), each electrode's contact impedance (ln z_l, the ground's
   included) and its centre in the base plane (x_l, y_l).
@@ -61,10 +69,12 @@ from ..mechanics.dome import MembraneModel
 from ..mechanics.touch import touch
 from ..scene import Scene
 
-__all__ = ["TARGET", "ELECTRODE_STEP", "CONTACT_MARGIN", "PressSensitivity", "parameter_names", "press_sensitivity", "electrode_moves",
+__all__ = ["TARGET", "TARGET_MODULUS", "target_names", "ELECTRODE_STEP", "CONTACT_MARGIN", "PressSensitivity", "parameter_names", "press_sensitivity", "electrode_moves",
            "unrefinable", "contact_zone", "contact_membrane"]
 
 TARGET = ("x", "y", "depth", "radius")  # the target's parameters, m
+# a soft target's Young's modulus (ln E), after TARGET: parameter_names(soft=True)
+TARGET_MODULUS = "ln_target_modulus"
 # m: an electrode's move either way for its position derivative (a difference of clipped moments,
 # no solve; tests/test_parameters.py); the moves made once (electrode_moves) must use the step
 # press_sensitivity divides by
@@ -102,24 +112,34 @@ def contact_zone(scene: Scene, radius: float, xy: np.ndarray, depth: float) -> t
     return touch_xy, math.sqrt(2 * radius * d - d * d) + CONTACT_MARGIN
 
 
-def contact_membrane(scene: Scene, radius: float, xy: np.ndarray, depth: float, levels: int) -> MembraneModel:
-    """The membrane of ``scene`` (inflated, untouched, pressed by a rigid sphere of ``radius``
-    m) meshed ``levels`` times finer about where that sphere coming down at ``xy`` touches, out
-    to its contact at ``depth`` m (:func:`contact_zone`; :func:`~jointsim.geometry.refine_near`
-    on the scene's cap at [membrane] rim_vertices)."""
+def contact_membrane(scene: Scene, radius: float, xy: np.ndarray, depth: float, levels: int,
+                     modulus: float | None = None) -> MembraneModel:
+    """The membrane of ``scene`` (inflated, untouched, pressed by a sphere of ``radius`` m:
+    rigid, or soft of Young's modulus ``modulus`` Pa) meshed ``levels`` times finer about where
+    that sphere coming down at ``xy`` touches, out to its contact at ``depth`` m
+    (:func:`contact_zone`; :func:`~jointsim.geometry.refine_near` on the scene's cap at
+    [membrane] rim_vertices)."""
     about, zone = contact_zone(scene, radius, xy, depth)
     dome = refine_near(chamber_cap(scene.chamber, scene.membrane.rim_vertices), about, zone, levels)
     rigid = replace(scene, target=replace(scene.target, kind="rigid"))
-    return membrane_from_scene(rigid, target_radius=radius, dome=dome)
+    return membrane_from_scene(rigid, target_radius=radius, dome=dome, target_modulus=modulus)
 
 
-def parameter_names(n_electrodes: int) -> tuple[str, ...]:
-    """The parameters' names, in the Jacobians' column order: the target's (:data:`TARGET`),
-    then ln_pressure, ln_modulus, ln_conductivity, ln_z0…, then x0, y0, x1, … of the electrodes
-    (in the layout's order, the ground included)."""
+def parameter_names(n_electrodes: int, soft: bool = False) -> tuple[str, ...]:
+    """The parameters' names, in the Jacobians' column order: the target's (:data:`TARGET`, and
+    for a ``soft`` target :data:`TARGET_MODULUS`), then ln_pressure, ln_modulus (the membrane's),
+    ln_conductivity, ln_z0…, then x0, y0, x1, … of the electrodes (in the layout's order, the
+    ground included)."""
     n = n_electrodes
-    return (TARGET + ("ln_pressure", "ln_modulus", "ln_conductivity") + tuple(f"ln_z{l}" for l in range(n))
+    return (target_names(soft) + ("ln_pressure", "ln_modulus", "ln_conductivity") + tuple(f"ln_z{l}" for l in range(n))
             + tuple(f"{a}{l}" for l in range(n) for a in "xy"))
+
+
+def target_names(soft: bool | tuple[str, ...]) -> tuple[str, ...]:
+    """The target's parameters: :data:`TARGET`, with :data:`TARGET_MODULUS` for a soft target
+    (``soft`` True, or a :func:`parameter_names` tuple that holds it)."""
+    soft = TARGET_MODULUS in soft if isinstance(soft, tuple) else bool(soft)
+    return TARGET + ((TARGET_MODULUS,) if soft else ())
 
 
 @dataclass(frozen=True, eq=False)
@@ -129,7 +149,7 @@ class PressSensitivity:
     ``v_ref`` (n_meas,); ``jacobian`` (K, n_meas, P) ∂V_k/∂p and ``jacobian_ref`` (n_meas, P)
     in :func:`parameter_names` order (per m for lengths, per unit of ln for the others); the
     contact's centre of pressure ``contact`` (K, 3) m and its in-plane derivative
-    ``contact_jacobian`` (K, 2, 4) with respect to :data:`TARGET`; ``force`` (K,) N (the
+    ``contact_jacobian`` (K, 2, t) with respect to the target's parameters (:func:`target_names`); ``force`` (K,) N (the
     normal force); ``noise_std`` V of one frame; ``names`` the parameters."""
 
     xy: np.ndarray
@@ -167,7 +187,7 @@ def _electrical(inst: Instrument, chamber, moves: list, step: float) -> np.ndarr
 def press_sensitivity(inst: Instrument, model: MembraneModel, xy: np.ndarray, depths: np.ndarray, *,
                       moves: list | None = None, electrode_step: float = ELECTRODE_STEP, probe: float = 10e-6,
                       step_max: float = 0.5e-3) -> PressSensitivity:
-    """The derivatives of the press of ``model``'s target (its radius) at ``xy`` (2,) m through
+    """The derivatives of the press of ``model``'s target (its radius; a soft one's modulus) at ``xy`` (2,) m through
     ``depths`` (K,) m, increasing, past first contact, measured by ``inst`` (the instrument of
     the same scene, nominal readout). ``model`` must be untouched (as built, or reset to its
     untouched state); it is left so. ``moves``: :func:`electrode_moves` at ``electrode_step``
@@ -181,7 +201,10 @@ def press_sensitivity(inst: Instrument, model: MembraneModel, xy: np.ndarray, de
         moves = electrode_moves(inst, electrode_step)
     ro = inst.readout
     n_el = len(inst.reference.layout.radii)
-    names = parameter_names(n_el)
+    soft = TARGET_MODULUS in model.TARGET_PARAMETERS
+    names = parameter_names(n_el, soft)
+    t = len(target_names(soft))
+    head, modulus = names.index("ln_pressure"), names.index("ln_modulus")
     P, K, M = len(names), len(depths), ro.n_meas
     cap = inst.scene.membrane.moulding == "cap"
     untouched = model.get_state()
@@ -213,14 +236,14 @@ def press_sensitivity(inst: Instrument, model: MembraneModel, xy: np.ndarray, de
         dzc = {"x": slope[0], "y": slope[1], "radius": 1.0 / nz, "ln_pressure": 0.0}
         if cap:
             du0 = model.equilibrium_derivative(head_load(model.u)[:, None])[..., 0]
-            J_ref[:, 4] = along(model.u, du0)
+            J_ref[:, head] = along(model.u, du0)
             dzc["ln_pressure"] = float(du0[contact.nodes[node]] @ normal) / nz
             model.set_state(untouched)
-        J_ref[:, 6:] = _electrical(inst, inst.reference, moves, electrode_step)
+        J_ref[:, head + 2:] = _electrical(inst, inst.reference, moves, electrode_step)
         z0 = model.first_contact_height(xy)
         V = np.zeros((K, M))
         cop = np.zeros((K, 3))
-        cj = np.zeros((K, 2, len(TARGET)))
+        cj = np.zeros((K, 2, t))
         force = np.zeros(K)
         done = 0.0
         for k, d in enumerate(depths):
@@ -231,21 +254,24 @@ def press_sensitivity(inst: Instrument, model: MembraneModel, xy: np.ndarray, de
             u = model.u.copy()
             chamber, _ = inst.morpher.morph(inst.dome(u))
             V[k] = ro.voltages(chamber, True)
-            J[k, :, 6:] = _electrical(inst, chamber, moves, electrode_step)
+            J[k, :, head + 2:] = _electrical(inst, chamber, moves, electrode_step)
             cop[k], force[k] = st.contact_centre, -st.force[2]
-            # the equilibrium's derivatives: the sphere's centre and radius (at fixed z), the head
-            dg = np.column_stack([contact.parameter_gradients(u), head_load(u)])
+            # the equilibrium's derivatives: the sphere's centre and radius (at fixed z), a soft
+            # one's modulus, the head
+            dg = np.column_stack([model.target_gradients(u), head_load(u)])
             du = model.equilibrium_derivative(dg)
-            dv = [along(u, du[..., j]) for j in range(5)]  # c_x, c_y, c_z, R, ln p
+            dv = [along(u, du[..., j]) for j in range(dg.shape[1])]  # c_x, c_y, c_z, R, [ln E,] ln p
             # the contact's centre of pressure moves with u and with the sphere (centre, radius)
-            dcop = [_cop_along(contact, u, du[..., j], j) for j in range(4)]
+            dcop = [_cop_along(contact, u, du[..., j], j) for j in range(t)]
             J[k, :, :4] = np.column_stack(_at_fixed_depth(dv, dzc))
+            cj[k, :, :4] = np.column_stack(_at_fixed_depth(dcop, dzc))
+            if soft:  # the modulus does not move the first contact: the sphere is not yet strained
+                J[k, :, 4], cj[k, :, 4] = dv[4], dcop[4]
             if cap:
-                J[k, :, 4] = dv[4] + dzc["ln_pressure"] * dv[2]
-            cj[k] = np.column_stack(_at_fixed_depth(dcop, dzc))
-        if cap:  # the moduli scaled by s act as the head divided by s (module docstring)
-            J[:, :, 5] = -J[:, :, 4]
-            J_ref[:, 5] = -J_ref[:, 4]
+                J[k, :, head] = dv[-1] + dzc["ln_pressure"] * dv[2]
+        if cap:  # every modulus scaled by s acts as the head divided by s (module docstring)
+            J[:, :, modulus] = -J[:, :, head] - (J[:, :, 4] if soft else 0.0)
+            J_ref[:, modulus] = -J_ref[:, head]
     finally:
         model.force_rtol = rtol
         model.set_state(untouched)
@@ -260,17 +286,25 @@ def _at_fixed_depth(d: list, dzc: dict[str, float]) -> list:
 
 
 def _cop_along(contact, u: np.ndarray, du: np.ndarray, j: int, probe: float = 1e-6) -> np.ndarray:
-    """∂(centre of pressure xy)/∂θ_j for θ = (c_x, c_y, c_z, R): u moved along ``du`` and the
-    sphere with it, by central differences."""
+    """∂(centre of pressure xy)/∂θ_j for θ = (c_x, c_y, c_z, R[, ln E]): u moved along ``du``
+    and the sphere with it (a soft one's body scaled about its centre for R), by central
+    differences."""
     centre, radius = contact.centre.copy(), contact.radius
+    soft = hasattr(contact, "place")
     eps = probe / max(float(np.abs(du).max()), 1.0)
     out = []
     try:
         for sgn in (1, -1):
-            dc = np.zeros(4)
+            dc = np.zeros(5)
             dc[j] = sgn * eps
-            contact.centre, contact.radius = centre + dc[:3], radius + dc[3]
+            if soft:
+                contact.place(centre + dc[:3], 1.0 + dc[3] / radius)
+            else:
+                contact.centre, contact.radius = centre + dc[:3], radius + dc[3]
             out.append(contact.centre_of_pressure(u + sgn * eps * du)[:2])
     finally:
-        contact.centre, contact.radius = centre, radius
+        if soft:
+            contact.place(centre, 1.0)
+        else:
+            contact.centre, contact.radius = centre, radius
     return (out[0] - out[1]) / (2 * eps)

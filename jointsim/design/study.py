@@ -33,8 +33,8 @@ from ..mechanics.newton import NewtonError
 from ..mesh.morph import MeshInversionError
 from ..scene import Scene
 from .bounds import Bounds, fisher, joint_bounds, median_error, nuisance_prior, press_bounds, press_fisher
-from .sensitivity import (ELECTRODE_STEP, TARGET, contact_membrane, electrode_moves, parameter_names, press_sensitivity,
-                          unrefinable)
+from .sensitivity import (ELECTRODE_STEP, contact_membrane, electrode_moves, parameter_names, press_sensitivity,
+                          TARGET_MODULUS, target_names, unrefinable)
 
 __all__ = ["Plan", "press_grid", "plan_presses", "design_schema", "run_design", "DesignBounds", "design_bounds",
            "press_joint_bounds"]
@@ -50,7 +50,10 @@ class Plan:
     electrode's centre); the noise model: ``reference_frames`` averaged into the reference,
     ``hold_frames`` into a press's frame; ``contact_levels``: each press read through a
     membrane that many times finer about its contact (:func:`~.sensitivity.contact_membrane`;
-    0: the scene's membrane as meshed)."""
+    0: the scene's membrane as meshed); ``target_moduli`` Pa: soft (neo-Hookean) spheres of
+    each of these Young's moduli, whose modulus is then a target parameter too (none: rigid
+    spheres); ``ray``: the target centres along the +x axis, ``spacing`` apart, instead of
+    the polar grid (a survey of costly presses, the soft ones)."""
 
     diameters: tuple[float, ...] = (8e-3, 15e-3, 30e-3)
     depths: tuple[float, ...] = (1e-3, 2e-3, 3e-3)
@@ -59,6 +62,8 @@ class Plan:
     reference_frames: int = 50
     hold_frames: int = 1
     contact_levels: int = 0
+    target_moduli: tuple[float, ...] = ()
+    ray: bool = False
 
     def __post_init__(self) -> None:
         if not self.diameters or any(not d > 0 for d in self.diameters):
@@ -71,6 +76,8 @@ class Plan:
             raise ValueError("reference_frames, hold_frames: must be >= 1")
         if not 0 <= self.contact_levels <= MAX_CONTACT_LEVELS:
             raise ValueError(f"contact_levels = {self.contact_levels}: must be in 0..{MAX_CONTACT_LEVELS}")
+        if any(not (math.isfinite(e) and e > 0) for e in self.target_moduli):
+            raise ValueError(f"target_moduli = {self.target_moduli}: each > 0 Pa")
 
     def outer_radius(self, scene: Scene) -> float:
         if self.r_max is not None:
@@ -78,9 +85,13 @@ class Plan:
         return float(np.hypot(*electrode_layout(scene).centres[:, :2].T).max())
 
 
-def press_grid(r_max: float, spacing: float) -> np.ndarray:
+def press_grid(r_max: float, spacing: float, ray: bool = False) -> np.ndarray:
     """Target centres (n, 2) m: the axis and rings i·``spacing`` ≤ ``r_max``, each with
-    round(2π r / spacing) points (about ``spacing`` apart), alternate rings turned by half a pitch."""
+    round(2π r / spacing) points (about ``spacing`` apart), alternate rings turned by half a
+    pitch; or with ``ray`` one point per ring, on the +x axis."""
+    if ray:
+        r = spacing * np.arange(int(math.floor(r_max / spacing + 1e-9)) + 1)
+        return np.column_stack([r, np.zeros_like(r)])
     pts = [np.zeros((1, 2))]
     for i in range(1, int(math.floor(r_max / spacing + 1e-9)) + 1):
         r = i * spacing
@@ -90,35 +101,39 @@ def press_grid(r_max: float, spacing: float) -> np.ndarray:
     return np.vstack(pts)
 
 
-def plan_presses(scene: Scene, plan: Plan) -> list[tuple[float, np.ndarray]]:
-    """The study's presses in record order: (diameter m, centre xy (2,) m), diameter-major."""
-    xy = press_grid(plan.outer_radius(scene), plan.spacing)
-    return [(float(d), p) for d in plan.diameters for p in xy]
+def plan_presses(scene: Scene, plan: Plan) -> list[tuple[float, np.ndarray, float | None]]:
+    """The study's presses in record order: (diameter m, centre xy (2,) m, the soft target's
+    Young's modulus Pa or None for a rigid one), modulus-major, then diameter-major."""
+    xy = press_grid(plan.outer_radius(scene), plan.spacing, plan.ray)
+    return [(float(d), p, e) for e in (plan.target_moduli or (None,)) for d in plan.diameters for p in xy]
 
 
-def design_schema(n_meas: int, n_params: int, n_depths: int) -> Schema:
+def design_schema(n_meas: int, n_params: int, n_depths: int, soft: bool = False) -> Schema:
     K, P = n_depths, n_params
-    t = len(TARGET)
-    return Schema((
+    t = len(target_names(soft))
+    extra = (Field("target_modulus", (), "float64", "Pa", "the soft sphere's Young's modulus"),) if soft else ()
+    return Schema(extra + (
         Field("diameter", (), "float64", "m", "the sphere's diameter"),
         Field("xy", (2,), "float64", "m", "the target's centre in the plane"),
         Field("reached", (), "int8", "", "1: pressed through every depth; 0: the mechanics could not take it (the rest NaN)"),
         Field("depths", (K,), "float64", "m", "past first contact"),
         Field("contact", (K, 3), "float64", "m", "the contact's centre of pressure"),
-        Field("contact_jacobian", (K, 2, t), "float64", "m/m", "d(contact xy)/d(x, y, depth, radius)"),
+        Field("contact_jacobian", (K, 2, t), "float64", "m/m", "d(contact xy)/d(the target's parameters)"),
         Field("force", (K,), "float64", "N", "normal contact force"),
         Field("noise_std", (), "float64", "V", "one frame's noise per channel (the scene's SNR)"),
         Field("voltages", (K, n_meas), "float64", "V", "the press's clean voltages"),
-        Field("target_jacobian", (K, n_meas, t), "float64", "V/m", "dV/d(x, y, depth, radius)"),
+        Field("target_jacobian", (K, n_meas, t), "float64", "V/m", "dV/d(the target's parameters: x, y, depth, radius[, ln E])"),
         Field("info", (K, P, P), "float64", "V²/unit²", "JᵀJ of each depth's frame (Fisher information × σ²)"),
         Field("info_ref", (P, P), "float64", "V²/unit²", "JᵀJ of the reference frame"),
         Field("seconds", (), "float64", "s", "wall time of the press", volatile=True),
     ), name=SCHEMA_NAME, version=SCHEMA_VERSION)
 
 
-def _nan_record(schema: Schema, diameter: float, xy: np.ndarray, seconds: float) -> dict[str, Any]:
+def _nan_record(schema: Schema, diameter: float, xy: np.ndarray, seconds: float, modulus: float | None) -> dict[str, Any]:
     rec = {f.name: np.full(f.shape, np.nan) for f in schema.fields}
     rec.update(diameter=diameter, xy=xy, reached=0, seconds=seconds)
+    if modulus is not None:
+        rec["target_modulus"] = modulus
     return rec
 
 
@@ -140,16 +155,18 @@ def _setup(scene: Scene) -> tuple[Instrument, list]:
     return _WORKER["inst"], _WORKER["moves"]
 
 
-def _model(scene: Scene, inst: Instrument, radius: float):
+def _model(scene: Scene, inst: Instrument, radius: float, modulus: float | None):
     models = _WORKER["models"]
-    if radius not in models:
-        models.clear()  # one diameter at a time: the presses come diameter-major
+    if (radius, modulus) not in models:
+        models.clear()  # one target at a time: the presses come modulus- then diameter-major
         rigid = replace(scene, target=replace(scene.target, kind="rigid"))
-        models[radius] = membrane_from_scene(rigid, target_radius=radius, inflate_from=inst.inflated_u)
-    return models[radius]
+        models[radius, modulus] = membrane_from_scene(rigid, target_radius=radius, inflate_from=inst.inflated_u,
+                                                      target_modulus=modulus)
+    return models[radius, modulus]
 
 
-def _run_press(path: str, scene: Scene, plan: Plan, index: int, diameter: float, xy: np.ndarray) -> tuple[int, bool, str]:
+def _run_press(path: str, scene: Scene, plan: Plan, index: int, diameter: float, xy: np.ndarray,
+               modulus: float | None) -> tuple[int, bool, str]:
     """Compute and store press ``index``; (index, reached, why not)."""
     with _LOCK:
         t0 = time.perf_counter()
@@ -159,22 +176,24 @@ def _run_press(path: str, scene: Scene, plan: Plan, index: int, diameter: float,
         on = inst
         try:
             if plan.contact_levels:  # a membrane of its own; the chamber, morph factor and readout shared
-                model = contact_membrane(scene, diameter / 2, xy, max(plan.depths), plan.contact_levels)
+                model = contact_membrane(scene, diameter / 2, xy, max(plan.depths), plan.contact_levels, modulus)
                 on = inst.on_membrane(model)
             else:
-                model = _model(scene, inst, diameter / 2)
+                model = _model(scene, inst, diameter / 2, modulus)
             ps = press_sensitivity(on, model, xy, np.asarray(plan.depths), moves=moves)
             J = ps.jacobian
             rec = {"diameter": diameter, "xy": xy, "reached": 1, "depths": ps.depths, "contact": ps.contact,
                    "contact_jacobian": ps.contact_jacobian, "force": ps.force, "noise_std": ps.noise_std,
-                   "voltages": ps.voltages, "target_jacobian": J[:, :, : len(TARGET)],
+                   "voltages": ps.voltages, "target_jacobian": J[:, :, : len(target_names(ps.names))],
                    "info": np.einsum("kmp,kmq->kpq", J, J), "info_ref": ps.jacobian_ref.T @ ps.jacobian_ref,
                    "seconds": time.perf_counter() - t0}
+            if modulus is not None:
+                rec["target_modulus"] = modulus
         except (UnreachablePose, NewtonError, MeshInversionError) as e:
             why = f"{type(e).__name__}: {e}"
             # the model may stand anywhere after a failed press: start the next one afresh
             _WORKER["models"].clear()
-            rec = _nan_record(store.schema, diameter, xy, time.perf_counter() - t0)
+            rec = _nan_record(store.schema, diameter, xy, time.perf_counter() - t0, modulus)
         store.put(index, rec)
         store.flush()
         return index, bool(rec["reached"]), why
@@ -196,13 +215,14 @@ def run_design(scene: Scene, plan: Plan, out: str | Path, *, workers: int | None
     if plan.contact_levels and unrefinable(scene):
         raise ValueError(unrefinable(scene))  # in one line, before any work
     inst_meas = _n_meas(scene)
-    names = parameter_names(len(electrode_layout(scene).radii))
-    schema = design_schema(inst_meas, len(names), len(plan.depths))
+    soft = bool(plan.target_moduli)
+    names = parameter_names(len(electrode_layout(scene).radii), soft)
+    schema = design_schema(inst_meas, len(names), len(plan.depths), soft)
     # what shapes the stored derivatives; not the frame counts, which the bounds take from the file
-    shape = ("diameters", "depths", "spacing", "r_max", "contact_levels")
-    # a study without refinement keeps the identity it had before contact_levels existed
+    shape = ("diameters", "depths", "spacing", "r_max", "contact_levels", "target_moduli", "ray")
+    # a study without refinement or soft targets keeps the identity it had before either existed
     params = {"plan": {k: list(v) if isinstance(v, tuple) else v for k, v in plan.__dict__.items()
-                       if k in shape and not (k == "contact_levels" and v == 0)},
+                       if k in shape and not (k in ("contact_levels", "target_moduli", "ray") and not v)},
               "parameters": list(names), "scene_digest": scene.digest()}
     final = Path(out)
     final = final if final.suffix in (".h5", ".hdf5") else final.with_suffix(".h5")
@@ -220,7 +240,7 @@ def run_design(scene: Scene, plan: Plan, out: str | Path, *, workers: int | None
         missing = store.missing()
         if on_start is not None:
             on_start(n - len(missing), len(missing))
-        tasks = [(str(final), scene, plan, int(i), presses[i][0], presses[i][1]) for i in missing]
+        tasks = [(str(final), scene, plan, int(i), *presses[i]) for i in missing]
         if tasks:
             w = min(available_cores() if workers is None else workers, len(tasks))
             def tick(result: tuple[int, bool, str]) -> None:
@@ -254,7 +274,9 @@ class DesignBounds:
     with ``diameter``, ``x``, ``y`` (the target's centre), ``contact_x``, ``contact_y``,
     ``contact_r``, ``depth`` (m) and, per bound kind (known, marginal), the RMS and the
     efficient estimator's median error m of ``position`` (the contact point), ``depth``,
-    ``diameter``; NaN where the press was not reached."""
+    ``diameter``; NaN where the press was not reached. A study of soft targets adds their
+    ``target_modulus`` (Pa) and the bounds on ``modulus``: those of ln E, the relative error
+    of E to first order."""
 
     columns: dict[str, np.ndarray]
     snr_db: float
@@ -277,7 +299,7 @@ def design_bounds(study: str | Path | Records, scene: Scene, *, snr_db: float | 
     snr = scene.noise.snr_db if snr_db is None else float(snr_db)
     scale = 10 ** ((scene.noise.snr_db - snr) / 20)
     prior = nuisance_prior(scene, names)
-    cols = _columns()
+    cols = _columns(target_names(names))
     for i in range(len(rec)):
         reached = bool(rec["reached"][i])
         for k in range(len(plan["depths"])):
@@ -305,7 +327,7 @@ def press_joint_bounds(study: str | Path | Records, scene: Scene, *, snr_db: flo
     snr = scene.noise.snr_db if snr_db is None else float(snr_db)
     scale = 10 ** ((scene.noise.snr_db - snr) / 20)
     prior = np.concatenate([nuisance_prior(scene, names), np.full(len(depths) - 1, np.inf)])
-    cols = _columns()
+    cols = _columns(target_names(names))
     for i in range(len(rec)):
         _press_row(cols, rec, i, len(depths) - 1, depths[-1])
         b = None
@@ -318,10 +340,15 @@ def press_joint_bounds(study: str | Path | Records, scene: Scene, *, snr_db: flo
     return DesignBounds({k: np.asarray(v, float) for k, v in cols.items()}, snr)
 
 
-def _columns() -> dict[str, list]:
-    """A :class:`DesignBounds` table's columns, empty."""
+def _quantities(cols: dict[str, list]) -> tuple[str, ...]:
+    return ("position", "depth", "diameter") + (("modulus",) if "target_modulus" in cols else ())
+
+
+def _columns(target: tuple[str, ...]) -> dict[str, list]:
+    """A :class:`DesignBounds` table's columns, empty, for the ``target``'s parameters."""
     names = ["diameter", "x", "y", "contact_x", "contact_y", "contact_r", "depth"]
-    names += [f"{q}_{stat}_{kind}" for kind in ("known", "marginal") for q in ("position", "depth", "diameter")
+    names += ["target_modulus"] if TARGET_MODULUS in target else []
+    names += [f"{q}_{stat}_{kind}" for kind in ("known", "marginal") for q in _quantities(dict.fromkeys(names))
               for stat in ("rms", "median")]
     return {n: [] for n in names}
 
@@ -332,11 +359,13 @@ def _press_row(cols: dict[str, list], rec: Records, i: int, k: int, depth: float
     for name, v in (("diameter", rec["diameter"][i]), ("x", rec["xy"][i][0]), ("y", rec["xy"][i][1]), ("contact_x", c[0]),
                     ("contact_y", c[1]), ("contact_r", math.hypot(c[0], c[1])), ("depth", depth)):
         cols[name].append(v)
+    if "target_modulus" in cols:
+        cols["target_modulus"].append(rec["target_modulus"][i])
 
 
 def _bound_columns(cols: dict[str, list], b: Bounds | None, kind: str) -> None:
     if b is None:
-        for q in ("position", "depth", "diameter"):
+        for q in _quantities(cols):
             cols[f"{q}_rms_{kind}"].append(math.nan)
             cols[f"{q}_median_{kind}"].append(math.nan)
         return
@@ -348,3 +377,6 @@ def _bound_columns(cols: dict[str, list], b: Bounds | None, kind: str) -> None:
     cols[f"depth_median_{kind}"].append(median_error(C[2:3, 2:3]))
     cols[f"diameter_rms_{kind}"].append(rms["diameter"])
     cols[f"diameter_median_{kind}"].append(2 * median_error(C[3:4, 3:4]))
+    if "target_modulus" in cols:
+        cols[f"modulus_rms_{kind}"].append(rms["modulus"])
+        cols[f"modulus_median_{kind}"].append(median_error(C[4:5, 4:5]))

@@ -126,6 +126,8 @@ class MembraneModel:
     "p2_tet"; ``layers`` through the thickness, by default the element's (scene.MEMBRANE_LAYERS)."""
 
     TANGENT_PREDICTOR = True  # see _tangent_guess; a subclass with other unknowns turns it off
+    # the target's parameters that :meth:`target_gradients` differentiates the energy's gradient by
+    TARGET_PARAMETERS: tuple[str, ...] = ("c_x", "c_y", "c_z", "radius")
 
     def __init__(
         self,
@@ -376,6 +378,11 @@ class MembraneModel:
         self.u = res.u
         self.history = []  # the predictors' equilibria were under the old load
         return self.state(res.iterations, res.residual)
+
+    def target_gradients(self, u: np.ndarray) -> np.ndarray:
+        """∂g/∂θ (3n, len(TARGET_PARAMETERS)) at ``u`` for the target's parameters θ: the rigid
+        sphere's centre and radius (:meth:`~.contact.SphereContact.parameter_gradients`)."""
+        return self.contact.parameter_gradients(u)
 
     def equilibrium_derivative(self, dg: np.ndarray) -> np.ndarray:
         """du/dθ (n, 3, k) of the equilibrium the model stands at, for loads that change with

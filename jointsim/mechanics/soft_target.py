@@ -273,6 +273,12 @@ class _MembranePressure:
     def volume(self, u: np.ndarray) -> float:
         return self.term.volume(u[: self.n])
 
+    def volume_gradient(self, u: np.ndarray) -> np.ndarray:
+        """∂V/∂u, flat, over both bodies' unknowns (zero on the target's)."""
+        g = np.zeros(u.size)
+        g[: 3 * self.n] = self.term.volume_gradient(u[: self.n])
+        return g
+
 
 class _TargetContact:
     """The membrane–target contact with the interface of the rigid :class:`SphereContact`
@@ -291,6 +297,7 @@ class _TargetContact:
         self.stiffness = float(stiffness)
         self._Xm = np.asarray(X_membrane, float)
         self._t_nodes = nm + np.arange(target.mesh.n_nodes)
+        self._scale = 1.0
         X0 = self._world(np.array([0.0, 0.0, 1e3]))
         # the membrane's outer nodes against the target, for the contact area whichever side
         # is the slave (as the rigid case measures it)
@@ -302,7 +309,16 @@ class _TargetContact:
         self._centre = np.array([0.0, 0.0, 1e3])
 
     def _world(self, centre):
-        return np.vstack([self._Xm, self.target.mesh.nodes + centre])
+        return np.vstack([self._Xm, self._scale * self.target.mesh.nodes + centre])
+
+    def place(self, centre: np.ndarray, scale: float = 1.0) -> None:
+        """The target at ``centre`` (3,) m with its body scaled by ``scale`` about it (a sphere of
+        radius ``scale`` × R, its mesh homothetic, the target's slave areas with it): how the
+        derivatives with respect to the radius move it (:meth:`SoftTargetModel.target_gradients`)."""
+        self._scale = float(scale)
+        if self.slave == "target":
+            self.surface.weights = self.target.weights * self._scale**2
+        self.centre = centre
 
     @property
     def X(self) -> np.ndarray:
@@ -348,6 +364,7 @@ class SoftTargetModel(MembraneModel):
     (default: the target's unless it is 10× stiffer than the membrane)."""
 
     TANGENT_PREDICTOR = False  # the target's own unknowns are not in the rigid-contact tangent
+    TARGET_PARAMETERS = MembraneModel.TARGET_PARAMETERS + ("ln_target_modulus",)
 
     def __init__(
         self,
@@ -452,6 +469,99 @@ class SoftTargetModel(MembraneModel):
             return self.u
         guess = u1 + float(np.dot(centre - c1, c1 - c0) / step**2) * (u1 - u0)
         return guess if self.coupled.evaluate(guess, False)[3] else self.u
+
+    def target_gradients(self, u: np.ndarray, rel_step: float = 1e-6) -> np.ndarray:
+        """∂g/∂(c_x, c_y, c_z, R, ln E) (3n, 5) at ``u``: how the energy's gradient over both
+        bodies (the unknowns held) changes with the target's centre, its radius and its
+        Young's modulus.
+
+        - the centre moves the target's frame, so only the contact sees it;
+        - the radius scales the target's body by s about its centre (its mesh homothetic). Its
+          unknowns stay its displacements in that frame, so its elastic energy is
+          s³ W(u/s) (F = I + ∇u/s over s³ the volume), its gradient s² ∇W(u/s);
+        - the modulus scales the target's energy: ∂g/∂ln E is its elastic gradient.
+
+        The first two by central differences over ``rel_step`` × R of the contact's true
+        gradient (:meth:`~.surface_contact.SurfaceContact.fresh_gradient`: closest points and
+        normals chosen afresh on either side)."""
+        u = np.asarray(u, float)
+        ct, nm = self.contact, self.n_membrane
+        centre, R = ct.centre.copy(), ct.radius
+        out = np.zeros((u.size, 5))
+        h = rel_step * R
+
+        def gradient(c: np.ndarray, s: float) -> np.ndarray:
+            ct.place(c, s)
+            g = ct.surface.fresh_gradient(u)
+            if s != 1.0:
+                g[3 * nm:] += s * s * self.target.elastic.evaluate(u[nm:] / s, False)[1]
+            return g
+
+        try:
+            for a in range(3):
+                e = np.eye(3)[a] * h
+                out[:, a] = (gradient(centre + e, 1.0) - gradient(centre - e, 1.0)) / (2 * h)
+            out[:, 3] = (gradient(centre, 1.0 + rel_step) - gradient(centre, 1.0 - rel_step)) / (2 * h)
+        finally:
+            ct.place(centre, 1.0)
+        out[3 * nm:, 4] = self.target.elastic.evaluate(u[nm:], False)[1]
+        return out
+
+    def equilibrium_derivative(self, dg: np.ndarray, rtol: float = 1e-6) -> np.ndarray:
+        """du/dθ = −H⁻¹ ∂g/∂θ (n, 3, k) at the equilibrium the model stands at, as
+        :meth:`MembraneModel.equilibrium_derivative`, with H the true tangent: Newton's lagged
+        contact Hessian keeps each slave's closest triangle and normal, so it misses how they
+        slide and turn as the bodies move (measured: 16 % of the membrane's response to a
+        sideways move, 6.5 % of its response to the target's modulus; tests/test_soft_target.py).
+        H·v is Newton's Hessian with its
+        contact part replaced by a central difference of the contact's true gradient along v;
+        the system is solved by GMRES preconditioned with Newton's factorised Hessian, to
+        ``rtol`` (the differenced contact is linear to ~1e-7). Differences of re-solved
+        equilibria average the slaves' switches between facets over their step: on the axis of
+        a coarse membrane (32 rim vertices), where a ring of slaves sits on facet edges, they
+        differ from this derivative by 4 % (off the axis: 0.02–0.2 %). Raises NewtonError where that Hessian is not positive definite or GMRES does
+        not converge."""
+        from scipy.sparse.linalg import LinearOperator, gmres
+
+        u = self.u
+        dg = np.asarray(dg, float).reshape(u.size, -1)
+        self._system(u)  # none yet on a model that has not pressed
+        self.system.context = self.factor_context()
+        self.system.factor_tangent(self.terms, u)
+        if not self.system.tangent_ready:
+            raise NewtonError("equilibrium_derivative: the Hessian is not positive definite at this equilibrium")
+        free = np.flatnonzero(~self.fixed.ravel())
+        surface = self.contact.surface
+        H = self.coupled.evaluate(u, True)[2]
+        Hc = surface.evaluate(u, True)[2]
+        base = (H - Hc)[free][:, free].tocsr()
+        step = 1e-4 * max(self.contact.penetration(u), 1e-9)  # m: far inside every slave's facet
+
+        def tangent(v: np.ndarray) -> np.ndarray:
+            w = np.zeros(u.size)
+            w[free] = v
+            eps = step / max(float(np.abs(w).max()), 1e-300)
+            w = w.reshape(u.shape)
+            dc = (surface.fresh_gradient(u + eps * w) - surface.fresh_gradient(u - eps * w)) / (2 * eps)
+            return base @ v + dc[free]
+
+        n = len(free)
+        A = LinearOperator((n, n), matvec=tangent, dtype=float)
+        M = LinearOperator((n, n), matvec=lambda r: self.system.solve_tangent(r[:, None])[:, 0], dtype=float)
+        du = np.zeros_like(dg)
+        for j in range(dg.shape[1]):
+            b = -dg[free, j]
+            if not b.any():
+                continue
+            x0 = self.system.solve_tangent(b[:, None])[:, 0]
+            x, info = gmres(A, b, x0=x0, M=M, rtol=rtol, atol=0.0, restart=40, maxiter=5)
+            # the differenced contact is linear only to ~1e-7 of b (a slave at the edge of
+            # contact within the step): GMRES's own estimate then stalls below its true residual
+            miss = np.linalg.norm(A.matvec(x) - b) / np.linalg.norm(b)
+            if info != 0 and miss > 10 * rtol:
+                raise NewtonError(f"equilibrium_derivative: GMRES left a residual of {miss:.2g} for column {j}")
+            du[free, j] = x
+        return du.reshape(u.shape + (dg.shape[1],))
 
     def state(self, iterations: int = 0, residual: float = 0.0) -> MembraneState:
         """The membrane's state as for a rigid target (``u``: the membrane's rows); ``force``

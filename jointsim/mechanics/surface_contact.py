@@ -194,13 +194,22 @@ class SurfaceContact:
             last = self._seen[-1]
             back = (tri >= 0) & (last >= 0) & (tri != last) & np.any([tri == r for r in self._seen[:-1]], axis=0)
             self._pinned |= back
-            s = np.flatnonzero(self._pinned & (tri != last) & (last >= 0))
-            if len(s):
-                t2, l2, n2, _ = self._choose(u, s, last[s])
-                tri[s], lam[s], nrm[s] = t2[s], l2[s], n2[s]
+            self._hold_pinned(u, tri, lam, nrm)
         self._seen.append(tri)
+        self._lagged = self._frozen(tri, lam, nrm)
+
+    def _hold_pinned(self, u: np.ndarray, tri: np.ndarray, lam: np.ndarray, nrm: np.ndarray) -> None:
+        """Each pinned slave back on the triangle it was last lagged to (λ and normal taken on
+        it at ``u``), in place."""
+        last = self._seen[-1]
+        s = np.flatnonzero(self._pinned & (tri != last) & (last >= 0))
+        if len(s):
+            t2, l2, n2, _ = self._choose(u, s, last[s])
+            tri[s], lam[s], nrm[s] = t2[s], l2[s], n2[s]
+
+    def _frozen(self, tri: np.ndarray, lam: np.ndarray, nrm: np.ndarray) -> tuple:
         has = tri >= 0
-        self._lagged = (np.flatnonzero(has), self.tris[tri[has]], lam[has], nrm[has])
+        return np.flatnonzero(has), self.tris[tri[has]], lam[has], nrm[has]
 
     # -- energy -------------------------------------------------------------------------------
 
@@ -244,6 +253,22 @@ class SurfaceContact:
         rows = np.repeat(dof, 12, axis=1).ravel()
         cols = np.tile(dof, (1, 12)).ravel()
         return sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(self._n, self._n))
+
+    def fresh_gradient(self, u: np.ndarray) -> np.ndarray:
+        """The gradient (3n,) with each slave's closest triangle, λ and normal chosen at ``u``
+        (not lagged; a pinned slave kept on its triangle, as Newton's equilibrium has it; the
+        lag, its history and the pins left as they were): the energy's gradient whose
+        derivative along a move includes the normals' rotation and the closest points'
+        sliding, which the lagged Hessian leaves out."""
+        kept = self._lagged
+        tri, lam, nrm, _ = self._choose(u, self.cand_s, self.cand_t)
+        if self._seen:
+            self._hold_pinned(u, tri, lam, nrm)
+        self._lagged = self._frozen(tri, lam, nrm)
+        try:
+            return self.evaluate(u, False)[1]
+        finally:
+            self._lagged = kept
 
     def projected_hessian(self, u: np.ndarray) -> sp.csr_matrix:
         """Already positive semi-definite (a sum of rank-one blocks)."""
