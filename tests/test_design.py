@@ -376,6 +376,10 @@ def test_a_study_of_soft_targets_bounds_their_modulus(tmp_path):
     one = np.zeros(len(names))
     one[[e, p, mu]] = 1.0
     assert abs(one @ info @ one) <= 1e-12 * info[e, e]
+    # so as the SNR rises the bound falls to what the priors leave along that direction,
+    # (1/s_p² + 1/s_μ²)^(-1/2), and never below it (measured 4 % above it at 120 dB)
     scene = load_scene(toml).with_mesh_preset("test")
-    b = [design_bounds(rec, scene, snr_db=snr).columns["modulus_rms_marginal"][0] for snr in (74.2, 120.0, 160.0)]
-    assert b[0] > b[1] >= 0.95 * b[2] > 0 and b[2] == pytest.approx(b[1], rel=0.1)
+    prior = dict(zip(names[5:], nuisance_prior(scene, names)))
+    floor = (prior["ln_pressure"] ** -2 + prior["ln_modulus"] ** -2) ** -0.5
+    b = [design_bounds(rec, scene, snr_db=snr).columns["modulus_rms_marginal"][0] for snr in (74.2, 120.0)]
+    assert b[0] > b[1] >= floor and b[1] <= 1.1 * floor

@@ -25,10 +25,6 @@ MODULUS_GOAL = 0.2
 QUANTITIES = ("position", "depth", "diameter")
 
 
-def _quantities(b: "DesignBounds") -> tuple[str, ...]:
-    return QUANTITIES + (("modulus",) if "target_modulus" in b.columns else ())
-
-
 def goals_of(b: "DesignBounds") -> dict[str, float]:
     """The goals a study is held to: :data:`GOALS`, and :data:`MODULUS_GOAL` where its targets are soft."""
     return {**GOALS, "modulus": MODULUS_GOAL} if "target_modulus" in b.columns else dict(GOALS)
@@ -65,7 +61,7 @@ def summarise(name: str, b: DesignBounds, diameter: float | None = None, depth: 
     total = int(within.sum())
     med, p95 = {}, {}
     for kind in ("known", "marginal"):
-        for q in _quantities(b):
+        for q in b.quantities:
             m, r = c[f"{q}_median_{kind}"][sel], c[f"{q}_rms_{kind}"][sel]
             med[f"{q}_{kind}"] = float(np.median(m)) if m.size else math.nan
             p95[f"{q}_{kind}"] = float(np.percentile(r, 95)) if r.size else math.nan
@@ -141,17 +137,17 @@ def _map_figure(path: Path, scene: Scene, b: DesignBounds, column: str, title: s
     c = b.columns
     # panels: depth × size, or × modulus for soft targets
     across = "target_modulus" if "target_modulus" in c else "diameter"
-    diameters = np.unique(c[across])
+    panels = np.unique(c[across])
     depths = np.unique(c["depth"])
     layout = electrode_layout(scene)
     vals = c[column][np.isfinite(c[column])] * scale
     norm = LogNorm(vmin=max(vals.min(), 1e-4), vmax=max(vals.max(), 1e-3)) if vals.size else None
-    fig, axes = plt.subplots(len(depths), len(diameters), figsize=(3.4 * len(diameters) + 1.2, 3.3 * len(depths)),
+    fig, axes = plt.subplots(len(depths), len(panels), figsize=(3.4 * len(panels) + 1.2, 3.3 * len(depths)),
                              squeeze=False, layout="constrained")
     sc = None
     base = scene.chamber.base_radius * 1e3
     for row, depth in zip(axes, depths):
-        for ax, d in zip(row, diameters):
+        for ax, d in zip(row, panels):
             sel = np.isclose(c[across], d) & np.isclose(c["depth"], depth)
             ok = sel & np.isfinite(c[column])
             ax.add_patch(Circle((0, 0), base, fill=False, color="0.6"))

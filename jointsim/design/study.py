@@ -284,6 +284,11 @@ class DesignBounds:
     def __len__(self) -> int:
         return len(self.columns["depth"])
 
+    @property
+    def quantities(self) -> tuple[str, ...]:
+        """What the table bounds: position, depth, diameter, and a soft target's modulus."""
+        return _quantities(self.columns)
+
 
 def design_bounds(study: str | Path | Records, scene: Scene, *, snr_db: float | None = None, reference_frames: int = 50,
                   hold_frames: int = 1) -> DesignBounds:
