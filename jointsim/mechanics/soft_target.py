@@ -481,18 +481,19 @@ class SoftTargetModel(MembraneModel):
           s³ W(u/s) (F = I + ∇u/s over s³ the volume), its gradient s² ∇W(u/s);
         - the modulus scales the target's energy: ∂g/∂ln E is its elastic gradient.
 
-        The first two by central differences over ``rel_step`` × R of the contact's true
-        gradient (:meth:`~.surface_contact.SurfaceContact.fresh_gradient`: closest points and
-        normals chosen afresh on either side)."""
+        The first two by central differences over ``rel_step`` × R of the contact's gradient
+        with each slave on its triangle at ``u``, its closest point and normal taken afresh on
+        either side (:meth:`~.surface_contact.SurfaceContact.held_gradient`)."""
         u = np.asarray(u, float)
         ct, nm = self.contact, self.n_membrane
         centre, R = ct.centre.copy(), ct.radius
+        tri = ct.surface.assignment(u)
         out = np.zeros((u.size, 5))
         h = rel_step * R
 
         def gradient(c: np.ndarray, s: float) -> np.ndarray:
             ct.place(c, s)
-            g = ct.surface.fresh_gradient(u)
+            g = ct.surface.held_gradient(u, tri)
             if s != 1.0:
                 g[3 * nm:] += s * s * self.target.elastic.evaluate(u[nm:] / s, False)[1]
             return g
@@ -514,7 +515,8 @@ class SoftTargetModel(MembraneModel):
         slide and turn as the bodies move (measured: 16 % of the membrane's response to a
         sideways move, 6.5 % of its response to the target's modulus; tests/test_soft_target.py).
         H·v is Newton's Hessian with its
-        contact part replaced by a central difference of the contact's true gradient along v;
+        contact part replaced by a central difference along v of the contact's gradient with
+        each slave on its triangle at the equilibrium (:meth:`~.surface_contact.SurfaceContact.held_gradient`);
         the system is solved by GMRES preconditioned with Newton's factorised Hessian, to
         ``rtol`` (the differenced contact is linear to ~1e-7). Differences of re-solved
         equilibria average the slaves' switches between facets over their step: on the axis of
@@ -535,14 +537,15 @@ class SoftTargetModel(MembraneModel):
         H = self.coupled.evaluate(u, True)[2]
         Hc = surface.evaluate(u, True)[2]
         base = (H - Hc)[free][:, free].tocsr()
-        step = 1e-4 * max(self.contact.penetration(u), 1e-9)  # m: far inside every slave's facet
+        step = 1e-4 * max(self.contact.penetration(u), 1e-9)  # m: far below the contact's scale
+        tri = surface.assignment(u)
 
         def tangent(v: np.ndarray) -> np.ndarray:
             w = np.zeros(u.size)
             w[free] = v
             eps = step / max(float(np.abs(w).max()), 1e-300)
             w = w.reshape(u.shape)
-            dc = (surface.fresh_gradient(u + eps * w) - surface.fresh_gradient(u - eps * w)) / (2 * eps)
+            dc = (surface.held_gradient(u + eps * w, tri) - surface.held_gradient(u - eps * w, tri)) / (2 * eps)
             return base @ v + dc[free]
 
         n = len(free)

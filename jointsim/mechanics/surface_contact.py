@@ -254,17 +254,26 @@ class SurfaceContact:
         cols = np.tile(dof, (1, 12)).ravel()
         return sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(self._n, self._n))
 
-    def fresh_gradient(self, u: np.ndarray) -> np.ndarray:
-        """The gradient (3n,) with each slave's closest triangle, λ and normal chosen at ``u``
-        (not lagged; a pinned slave kept on its triangle, as Newton's equilibrium has it; the
-        lag, its history and the pins left as they were): the energy's gradient whose
-        derivative along a move includes the normals' rotation and the closest points'
-        sliding, which the lagged Hessian leaves out."""
-        kept = self._lagged
+    def assignment(self, u: np.ndarray) -> np.ndarray:
+        """Each slave's triangle (k,) at ``u`` (−1: none), a pinned slave's held as Newton holds
+        it (:meth:`lag`), the lag, its history and the pins left as they were."""
         tri, lam, nrm, _ = self._choose(u, self.cand_s, self.cand_t)
         if self._seen:
             self._hold_pinned(u, tri, lam, nrm)
-        self._lagged = self._frozen(tri, lam, nrm)
+        return tri
+
+    def held_gradient(self, u: np.ndarray, tri: np.ndarray) -> np.ndarray:
+        """The gradient (3n,) with each slave on its triangle of ``tri`` (:meth:`assignment`),
+        its closest point λ and the triangle's normal taken at ``u`` (not lagged): smooth in
+        the positions while the assignment holds, so a difference of it along a move is the
+        energy's tangent with the normals' turning and the closest points' sliding, which
+        Newton's lagged Hessian leaves out. A difference that let slaves change triangles
+        within its step would add their jumps over the step (on a symmetric press, a ring of
+        slaves on facet edges: GMRES then diverged)."""
+        kept = self._lagged
+        s = np.flatnonzero(tri >= 0)
+        t2, lam, nrm, _ = self._choose(u, s, tri[s])
+        self._lagged = self._frozen(t2, lam, nrm)
         try:
             return self.evaluate(u, False)[1]
         finally:
