@@ -75,7 +75,7 @@ SNR_CEILING = 160.0
 
 
 def required_snr(study: Path | Records, scene: Scene, goals: dict[str, float], kind: str = "marginal",
-                 lo: float = 0.0, hi: float = SNR_CEILING, resolution: float = 0.5, **frames: int) -> dict[str, float]:
+                 lo: float = 0.0, hi: float = SNR_CEILING, resolution: float = 0.1, **frames: int) -> dict[str, float]:
     """For each quantity of ``goals`` (m), the lowest SNR dB (to ``resolution``, within [``lo``,
     ``hi``]) at which the efficient estimator's median error (median over the presses) is
     within its goal, by bisection (the bounds fall as the SNR rises); ``lo`` where it is met
