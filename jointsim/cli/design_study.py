@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     if len(set(names)) != len(names):
         raise ValueError(f"scenes: two designs share a name ({names}); give each scene its own name")
     command = "jointsim design-study " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["design-study"] else "jointsim design-study"
-    rows, needed, timings, where, joint = [], {}, {}, {}, {}
+    rows, needed, timings, where, joint, joint_moduli = [], {}, {}, {}, {}, {}
     for path, scene, plan in scenes:
         n = len(plan_presses(scene, plan))
         print(f"jointsim design-study: {scene.name} (mesh {scene.mesh.preset}, membrane refined {plan.contact_levels}x about "
@@ -123,13 +123,15 @@ def run(args: argparse.Namespace) -> int:
         written, summaries, where[scene.name] = write_design(args.out / scene.name, scene, study, snrs, **frames)
         rows += summaries
         needed[scene.name] = required_snr(study, scene, goals_of(where[scene.name]), **frames)
-        joint[scene.name] = summarise(scene.name, press_joint_bounds(study, scene, **frames))
+        jb = press_joint_bounds(study, scene, **frames)
+        joint[scene.name] = summarise(scene.name, jb)
+        joint_moduli[scene.name] = [(f"E {e * 1e-3:g} kPa", summarise(scene.name, jb, modulus=e)) for e in plan.target_moduli]
         s = summaries[0][0]
         print(f"  at {s.snr_db:g} dB, efficient median error (nuisances marginalised): position "
               f"{s.median['position_marginal'] * 1e3:.3g} mm, depth {s.median['depth_marginal'] * 1e3:.3g} mm, "
               f"diameter {s.median['diameter_marginal'] * 1e3:.3g} mm ({s.reached}/{s.presses} reached)")
     est = None if args.estimators is None else (scenes[0][1].name, args.estimators)
     written = write_comparison(args.out, rows, needed, command, timings, est, where,
-                               {scene.name: plan.contact_levels for _, scene, plan in scenes}, joint)
+                               {scene.name: plan.contact_levels for _, scene, plan in scenes}, joint, joint_moduli)
     print(f"  wrote {written[0]}")
     return 0

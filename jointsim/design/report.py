@@ -252,7 +252,8 @@ def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[st
                      timings: dict[str, tuple[np.ndarray, float, int, int, str]] | None = None,
                      estimators: tuple[str, Path] | None = None,
                      where: dict[str, DesignBounds] | None = None, refined: dict[str, int] | None = None,
-                     joint: dict[str, Summary] | None = None) -> list[Path]:
+                     joint: dict[str, Summary] | None = None,
+                     joint_moduli: dict[str, list[tuple[str, Summary]]] | None = None) -> list[Path]:
     """``out``/summary.md and summary.csv: the designs side by side (``rows``: a summary and
     what it covers), the SNR each needs to meet each goal (``needed``[design][quantity]), what
     each design cost (``timings``[design]: the stored press times s, and this run's wall s,
@@ -260,7 +261,8 @@ def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[st
     bound (``estimators``: the design's name and the calibration's goals.csv); ``refined``[design]:
     how many times its membrane was refined about each press's contact; ``joint``[design]: the
     summary of its presses' frames read together (:func:`~.study.press_joint_bounds`), which a
-    calibration's per-press route is set beside."""
+    calibration's per-press route is set beside; ``joint_moduli``[design]: the same per soft
+    target's modulus (what, summary)."""
     lines = ["# Design study: what each design can measure", "", f"Command: `{command}`", "",
              "Cramér–Rao bounds through the coupled model (jointsim.design): an unbiased estimator's error cannot be "
              "smaller. *median*: over the presses (target centres × depths) of an efficient estimator's median |error|; "
@@ -322,11 +324,15 @@ def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[st
             one = _over_all(rows, design)
             lines.append(f"| {design} | " + " | ".join(f"{_mm(one.median[f'{q}_marginal'])} / {_mm(j.median[f'{q}_marginal'])}"
                                                       for q in QUANTITIES) + " |")
-        soft_joint = {d: j for d, j in joint.items() if "modulus_marginal" in j.median}
+        soft_joint = [(d, what, j) for d, js in (joint_moduli or {}).items() for what, j in js]
         if soft_joint:
-            lines += ["", "A soft target's modulus, one frame / the press (its modulus shared by the frames): "
-                      + "; ".join(f"{d} {_pct(_over_all(rows, d).median['modulus_marginal'])} / "
-                                  f"{_pct(j.median['modulus_marginal'])} %" for d, j in soft_joint.items()) + "."]
+            lines += ["", "A soft target's modulus (its relative error, %), one frame / the press (its modulus shared by "
+                      "the frames), nuisances known and marginalised:", "",
+                      "| design | one frame: known / marg. | the press: known / marg. |", "|---|---|---|"]
+            for d, what, j in soft_joint:
+                one = next(s for s, w in rows if s.design == d and w == what)
+                lines.append(f"| {d} ({what}) | {_pct(one.median['modulus_known'])} / {_pct(one.median['modulus_marginal'])} | "
+                             f"{_pct(j.median['modulus_known'])} / {_pct(j.median['modulus_marginal'])} |")
     if estimators is not None:
         design, goals = estimators
         base = _over_all(rows, design)
