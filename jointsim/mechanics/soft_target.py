@@ -514,15 +514,15 @@ class SoftTargetModel(MembraneModel):
         contact Hessian keeps each slave's closest triangle and normal, so it misses how they
         slide and turn as the bodies move (measured: 16 % of the membrane's response to a
         sideways move, 6.5 % of its response to the target's modulus; tests/test_soft_target.py).
-        H·v is Newton's Hessian with its
-        contact part replaced by a central difference along v of the contact's gradient with
-        each slave on its triangle at the equilibrium (:meth:`~.surface_contact.SurfaceContact.held_gradient`);
-        the system is solved by GMRES preconditioned with Newton's factorised Hessian, to
+        H·v is Newton's Hessian with its contact part replaced by a central difference along v
+        of the contact's gradient with each slave on its triangle at the equilibrium
+        (:meth:`~.surface_contact.SurfaceContact.held_gradient`); the system is solved by
+        GMRES preconditioned with Newton's factorised Hessian, to
         ``rtol`` (the differenced contact is linear to ~1e-7). Differences of re-solved
         equilibria average the slaves' switches between facets over their step: on the axis of
         a coarse membrane (32 rim vertices), where a ring of slaves sits on facet edges, they
-        differ from this derivative by 4 % (off the axis: 0.02–0.2 %). Raises NewtonError where that Hessian is not positive definite or GMRES does
-        not converge."""
+        differ from this derivative by 4 % (off the axis: 0.02–0.2 %). Raises NewtonError
+        where that Hessian is not positive definite or GMRES does not converge."""
         from scipy.sparse.linalg import LinearOperator, gmres
 
         u = self.u
