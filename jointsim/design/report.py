@@ -27,7 +27,7 @@ QUANTITIES = ("position", "depth", "diameter")
 
 def goals_of(b: "DesignBounds") -> dict[str, float]:
     """The goals a study is held to: :data:`GOALS`, and :data:`MODULUS_GOAL` where its targets are soft."""
-    return {**GOALS, "modulus": MODULUS_GOAL} if "target_modulus" in b.columns else dict(GOALS)
+    return {**GOALS, "modulus": MODULUS_GOAL} if "modulus" in b.quantities else dict(GOALS)
 
 
 @dataclass(frozen=True)

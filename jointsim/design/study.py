@@ -89,11 +89,12 @@ def press_grid(r_max: float, spacing: float, ray: bool = False) -> np.ndarray:
     """Target centres (n, 2) m: the axis and rings i·``spacing`` ≤ ``r_max``, each with
     round(2π r / spacing) points (about ``spacing`` apart), alternate rings turned by half a
     pitch; or with ``ray`` one point per ring, on the +x axis."""
+    rings = int(math.floor(r_max / spacing + 1e-9))
     if ray:
-        r = spacing * np.arange(int(math.floor(r_max / spacing + 1e-9)) + 1)
+        r = spacing * np.arange(rings + 1)
         return np.column_stack([r, np.zeros_like(r)])
     pts = [np.zeros((1, 2))]
-    for i in range(1, int(math.floor(r_max / spacing + 1e-9)) + 1):
+    for i in range(1, rings + 1):
         r = i * spacing
         n = max(6, round(2 * math.pi * r / spacing))
         a = 2 * math.pi * (np.arange(n) + 0.5 * (i % 2)) / n

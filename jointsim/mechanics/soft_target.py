@@ -529,12 +529,13 @@ class SoftTargetModel(MembraneModel):
         dg = np.asarray(dg, float).reshape(u.size, -1)
         self._system(u)  # none yet on a model that has not pressed
         self.system.context = self.factor_context()
-        self.system.factor_tangent(self.terms, u)
-        if not self.system.tangent_ready:
+        # one assembly: Newton's Hessian, factorised as factor_tangent would, and less its
+        # contact part the tangent's base
+        H = self.coupled.evaluate(u, True)[2]
+        if not self.system.factor_hessian(self.system.data([H]), u):
             raise NewtonError("equilibrium_derivative: the Hessian is not positive definite at this equilibrium")
         free = np.flatnonzero(~self.fixed.ravel())
         surface = self.contact.surface
-        H = self.coupled.evaluate(u, True)[2]
         Hc = surface.evaluate(u, True)[2]
         base = (H - Hc)[free][:, free].tocsr()
         step = 1e-4 * max(self.contact.penetration(u), 1e-9)  # m: far below the contact's scale
