@@ -17,7 +17,7 @@ import trimesh
 from ._surface import SurfaceFile, top_height
 from .scene import Chamber, Scene, read_surface, ring_positions
 
-__all__ = ["DomeSurface", "ElectrodeLayout", "symmetries", "cap_height", "chamber_cap", "user_dome", "user_surface", "spherical_cap", "isotropic_cap", "refine_near", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
+__all__ = ["DomeSurface", "ElectrodeLayout", "symmetries", "isometries", "cap_height", "chamber_cap", "user_dome", "user_surface", "spherical_cap", "isotropic_cap", "refine_near", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
 
 
 @dataclass(frozen=True)
@@ -105,6 +105,15 @@ def symmetries(layout: ElectrodeLayout, chamber: Chamber, max_order: int = 64, t
     in lines through it (the x and y axes, and through each electrode and midway between two),
     each as the permutation P of the electrodes it makes (electrode i goes to P[i]), by name
     ("turn 22.5 deg", "mirror 0 deg"). Positions match to ``tol`` × the base radius."""
+    return {name: P for name, (_, P) in isometries(layout, chamber, max_order, tol).items()}
+
+
+def isometries(layout: ElectrodeLayout, chamber: Chamber, max_order: int = 64, tol: float = 1e-9,
+               keep_reference: bool = True) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """:func:`symmetries` with each isometry's matrix: name → (the 2 × 2 orthogonal matrix
+    acting on base-plane points, the electrode permutation P). ``keep_reference=False``: the
+    reference electrode may move too (a floating reference, whose choice changes no
+    measurement)."""
     xy = layout.centres[:, :2]
     key = np.column_stack([layout.radii, layout.membrane, layout.face, np.nan_to_num(layout.centres[:, 2]) * layout.face])
     scale = tol * chamber.base_radius
@@ -114,7 +123,7 @@ def symmetries(layout: ElectrodeLayout, chamber: Chamber, max_order: int = 64, t
         moved = xy @ m.T
         d = np.linalg.norm(moved[:, None] - xy[None], axis=2) + 1e9 * (np.abs(key[:, None] - key[None]) > tol).any(axis=2)
         P = np.argmin(d, axis=1)
-        if d[np.arange(len(P)), P].max() > scale or len(set(P.tolist())) < len(P) or P[layout.ground] != layout.ground:
+        if d[np.arange(len(P)), P].max() > scale or len(set(P.tolist())) < len(P) or (keep_reference and P[layout.ground] != layout.ground):
             return None
         if outline is not None:  # the user's polygon onto itself
             q = outline @ m.T
@@ -124,20 +133,22 @@ def symmetries(layout: ElectrodeLayout, chamber: Chamber, max_order: int = 64, t
             return None  # a pad: only its two mirrors and the half turn
         return P
 
-    out: dict[str, np.ndarray] = {}
+    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for k in range(2, max_order + 1):
         t = 2 * np.pi / k
-        P = permutation(np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]))
+        m = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+        P = permutation(m)
         if P is not None:
-            out[f"turn {360 / k:g} deg"] = P
+            out[f"turn {360 / k:g} deg"] = m, P
     angles = {0.0, np.pi / 2} | {float(np.arctan2(y, x) % np.pi) for x, y in xy if np.hypot(x, y) > scale}
     ring = sorted(angles)
     angles |= {(a + b) / 2 for a, b in zip(ring, ring[1:] + [ring[0] + np.pi])}
     for a in sorted({round(a % np.pi, 12) for a in angles}):
         c, s_ = np.cos(2 * a), np.sin(2 * a)
-        P = permutation(np.array([[c, s_], [s_, -c]]))
+        m = np.array([[c, s_], [s_, -c]])
+        P = permutation(m)
         if P is not None:
-            out[f"mirror {np.degrees(a):.4g} deg"] = P
+            out[f"mirror {np.degrees(a):.4g} deg"] = m, P
     return out
 
 

@@ -45,6 +45,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ray", action="store_true",
                    help="target centres along the +x axis, --spacing-mm apart, instead of the polar grid (a survey for "
                         "costly presses: the soft ones)")
+    p.add_argument("--no-symmetry", dest="symmetric", action="store_false",
+                   help="press every centre of the grid (default: one per set of centres the design's symmetries, "
+                        "protocol included, map onto each other; the others take its bounds)")
     p.add_argument("--snr-db", default="", help="further SNRs to tabulate, comma-separated (the scene's is always)")
     p.add_argument("--workers", type=int, help="local worker processes (default: one per core)")
     p.add_argument("--estimators", type=Path, metavar="GOALS_CSV",
@@ -55,7 +58,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..design.report import goals_of, required_snr, summarise, write_comparison, write_design
     from ..design.sensitivity import unrefinable
-    from ..design.study import MAX_CONTACT_LEVELS, Plan, plan_presses, press_joint_bounds, run_design
+    from ..design.study import MAX_CONTACT_LEVELS, Plan, plan_presses, press_joint_bounds, press_layout, run_design
     from ..io.records import open_records
     from ..scene import MESH_PRESETS, load_scene, scene_toml
 
@@ -80,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
     moduli = float_list("--target-moduli-kpa", args.target_moduli_kpa, 0.0, 1e6) if args.target_moduli_kpa.strip() else ()
     plan = Plan(tuple(d * 1e-3 for d in diameters), tuple(d * 1e-3 for d in depths), args.spacing_mm * 1e-3,
                 None if args.r_max_mm is None else args.r_max_mm * 1e-3, hold_frames=args.hold_frames,
-                contact_levels=args.contact_levels, target_moduli=tuple(e * 1e3 for e in moduli), ray=args.ray)
+                contact_levels=args.contact_levels, target_moduli=tuple(e * 1e3 for e in moduli), ray=args.ray,
+                symmetric=args.symmetric)
     scenes = []
     for path in args.scenes:
         scene = load_scene(path)
@@ -97,11 +101,12 @@ def run(args: argparse.Namespace) -> int:
     if len(set(names)) != len(names):
         raise ValueError(f"scenes: two designs share a name ({names}); give each scene its own name")
     command = "jointsim design-study " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["design-study"] else "jointsim design-study"
-    rows, needed, timings, where, joint, joint_moduli = [], {}, {}, {}, {}, {}
+    rows, needed, timings, where, joint, joint_moduli, pressed = [], {}, {}, {}, {}, {}, {}
     for path, scene, plan in scenes:
-        n = len(plan_presses(scene, plan))
+        n, lay = len(plan_presses(scene, plan)), press_layout(scene, plan)
+        pressed[scene.name] = n, n * len(lay.grid) // len(lay.computed)
         print(f"jointsim design-study: {scene.name} (mesh {scene.mesh.preset}, membrane refined {plan.contact_levels}x about "
-              f"the contact), {n} presses x {len(depths)} depths")
+              f"the contact), {n} presses x {len(depths)} depths, standing for {pressed[scene.name][1]} by symmetry")
         todo = [0]  # presses this run computes (the rest were stored)
         t0 = time.perf_counter()
         with tqdm(total=n, unit="press", desc=f"design study {scene.name}", disable=progress_off(args)) as bar:
@@ -132,6 +137,6 @@ def run(args: argparse.Namespace) -> int:
               f"diameter {s.median['diameter_marginal'] * 1e3:.3g} mm ({s.reached}/{s.presses} reached)")
     est = None if args.estimators is None else (scenes[0][1].name, args.estimators)
     written = write_comparison(args.out, rows, needed, command, timings, est, where,
-                               {scene.name: plan.contact_levels for _, scene, plan in scenes}, joint, joint_moduli)
+                               {scene.name: plan.contact_levels for _, scene, plan in scenes}, joint, joint_moduli, pressed)
     print(f"  wrote {written[0]}")
     return 0

@@ -36,7 +36,7 @@ from .bounds import Bounds, fisher, joint_bounds, median_error, nuisance_prior, 
 from .sensitivity import (ELECTRODE_STEP, contact_membrane, electrode_moves, parameter_names, press_sensitivity,
                           TARGET_MODULUS, target_names, unrefinable)
 
-__all__ = ["Plan", "press_grid", "plan_presses", "design_schema", "run_design", "DesignBounds", "design_bounds",
+__all__ = ["Plan", "press_grid", "press_symmetries", "PressLayout", "press_layout", "orbits", "plan_presses", "design_schema", "run_design", "DesignBounds", "design_bounds",
            "press_joint_bounds"]
 
 SCHEMA_NAME, SCHEMA_VERSION = "design_sensitivity", 1
@@ -53,7 +53,10 @@ class Plan:
     0: the scene's membrane as meshed); ``target_moduli`` Pa: soft (neo-Hookean) spheres of
     each of these Young's moduli, whose modulus is then a target parameter too (none: rigid
     spheres); ``ray``: the target centres along the +x axis, ``spacing`` apart, instead of
-    the polar grid (a survey of costly presses, the soft ones)."""
+    the polar grid (a survey of costly presses, the soft ones); ``symmetric``: each ring of the
+    grid has a multiple of the design's order of symmetry of points, and only one press of each
+    set the sensor's symmetries map onto each other is computed (:func:`press_layout`; False:
+    every centre of the plain grid is pressed)."""
 
     diameters: tuple[float, ...] = (8e-3, 15e-3, 30e-3)
     depths: tuple[float, ...] = (1e-3, 2e-3, 3e-3)
@@ -64,6 +67,7 @@ class Plan:
     contact_levels: int = 0
     target_moduli: tuple[float, ...] = ()
     ray: bool = False
+    symmetric: bool = True
 
     def __post_init__(self) -> None:
         if not self.diameters or any(not d > 0 for d in self.diameters):
@@ -78,6 +82,8 @@ class Plan:
             raise ValueError(f"contact_levels = {self.contact_levels}: must be in 0..{MAX_CONTACT_LEVELS}")
         if any(not (math.isfinite(e) and e > 0) for e in self.target_moduli):
             raise ValueError(f"target_moduli = {self.target_moduli}: each > 0 Pa")
+        if self.ray:  # one centre per ring: no two are images of each other
+            object.__setattr__(self, "symmetric", False)
 
     def outer_radius(self, scene: Scene) -> float:
         if self.r_max is not None:
@@ -85,10 +91,13 @@ class Plan:
         return float(np.hypot(*electrode_layout(scene).centres[:, :2].T).max())
 
 
-def press_grid(r_max: float, spacing: float, ray: bool = False) -> np.ndarray:
-    """Target centres (n, 2) m: the axis and rings i·``spacing`` ≤ ``r_max``, each with
-    round(2π r / spacing) points (about ``spacing`` apart), alternate rings turned by half a
-    pitch; or with ``ray`` one point per ring, on the +x axis."""
+def press_grid(r_max: float, spacing: float, ray: bool = False, order: int = 1) -> np.ndarray:
+    """Target centres (n, 2) m: the axis and rings i·``spacing`` ≤ ``r_max``, each with the
+    multiple of ``order`` nearest 2π r / ``spacing`` points (about ``spacing`` apart; at least
+    6, or ``order``), alternate rings turned by half a pitch; or with ``ray`` one point per
+    ring, on the +x axis. A ring of k·``order`` points at a pitch offset of 0 or ½ is mapped onto
+    itself by the turns by 360°/``order`` and the mirrors in lines at multiples of
+    180°/``order`` (from the x axis)."""
     rings = int(math.floor(r_max / spacing + 1e-9))
     if ray:
         r = spacing * np.arange(rings + 1)
@@ -96,16 +105,92 @@ def press_grid(r_max: float, spacing: float, ray: bool = False) -> np.ndarray:
     pts = [np.zeros((1, 2))]
     for i in range(1, rings + 1):
         r = i * spacing
-        n = max(6, round(2 * math.pi * r / spacing))
+        n = order * max(math.ceil(6 / order), round(2 * math.pi * r / (spacing * order)))
         a = 2 * math.pi * (np.arange(n) + 0.5 * (i % 2)) / n
         pts.append(r * np.column_stack([np.cos(a), np.sin(a)]))
     return np.vstack(pts)
 
 
+def press_symmetries(scene: Scene) -> list[np.ndarray]:
+    """The 2 × 2 matrices of the isometries of ``scene``'s ideal sensor (its chamber's outline
+    and electrodes: :func:`~jointsim.geometry.isometries`) that map its protocol onto itself,
+    each injection and measurement up to its sign. A press moved by one reads the same channels,
+    permuted and signed, with the electrodes' nuisances permuted, whose priors are the same for
+    every electrode (:func:`~.bounds.nuisance_prior`): its bounds on position (RMS and median of
+    the contact point's error, which turn with it), depth, size and modulus are those of the
+    press it came from. A real chamber's mesh is not symmetric: pressed directly, a moved press
+    differs by the mesh's asymmetry (tests/test_design.py measures it)."""
+    from ..eit.protocol import Protocol, invariant, scene_protocol
+    from ..geometry import isometries
+
+    floating = not scene.electrodes.reference
+    protocol = scene_protocol(scene)
+    if floating:  # the patterns over every electrode: the solver's reference's column put back
+        protocol = Protocol(np.column_stack([protocol.stim, -protocol.stim.sum(axis=1)]),
+                            np.concatenate([protocol.meas, -protocol.meas.sum(axis=2, keepdims=True)], axis=2))
+    out = []
+    for m, P in isometries(electrode_layout(scene), scene.chamber, keep_reference=not floating).values():
+        if invariant(protocol, P if floating else P[: protocol.n_el]):  # a kept reference is last
+            out.append(m)
+    return out
+
+
+@dataclass(frozen=True)
+class PressLayout:
+    """Where a study presses: the target centres ``grid`` (n, 2) m, those ``computed`` (m,)
+    (indices into ``grid``), and for each centre j the computed press it is an image of,
+    ``source[j]`` (an index into ``computed``), and the isometry ``moves[j]`` (2, 2) with
+    grid[j] = moves[j] @ grid[computed[source[j]]]."""
+
+    grid: np.ndarray
+    computed: np.ndarray
+    source: np.ndarray
+    moves: np.ndarray
+
+
+def press_layout(scene: Scene, plan: Plan) -> PressLayout:
+    """The :class:`PressLayout` of ``plan`` on ``scene``: the polar grid (:func:`press_grid`),
+    with ``plan.symmetric`` of the largest order ≤ 6 (a ring's fewest points, so the rings stay
+    about ``spacing`` apart) that divides the design's (its finest turn among
+    :func:`press_symmetries`), reduced to one centre per orbit of those symmetries."""
+    mats = press_symmetries(scene) if plan.symmetric else []
+    turns = [abs(math.atan2(m[1, 0], m[0, 0])) for m in mats if np.linalg.det(m) > 0]
+    k = max((round(2 * math.pi / t) for t in turns if t > 1e-9), default=1)
+    order = max(q for q in range(1, 7) if k % q == 0)
+    r_max = plan.outer_radius(scene)
+    return orbits(press_grid(r_max, plan.spacing, plan.ray, order), mats, 1e-9 * max(r_max, plan.spacing))
+
+
+def orbits(points: np.ndarray, moves: list[np.ndarray], tol: float) -> PressLayout:
+    """``points`` (n, 2) split into the orbits of the group the matrices ``moves`` generate,
+    as far as they map points onto points (within ``tol``): each orbit's first point computed,
+    the others its images (:class:`PressLayout`)."""
+    n = len(points)
+    source, move = np.full(n, -1), np.zeros((n, 2, 2))
+    computed: list[int] = []
+    for j in range(n):
+        if source[j] >= 0:
+            continue
+        source[j], move[j] = len(computed), np.eye(2)
+        computed.append(j)
+        todo = [j]
+        while todo:  # every image of the orbit's points under each generator
+            a = todo.pop()
+            for m in moves:
+                d = np.linalg.norm(points - m @ points[a], axis=1)
+                k = int(np.argmin(d))
+                if d[k] <= tol and source[k] < 0:
+                    source[k], move[k] = source[j], m @ move[a]
+                    todo.append(k)
+    return PressLayout(np.asarray(points, float), np.asarray(computed, int), source, move)
+
+
 def plan_presses(scene: Scene, plan: Plan) -> list[tuple[float, np.ndarray, float | None]]:
     """The study's presses in record order: (diameter m, centre xy (2,) m, the soft target's
-    Young's modulus Pa or None for a rigid one), modulus-major, then diameter-major."""
-    xy = press_grid(plan.outer_radius(scene), plan.spacing, plan.ray)
+    Young's modulus Pa or None for a rigid one), modulus-major, then diameter-major, then the
+    computed centres of :func:`press_layout`."""
+    lay = press_layout(scene, plan)
+    xy = lay.grid[lay.computed]
     return [(float(d), p, e) for e in (plan.target_moduli or (None,)) for d in plan.diameters for p in xy]
 
 
@@ -219,11 +304,9 @@ def run_design(scene: Scene, plan: Plan, out: str | Path, *, workers: int | None
     soft = bool(plan.target_moduli)
     names = parameter_names(len(electrode_layout(scene).radii), soft)
     schema = design_schema(inst_meas, len(names), len(plan.depths), soft)
-    # what shapes the stored derivatives; not the frame counts, which the bounds take from the file
-    shape = ("diameters", "depths", "spacing", "r_max", "contact_levels", "target_moduli", "ray")
-    # a study without refinement or soft targets keeps the identity it had before either existed
+    # a study without refinement, soft targets or symmetry keeps the identity it had before they existed
     params = {"plan": {k: list(v) if isinstance(v, tuple) else v for k, v in plan.__dict__.items()
-                       if k in shape and not (k in ("contact_levels", "target_moduli", "ray") and not v)},
+                       if k in _SHAPE and not (k in _LATER and not v)},
               "parameters": list(names), "scene_digest": scene.digest()}
     final = Path(out)
     final = final if final.suffix in (".h5", ".hdf5") else final.with_suffix(".h5")
@@ -232,7 +315,7 @@ def run_design(scene: Scene, plan: Plan, out: str | Path, *, workers: int | None
             rec = open_records(final, fields=["reached"], verify=True)
             stored = dict(rec.provenance["params"])
             # a store written when the frame counts were part of its plan is the same study
-            stored["plan"] = {k: v for k, v in stored.get("plan", {}).items() if k in shape}
+            stored["plan"] = {k: v for k, v in stored.get("plan", {}).items() if k in _SHAPE}
             if stored != params or len(rec) != n:
                 raise ValueError(f"{final} holds a design study with other settings; remove it (--overwrite), or write to another path")
             return final
@@ -257,6 +340,30 @@ def run_design(scene: Scene, plan: Plan, out: str | Path, *, workers: int | None
                 run_local(tasks, w, tick, _run_press)
         store.finalize(compression="gzip")
     return final
+
+
+# what shapes the stored derivatives (not the frame counts, which the bounds take from the file);
+# the later keys are stored only where set
+_SHAPE = ("diameters", "depths", "spacing", "r_max", "contact_levels", "target_moduli", "ray", "symmetric")
+_LATER = ("contact_levels", "target_moduli", "ray", "symmetric")
+
+
+def stored_plan(rec: Records) -> Plan:
+    """The :class:`Plan` a finished study was computed with (its frame counts the defaults)."""
+    p = {k: tuple(v) if isinstance(v, list) else v for k, v in rec.provenance["params"]["plan"].items() if k in _SHAPE}
+    return Plan(**{"symmetric": False, **p})
+
+
+def _rows(rec: Records, scene: Scene) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """(record, target centre (2,) m, isometry (2, 2) from the record's press) of each press of
+    the study's grid, in record order with each record's images in its place: a symmetric
+    study's table covers the whole grid."""
+    lay = press_layout(scene, stored_plan(rec))
+    m = len(lay.computed)
+    if len(rec) % m:
+        raise ValueError(f"{len(rec)} records do not fill the study's {m} computed centres per target")
+    return [(base + int(lay.source[j]), lay.grid[j], lay.moves[j]) for base in range(0, len(rec), m)
+            for j in range(len(lay.grid))]
 
 
 def _n_meas(scene: Scene) -> int:
@@ -306,17 +413,18 @@ def design_bounds(study: str | Path | Records, scene: Scene, *, snr_db: float | 
     scale = 10 ** ((scene.noise.snr_db - snr) / 20)
     prior = nuisance_prior(scene, names)
     cols = _columns(target_names(names))
-    for i in range(len(rec)):
-        reached = bool(rec["reached"][i])
+    bounds: dict[tuple[int, int], Bounds | None] = {}  # a record's, for each of its images
+    for i, xy, move in _rows(rec, scene):
         for k in range(len(plan["depths"])):
-            _press_row(cols, rec, i, k, plan["depths"][k])
-            b = None
-            if reached:
-                sigma = rec["noise_std"][i] * scale
-                F = fisher(rec["info_ref"][i], rec["info"][i][k], sigma, reference_frames=R, hold_frames=H)
-                b = press_bounds(F, prior, rec["contact_jacobian"][i][k])
+            _press_row(cols, rec, i, k, plan["depths"][k], xy, move)
+            if (i, k) not in bounds:
+                bounds[i, k] = None
+                if rec["reached"][i]:
+                    sigma = rec["noise_std"][i] * scale
+                    F = fisher(rec["info_ref"][i], rec["info"][i][k], sigma, reference_frames=R, hold_frames=H)
+                    bounds[i, k] = press_bounds(F, prior, rec["contact_jacobian"][i][k])
             for kind in ("known", "marginal"):
-                _bound_columns(cols, b, kind)
+                _bound_columns(cols, bounds[i, k], kind)
     return DesignBounds({k: np.asarray(v, float) for k, v in cols.items()}, snr)
 
 
@@ -334,15 +442,17 @@ def press_joint_bounds(study: str | Path | Records, scene: Scene, *, snr_db: flo
     scale = 10 ** ((scene.noise.snr_db - snr) / 20)
     prior = np.concatenate([nuisance_prior(scene, names), np.full(len(depths) - 1, np.inf)])
     cols = _columns(target_names(names))
-    for i in range(len(rec)):
-        _press_row(cols, rec, i, len(depths) - 1, depths[-1])
-        b = None
-        if rec["reached"][i]:
-            F = press_fisher(rec["info_ref"][i], rec["info"][i], rec["noise_std"][i] * scale,
-                             reference_frames=int(reference_frames), hold_frames=int(hold_frames))
-            b = joint_bounds(F, prior, rec["contact_jacobian"][i][-1])
+    bounds: dict[int, Bounds | None] = {}
+    for i, xy, move in _rows(rec, scene):
+        _press_row(cols, rec, i, len(depths) - 1, depths[-1], xy, move)
+        if i not in bounds:
+            bounds[i] = None
+            if rec["reached"][i]:
+                F = press_fisher(rec["info_ref"][i], rec["info"][i], rec["noise_std"][i] * scale,
+                                 reference_frames=int(reference_frames), hold_frames=int(hold_frames))
+                bounds[i] = joint_bounds(F, prior, rec["contact_jacobian"][i][-1])
         for kind in ("known", "marginal"):
-            _bound_columns(cols, b, kind)
+            _bound_columns(cols, bounds[i], kind)
     return DesignBounds({k: np.asarray(v, float) for k, v in cols.items()}, snr)
 
 
@@ -359,10 +469,12 @@ def _columns(target: tuple[str, ...]) -> dict[str, list]:
     return {n: [] for n in names}
 
 
-def _press_row(cols: dict[str, list], rec: Records, i: int, k: int, depth: float) -> None:
-    """Press ``i``'s size, centre and contact point at its depth ``k`` (``depth`` m) into ``cols``."""
-    c = rec["contact"][i][k]
-    for name, v in (("diameter", rec["diameter"][i]), ("x", rec["xy"][i][0]), ("y", rec["xy"][i][1]), ("contact_x", c[0]),
+def _press_row(cols: dict[str, list], rec: Records, i: int, k: int, depth: float, xy: np.ndarray,
+               move: np.ndarray) -> None:
+    """Record ``i``'s size and, moved by ``move`` to the target centre ``xy``, its contact point
+    at its depth ``k`` (``depth`` m) into ``cols``."""
+    c = move @ rec["contact"][i][k][:2]
+    for name, v in (("diameter", rec["diameter"][i]), ("x", xy[0]), ("y", xy[1]), ("contact_x", c[0]),
                     ("contact_y", c[1]), ("contact_r", math.hypot(c[0], c[1])), ("depth", depth)):
         cols[name].append(v)
     if "target_modulus" in cols:

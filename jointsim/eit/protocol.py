@@ -14,7 +14,7 @@ import numpy as np
 
 from ..scene import Scene
 
-__all__ = ["Protocol", "RingSymmetry", "ring_symmetries", "skip_protocol", "skip_pairs", "scene_protocol", "CHANNEL_ORDER"]
+__all__ = ["Protocol", "RingSymmetry", "ring_symmetries", "invariant", "skip_protocol", "skip_pairs", "scene_protocol", "CHANNEL_ORDER"]
 
 # how a frame's voltages are laid out, as stores record it beside the patterns
 CHANNEL_ORDER = "voltages[s * n_meas_per_stim + m] = measurement m of injection s (injection-major; EIDORS meas_pattern rows)"
@@ -180,6 +180,14 @@ def ring_symmetries(protocol: Protocol, first_angle_deg: float = 0.0) -> list[Ri
                 rot = rot @ np.array([[np.cos(b), np.sin(b)], [np.sin(b), -np.cos(b)]])
             out.append(RingSymmetry(turn, mirror, *read, rot))
     return out
+
+
+def invariant(protocol: Protocol, image: np.ndarray) -> bool:
+    """Whether the electrode map ``image`` (electrode e to ``image[e]``, a permutation of the
+    protocol's electrodes) maps ``protocol``'s injections and measurements onto themselves,
+    each up to its sign: then a frame moved by it is a permutation of a frame's channels, with
+    signs."""
+    return _read_through(protocol, np.asarray(image, int)) is not None
 
 
 def _read_through(protocol: Protocol, image: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
