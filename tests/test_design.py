@@ -192,14 +192,22 @@ def test_design_study_command_end_to_end(tmp_path, capsys):
     one line naming the flag."""
     out = tmp_path / "ds"
     args = ["design-study", "--mesh", "test", "--diameters-mm", "15", "--depths-mm", "1.5", "--spacing-mm", "4",
-            "--r-max-mm", "0", "--workers", "1", "--out", str(out)]
+            "--r-max-mm", "0", "--contact-levels", "2", "--workers", "1", "--out", str(out)]
     assert main(args) == 0
     for f in ("summary.md", "summary.csv", "paper_sensor/bounds.csv", "paper_sensor/position_bound.png",
               "paper_sensor/sensitivities.h5"):
         assert (out / f).exists(), f
     text = (out / "summary.md").read_text()
     assert "| paper_sensor (all) | 74.2 | 1 | 1 |" in text
-    assert "refined about its contact" in text and "paper_sensor 2×" in text  # the default
+    assert "refined about its contact" in text and "paper_sensor 2×" in text
+    import argparse
+
+    from jointsim.cli.design_study import add_arguments
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    defaults = parser.parse_args([])
+    assert defaults.contact_levels == 3 and defaults.symmetric  # where the size derivative converged
     assert "| paper_sensor (15 mm) | 74.2 | 1 | 1 |" in text and "| paper_sensor (1.5 mm deep) | 74.2 | 1 | 1 |" in text
     rows = (out / "paper_sensor" / "bounds.csv").read_text().splitlines()
     assert len(rows) == 2 and rows[0].startswith("diameter_mm,x_mm")

@@ -31,12 +31,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--diameters-mm", default="8,15,30", help="target sphere diameters (default 8,15,30: the paper's)")
     p.add_argument("--depths-mm", default="1,2,3", help="depths past first contact, increasing (default 1,2,3)")
     p.add_argument("--spacing-mm", type=float, default=6.0,
-                   help="spacing of the polar grid of target centres (default 6: 60 presses on the paper's sensor, ~15 min on 2 cores)")
+                   help="spacing of the polar grid of target centres (default 6: 21 centres x 3 sizes on the paper's sensor, "
+                        "4 centres computed by its symmetry)")
     p.add_argument("--r-max-mm", type=float, help="grid radius (default: the outermost electrode's centre)")
     p.add_argument("--hold-frames", type=int, default=1, help="frames averaged per press (default 1)")
-    p.add_argument("--contact-levels", type=int, default=2,
-                   help="read each press through a membrane this many times finer about its contact (default 2; 0: the "
-                        "scene's membrane as meshed, whose coarse contact makes size bounds optimistic). A round dome "
+    p.add_argument("--contact-levels", type=int, default=3,
+                   help="read each press through a membrane this many times finer about its contact (default 3: "
+                        "0.25 mm edges there on a 64-rim membrane, where the size derivative has converged; 2 is ~4x "
+                        "cheaper and its on-axis size bounds up to a third optimistic; 0: the scene's membrane as "
+                        "meshed, whose coarse contact makes size bounds optimistic). A round dome "
                         "moulded as a cap only: other designs are read at 0, and said so")
     p.add_argument("--target-moduli-kpa", default="",
                    help="press soft (neo-Hookean) spheres of these Young's moduli, comma-separated, instead of rigid "
