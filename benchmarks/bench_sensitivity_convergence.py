@@ -4,6 +4,7 @@ difference step, and what that does to the size bound.
 
     python benchmarks/bench_sensitivity_convergence.py   # writes results/design_study/convergence.{md,json}
     python benchmarks/bench_sensitivity_convergence.py --report-only   # the .md again from the .json
+    python benchmarks/bench_sensitivity_convergence.py --finer   # adds the 8 mm sphere at 0.125 mm to the .json
 
 Presses: spheres of 8, 15 and 30 mm diameter on the axis and at (6, 3) mm, 1 and 2 mm past first
 contact, on the paper's sensor. Cases (chamber mesh preset / membrane rim vertices / levels of
@@ -13,6 +14,10 @@ refinement about the contact / probe µm): the dataset preset's membrane (64 rim
 with a 5 µm probe instead of 10. Per press and target parameter (x, y, depth, radius at fixed
 depth): the relative change ‖J_a − J_b‖/‖J_b‖ of its column against the finest case
 (dataset/64/3/10), and the diameter's Cramér–Rao bound (nuisances known, 74.2 dB) in each case.
+
+``--finer``: the smallest sphere (8 mm, whose contact is the fewest nodes) a level further,
+0.125 mm at the contact two ways (64 rim vertices refined 4 times, 128 refined 3 times), against
+which the three levels the design study reads at are measured.
 """
 
 from __future__ import annotations
@@ -42,16 +47,20 @@ DEPTHS = (1e-3, 2e-3)
 CASES = (("dataset", 64, 0, 10e-6), ("dataset", 64, 1, 10e-6), ("dataset", 64, 2, 10e-6), ("dataset", 64, 2, 5e-6),
          ("dataset", 128, 2, 10e-6), ("paper", 64, 2, 10e-6), ("dataset", 64, 3, 10e-6))
 REFERENCE = "dataset/64/3/10"
+FINER = (("dataset", 64, 4, 10e-6), ("dataset", 128, 3, 10e-6))  # the 8 mm sphere only
+FINER_PAIRS = (("dataset/64/3/10", "dataset/64/4/10", "three levels (the design study's default) against four"),
+               ("dataset/128/3/10", "dataset/64/4/10", "0.125 mm at the contact two ways (128 rim three times, 64 rim "
+                "four times)"))
 OUT = ROOT / "results" / "design_study"
 
 
-def run_case(preset: str, rim: int, levels: int, probe: float) -> dict:
+def run_case(preset: str, rim: int, levels: int, probe: float, diameters: tuple[float, ...] = DIAMETERS) -> dict:
     scene = load_scene(SCENES_DIR / "paper_sensor.toml").with_mesh_preset(preset)
     scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=rim))
     t0 = time.perf_counter()
     inst = Instrument.build(scene, imaging=False)
-    out = {"setup_s": time.perf_counter() - t0, "presses": []}
-    for d in DIAMETERS:
+    out = {"setup_s": time.perf_counter() - t0, "presses": [], "machine": machine()}
+    for d in diameters:
         for xy in POSITIONS:
             t = time.perf_counter()
             model = contact_membrane(scene, d / 2, np.array(xy), max(DEPTHS), levels)
@@ -80,21 +89,40 @@ PAIRS = (("dataset/64/2/5", "dataset/64/2/10", "the probe, 5 against 10 µm"),
 
 
 def pair_changes(results: dict, a: str, b: str) -> tuple[np.ndarray, np.ndarray]:
-    """(largest, median) over the presses and depths of ‖J_a − J_b‖/‖J_b‖ per target column."""
+    """(largest, median) over the presses both cases hold and their depths of ‖J_a − J_b‖/‖J_b‖
+    per target column."""
     rel = []
-    for pa, pb in zip(results[a]["presses"], results[b]["presses"]):
+    for pb in results[b]["presses"]:
+        pa = next(p for p in results[a]["presses"] if p["diameter"] == pb["diameter"] and p["xy"] == pb["xy"])
         Ja, Jb = np.asarray(pa["target_jacobian"]), np.asarray(pb["target_jacobian"])
         rel += list(np.linalg.norm(Ja - Jb, axis=1) / np.linalg.norm(Jb, axis=1))
     return np.max(rel, axis=0), np.median(rel, axis=0)
 
 
+def _machine_of(results: dict) -> str:
+    """The machine the cases ran on: stored with each case (cases from before it was stored: the
+    one the report named)."""
+    stored = next((r["machine"] for r in results.values() if "machine" in r), None)
+    if stored is None and (OUT / "convergence.md").exists():
+        stored = next((ln.split("Machine: ", 1)[1].strip() for ln in (OUT / "convergence.md").read_text().splitlines()
+                       if ln.startswith("Machine: ")), None)
+    return stored or machine()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--report-only", action="store_true", help="rewrite convergence.md from the stored convergence.json")
+    ap.add_argument("--finer", action="store_true", help="add the 8 mm sphere at 0.125 mm at the contact to the stored .json")
     args = ap.parse_args()
-    if args.report_only:
+    if args.report_only or args.finer:
         results = json.loads((OUT / "convergence.json").read_text())
+        finer = results.pop("finer", {})
+        for preset, rim, levels, probe in FINER if args.finer else ():
+            key = f"{preset}/{rim}/{levels}/{probe * 1e6:g}"
+            print("case", key, flush=True)
+            finer[key] = run_case(preset, rim, levels, probe, DIAMETERS[:1])
     else:
+        finer = {}
         results = {}
         for preset, rim, levels, probe in CASES:
             key = f"{preset}/{rim}/{levels}/{probe * 1e6:g}"
@@ -102,7 +130,7 @@ def main() -> None:
             results[key] = run_case(preset, rim, levels, probe)
     ref = REFERENCE
     lines = ["# Convergence of the press derivatives (jointsim.design.sensitivity)", "",
-             "Command: `python benchmarks/bench_sensitivity_convergence.py`  ", f"Machine: {machine()}", "",
+             "Command: `python benchmarks/bench_sensitivity_convergence.py`  ", f"Machine: {_machine_of(results)}", "",
              "Cases: chamber mesh preset / membrane rim vertices / levels of refinement about the contact / probe µm. "
              f"Relative change of each target column of ∂V/∂θ against `{ref}` (the finest membrane, same chamber), "
              "per press and depth; the last columns "
@@ -135,12 +163,30 @@ def main() -> None:
         big, med = pair_changes(results, a, b)
         lines.append(f"- `{a}` against `{b}` ({what}): " + ", ".join(
             f"{n} {100 * w:.2g} / {100 * m:.2g} %" for n, w, m in zip(TARGET, big, med)))
+    if finer:
+        both = {**results, **finer}
+        lines += ["", "The 8 mm sphere a level finer (on the axis and at (6, 3) mm, 1 and 2 mm deep; largest / median "
+                  "change, x, y, depth, radius; `python benchmarks/bench_sensitivity_convergence.py --finer`):", ""]
+        for a, b, what in FINER_PAIRS:
+            big, med = pair_changes(both, a, b)
+            lines.append(f"- `{a}` against `{b}` ({what}): " + ", ".join(
+                f"{n} {100 * w:.2g} / {100 * m:.2g} %" for n, w, m in zip(TARGET, big, med)))
+        lines += ["", "Their diameter bounds (mm, nuisances known), per press and depth: " + "; ".join(
+            f"{p['diameter'] * 1e3:g} mm at {tuple(round(v * 1e3, 1) for v in p['xy'])} mm: "
+            + ", ".join(f"`{c}` " + "/".join(f"{x * 1e3:.3g}" for x in next(
+                q for q in both[c]["presses"] if q["xy"] == p["xy"] and q["diameter"] == p["diameter"])["diameter_bound_known"])
+                for c in ("dataset/64/3/10", *finer))
+            for p in next(iter(finer.values()))["presses"])]
     lines += ["", "Time per press (2 depths' derivatives, the refined membrane built, s) and the membrane's nodes (mean): " + ", ".join(
-        f"`{c}` {np.mean([p['seconds'] for p in results[c]['presses']]):.1f} s, "
-        f"{np.mean([p['membrane_nodes'] for p in results[c]['presses']]):.0f}" for c in cases)]
+        f"`{c}` {np.mean([p['seconds'] for p in r['presses']]):.1f} s, "
+        f"{np.mean([p['membrane_nodes'] for p in r['presses']]):.0f}" for c, r in results.items())]
+    if finer:
+        lines += ["", f"The finer cases ran on {_machine_of(finer)}: " + ", ".join(
+            f"`{c}` {np.mean([p['seconds'] for p in r['presses']]):.1f} s, "
+            f"{np.mean([p['membrane_nodes'] for p in r['presses']]):.0f}" for c, r in finer.items())]
     OUT.mkdir(parents=True, exist_ok=True)
     if not args.report_only:
-        atomic_write(OUT / "convergence.json", json.dumps(results))
+        atomic_write(OUT / "convergence.json", json.dumps({**results, **({"finer": finer} if finer else {})}))
     atomic_write(OUT / "convergence.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 
