@@ -15,6 +15,10 @@ with a 5 µm probe instead of 10. Per press and target parameter (x, y, depth, r
 depth): the relative change ‖J_a − J_b‖/‖J_b‖ of its column against the finest case
 (dataset/64/3/10), and the diameter's Cramér–Rao bound (nuisances known, 74.2 dB) in each case.
 
+``--soft``: a soft (neo-Hookean) 15 mm sphere of 300 kPa at (6, 0) mm, 1 and 2 mm deep, refined
+1, 2 and 3 times about the contact and on the paper preset's chamber: how its modulus column
+(ln E) and the modulus bound converge.
+
 ``--finer``: the smallest sphere (8 mm, whose contact is the fewest nodes) a level further,
 0.125 mm at the contact two ways (64 rim vertices refined 4 times, 128 refined 3 times), against
 which the three levels the design study reads at are measured.
@@ -37,7 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from jointsim.design.bounds import fisher, nuisance_prior, press_bounds  # noqa: E402
-from jointsim.design.sensitivity import TARGET, contact_membrane, press_sensitivity  # noqa: E402
+from jointsim.design.sensitivity import TARGET, TARGET_MODULUS, contact_membrane, press_sensitivity, target_names  # noqa: E402
 from jointsim.instrument import Instrument  # noqa: E402
 from jointsim.scene import SCENES_DIR, load_scene  # noqa: E402
 
@@ -51,19 +55,27 @@ FINER = (("dataset", 64, 4, 10e-6), ("dataset", 128, 3, 10e-6))  # the 8 mm sphe
 FINER_PAIRS = (("dataset/64/3/10", "dataset/64/4/10", "three levels (the design study's default) against four"),
                ("dataset/128/3/10", "dataset/64/4/10", "0.125 mm at the contact two ways (128 rim three times, 64 rim "
                 "four times)"))
+SOFT = (("dataset", 64, 1, 10e-6), ("dataset", 64, 2, 10e-6), ("paper", 64, 2, 10e-6), ("dataset", 64, 3, 10e-6))
+SOFT_PRESS = (15e-3, (6e-3, 0.0), 3e5)  # diameter m, centre m, Young's modulus Pa
+SOFT_PAIRS = (("dataset/64/1/10", "dataset/64/2/10", "one level against two"),
+              ("dataset/64/2/10", "dataset/64/3/10", "two levels (the soft study's) against three"),
+              ("paper/64/2/10", "dataset/64/2/10", "the chamber mesh, paper against dataset preset"))
 OUT = ROOT / "results" / "design_study"
 
 
-def run_case(preset: str, rim: int, levels: int, probe: float, diameters: tuple[float, ...] = DIAMETERS) -> dict:
+def run_case(preset: str, rim: int, levels: int, probe: float, diameters: tuple[float, ...] = DIAMETERS,
+             positions: tuple = POSITIONS, modulus: float | None = None) -> dict:
+    """Each press of ``diameters`` × ``positions`` (rigid, or soft of Young's ``modulus`` Pa)
+    through DEPTHS: its target columns of ∂V/∂θ and its diameter (and modulus) bounds."""
     scene = load_scene(SCENES_DIR / "paper_sensor.toml").with_mesh_preset(preset)
     scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=rim))
     t0 = time.perf_counter()
     inst = Instrument.build(scene, imaging=False)
     out = {"setup_s": time.perf_counter() - t0, "presses": [], "machine": machine()}
     for d in diameters:
-        for xy in POSITIONS:
+        for xy in positions:
             t = time.perf_counter()
-            model = contact_membrane(scene, d / 2, np.array(xy), max(DEPTHS), levels)
+            model = contact_membrane(scene, d / 2, np.array(xy), max(DEPTHS), levels, modulus)
             on = inst.on_membrane(model)
             ps = press_sensitivity(on, model, np.array(xy), np.array(DEPTHS), probe=probe)
             prior = nuisance_prior(scene, ps.names)
@@ -71,10 +83,14 @@ def run_case(preset: str, rim: int, levels: int, probe: float, diameters: tuple[
             for k in range(len(DEPTHS)):
                 J = ps.jacobian[k]
                 F = fisher(ps.jacobian_ref.T @ ps.jacobian_ref, J.T @ J, ps.noise_std, reference_frames=50)
-                bounds.append(press_bounds(F, prior, ps.contact_jacobian[k]).rms("known")["diameter"])
-            out["presses"].append({"diameter": d, "xy": list(xy), "target_jacobian": ps.jacobian[:, :, :4].tolist(),
-                                   "diameter_bound_known": bounds, "seconds": time.perf_counter() - t,
-                                   "membrane_nodes": int(model.mesh.n_nodes)})
+                bounds.append(press_bounds(F, prior, ps.contact_jacobian[k]))
+            press = {"diameter": d, "xy": list(xy), "target_jacobian": ps.jacobian[:, :, :len(target_names(ps.names))].tolist(),
+                     "diameter_bound_known": [b.rms("known")["diameter"] for b in bounds],
+                     "seconds": time.perf_counter() - t, "membrane_nodes": int(model.mesh.n_nodes)}
+            if modulus is not None:
+                press.update(modulus=modulus, modulus_bound={kind: [b.rms(kind)["modulus"] for b in bounds]
+                                                            for kind in ("known", "marginal")})
+            out["presses"].append(press)
     inst.free()
     return out
 
@@ -113,16 +129,22 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--report-only", action="store_true", help="rewrite convergence.md from the stored convergence.json")
     ap.add_argument("--finer", action="store_true", help="add the 8 mm sphere at 0.125 mm at the contact to the stored .json")
+    ap.add_argument("--soft", action="store_true", help="add a soft sphere's convergence (its modulus column) to the stored .json")
     args = ap.parse_args()
-    if args.report_only or args.finer:
+    finer, soft = {}, {}
+    if args.report_only or args.finer or args.soft:
         results = json.loads((OUT / "convergence.json").read_text())
-        finer = results.pop("finer", {})
+        finer, soft = results.pop("finer", {}), results.pop("soft", {})
         for preset, rim, levels, probe in FINER if args.finer else ():
             key = f"{preset}/{rim}/{levels}/{probe * 1e6:g}"
             print("case", key, flush=True)
             finer[key] = run_case(preset, rim, levels, probe, DIAMETERS[:1])
+        d, xy, e = SOFT_PRESS
+        for preset, rim, levels, probe in SOFT if args.soft else ():
+            key = f"{preset}/{rim}/{levels}/{probe * 1e6:g}"
+            print("soft case", key, flush=True)
+            soft[key] = run_case(preset, rim, levels, probe, (d,), (xy,), e)
     else:
-        finer = {}
         results = {}
         for preset, rim, levels, probe in CASES:
             key = f"{preset}/{rim}/{levels}/{probe * 1e6:g}"
@@ -177,6 +199,23 @@ def main() -> None:
                 q for q in both[c]["presses"] if q["xy"] == p["xy"] and q["diameter"] == p["diameter"])["diameter_bound_known"])
                 for c in ("dataset/64/3/10", *finer))
             for p in next(iter(finer.values()))["presses"])]
+    if soft:
+        d, xy, e = SOFT_PRESS
+        lines += ["", f"## A soft target: {d * 1e3:g} mm, {e * 1e-3:g} kPa at {tuple(v * 1e3 for v in xy)} mm", "",
+                  "`python benchmarks/bench_sensitivity_convergence.py --soft`. Largest / median change over the two "
+                  "depths of each target column (x, y, depth, radius, ln E):", ""]
+        names = (*TARGET, TARGET_MODULUS)
+        for a, b, what in SOFT_PAIRS:
+            big, med = pair_changes(soft, a, b)
+            lines.append(f"- `{a}` against `{b}` ({what}): " + ", ".join(
+                f"{n} {100 * w:.2g} / {100 * m:.2g} %" for n, w, m in zip(names, big, med)))
+        lines += ["", "The modulus bound (relative RMS error of E, one frame, 74.2 dB; nuisances known / marginalised) "
+                  "at 1 and 2 mm deep:", "", "| case | 1 mm | 2 mm |", "|---|---|---|"]
+        for c, r in soft.items():
+            mb = r["presses"][0]["modulus_bound"]
+            lines.append(f"| `{c}` | " + " | ".join(f"{100 * k:.3g} / {100 * m:.3g} %" for k, m in zip(mb["known"], mb["marginal"])) + " |")
+        lines += ["", f"Ran on {_machine_of(soft)}: " + ", ".join(
+            f"`{c}` {r['presses'][0]['seconds']:.0f} s, {r['presses'][0]['membrane_nodes']} nodes" for c, r in soft.items())]
     lines += ["", "Time per press (2 depths' derivatives, the refined membrane built, s) and the membrane's nodes (mean): " + ", ".join(
         f"`{c}` {np.mean([p['seconds'] for p in r['presses']]):.1f} s, "
         f"{np.mean([p['membrane_nodes'] for p in r['presses']]):.0f}" for c, r in results.items())]
@@ -186,7 +225,8 @@ def main() -> None:
             f"{np.mean([p['membrane_nodes'] for p in r['presses']]):.0f}" for c, r in finer.items())]
     OUT.mkdir(parents=True, exist_ok=True)
     if not args.report_only:
-        atomic_write(OUT / "convergence.json", json.dumps({**results, **({"finer": finer} if finer else {})}))
+        atomic_write(OUT / "convergence.json", json.dumps({**results, **({"finer": finer} if finer else {}),
+                                                          **({"soft": soft} if soft else {})}))
     atomic_write(OUT / "convergence.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 
