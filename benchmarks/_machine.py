@@ -88,3 +88,26 @@ def write_pair(stem: Path, data: dict, markdown: str) -> None:
     stem.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(stem.with_suffix(".json"), json.dumps(data, indent=2))
     atomic_write(stem.with_suffix(".md"), markdown)
+
+
+def median_seconds(fn, repeats: int) -> float:
+    """The median wall time s of ``repeats`` calls of ``fn()``."""
+    import statistics
+    import time
+
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def run_and_write(doc: str, stem: Path, run, markdown) -> None:
+    """A benchmark's main without options (``--help`` shows the first paragraph of its ``doc``):
+    ``run()``'s results written to ``stem``.json and, through ``markdown``, ``stem``.md."""
+    import argparse
+
+    argparse.ArgumentParser(description=doc.split("\n\n")[0]).parse_args()
+    r = run()
+    write_pair(stem, r, markdown(r))

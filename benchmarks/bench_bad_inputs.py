@@ -14,7 +14,6 @@ results/store_faults.md.
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import os
 import shutil
@@ -24,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _machine import machine, write_pair
+from _machine import machine, run_and_write
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from jointsim.io.records import open_records  # noqa: E402
@@ -186,9 +185,7 @@ def markdown(r: dict) -> str:
 
 
 def main() -> None:
-    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
-    r = run()
-    write_pair(ROOT / "results" / "bad_inputs", r, markdown(r))
+    run_and_write(__doc__, ROOT / "results" / "bad_inputs", run, markdown)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,6 @@ the 1-worker run (data_sha256 over every field but the timings).
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import signal
@@ -26,7 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _machine import machine, write_pair
+from _machine import machine, run_and_write
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -160,9 +159,7 @@ def markdown(r: dict) -> str:
 
 
 def main() -> None:
-    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
-    r = run()
-    write_pair(ROOT / "results" / "dask_cluster", r, markdown(r))
+    run_and_write(__doc__, ROOT / "results" / "dask_cluster", run, markdown)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from _machine import machine, write_pair
+from _machine import machine, median_seconds, write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -46,12 +46,7 @@ def ring_scene(n: int, preset: str):
 
 
 def median_time(f, repeats: int = REPEATS) -> float:
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        f()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
+    return median_seconds(f, repeats)
 
 
 def bench(n: int, preset: str) -> dict:

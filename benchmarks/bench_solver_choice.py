@@ -17,7 +17,6 @@ import os
 for _v in ("MKL_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"):  # as a dataset worker runs
     os.environ[_v] = "1"
 
-import argparse  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -27,7 +26,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from _machine import machine, write_pair  # noqa: E402
+from _machine import machine, run_and_write  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -128,9 +127,7 @@ def markdown(r: dict) -> str:
 
 
 def main() -> None:
-    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
-    r = run()
-    write_pair(ROOT / "results" / "solver_choice", r, markdown(r))
+    run_and_write(__doc__, ROOT / "results" / "solver_choice", run, markdown)
 
 
 if __name__ == "__main__":
