@@ -125,6 +125,13 @@ def _machine_of(results: dict) -> str:
     return stored or machine()
 
 
+def _save(results: dict, finer: dict, soft: dict) -> None:
+    """convergence.json with every case computed so far: a run stopped loses only its case."""
+    OUT.mkdir(parents=True, exist_ok=True)
+    atomic_write(OUT / "convergence.json", json.dumps({**results, **({"finer": finer} if finer else {}),
+                                                      **({"soft": soft} if soft else {})}))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--report-only", action="store_true", help="rewrite convergence.md from the stored convergence.json")
@@ -139,17 +146,22 @@ def main() -> None:
             key = f"{preset}/{rim}/{levels}/{probe * 1e6:g}"
             print("case", key, flush=True)
             finer[key] = run_case(preset, rim, levels, probe, DIAMETERS[:1])
+            _save(results, finer, soft)
         d, xy, e = SOFT_PRESS
         for preset, rim, levels, probe in SOFT if args.soft else ():
             key = f"{preset}/{rim}/{levels}/{probe * 1e6:g}"
+            if key in soft:  # a case stored by an earlier run, stopped before the others
+                continue
             print("soft case", key, flush=True)
             soft[key] = run_case(preset, rim, levels, probe, (d,), (xy,), e)
+            _save(results, finer, soft)
     else:
         results = {}
         for preset, rim, levels, probe in CASES:
             key = f"{preset}/{rim}/{levels}/{probe * 1e6:g}"
             print("case", key, flush=True)
             results[key] = run_case(preset, rim, levels, probe)
+            _save(results, finer, soft)
     ref = REFERENCE
     lines = ["# Convergence of the press derivatives (jointsim.design.sensitivity)", "",
              "Command: `python benchmarks/bench_sensitivity_convergence.py`  ", f"Machine: {_machine_of(results)}", "",
@@ -223,10 +235,6 @@ def main() -> None:
         lines += ["", f"The finer cases ran on {_machine_of(finer)}: " + ", ".join(
             f"`{c}` {np.mean([p['seconds'] for p in r['presses']]):.1f} s, "
             f"{np.mean([p['membrane_nodes'] for p in r['presses']]):.0f}" for c, r in finer.items())]
-    OUT.mkdir(parents=True, exist_ok=True)
-    if not args.report_only:
-        atomic_write(OUT / "convergence.json", json.dumps({**results, **({"finer": finer} if finer else {}),
-                                                          **({"soft": soft} if soft else {})}))
     atomic_write(OUT / "convergence.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 
