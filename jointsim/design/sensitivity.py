@@ -66,6 +66,7 @@ from ..geometry import chamber_cap, refine_near
 from ..instrument import Instrument
 from ..mechanics.build import membrane_from_scene
 from ..mechanics.dome import MembraneModel
+from ..mechanics.soft_target import GENERIC_TURN
 from ..mechanics.touch import touch
 from ..scene import Scene
 
@@ -115,14 +116,16 @@ def contact_zone(scene: Scene, radius: float, xy: np.ndarray, depth: float) -> t
 def contact_membrane(scene: Scene, radius: float, xy: np.ndarray, depth: float, levels: int,
                      modulus: float | None = None) -> MembraneModel:
     """The membrane of ``scene`` (inflated, untouched, pressed by a sphere of ``radius`` m:
-    rigid, or soft of Young's modulus ``modulus`` Pa) meshed ``levels`` times finer about where
+    rigid, or soft of Young's modulus ``modulus`` Pa, its mesh turned off the membrane's rings:
+    :data:`~jointsim.mechanics.soft_target.GENERIC_TURN`) meshed ``levels`` times finer about where
     that sphere coming down at ``xy`` touches, out to its contact at ``depth`` m
     (:func:`contact_zone`; :func:`~jointsim.geometry.refine_near` on the scene's cap at
     [membrane] rim_vertices)."""
     about, zone = contact_zone(scene, radius, xy, depth)
     dome = refine_near(chamber_cap(scene.chamber, scene.membrane.rim_vertices), about, zone, levels)
     rigid = replace(scene, target=replace(scene.target, kind="rigid"))
-    return membrane_from_scene(rigid, target_radius=radius, dome=dome, target_modulus=modulus)
+    return membrane_from_scene(rigid, target_radius=radius, dome=dome, target_modulus=modulus,
+                               target_turn=GENERIC_TURN)
 
 
 def parameter_names(n_electrodes: int, soft: bool = False) -> tuple[str, ...]:

@@ -30,6 +30,7 @@ from ..io.store import attach, exclusive, open_store
 from ..mechanics.build import membrane_from_scene
 from ..mechanics.dome import UnreachablePose
 from ..mechanics.newton import NewtonError
+from ..mechanics.soft_target import GENERIC_TURN
 from ..mesh.morph import MeshInversionError
 from ..scene import Scene
 from .bounds import Bounds, fisher, joint_bounds, median_error, nuisance_prior, press_bounds, press_fisher
@@ -247,7 +248,7 @@ def _model(scene: Scene, inst: Instrument, radius: float, modulus: float | None)
         models.clear()  # one target at a time: the presses come modulus- then diameter-major
         rigid = replace(scene, target=replace(scene.target, kind="rigid"))
         models[radius, modulus] = membrane_from_scene(rigid, target_radius=radius, inflate_from=inst.inflated_u,
-                                                      target_modulus=modulus)
+                                                      target_modulus=modulus, target_turn=GENERIC_TURN)
     return models[radius, modulus]
 
 

@@ -25,6 +25,7 @@ def membrane_from_scene(
     contact_slave: str | None = None,
     device: str = "cpu",
     inflate_from: np.ndarray | None = None,
+    target_turn: float = 0.0,
 ) -> MembraneModel:
     """The membrane of ``scene`` (its [membrane] and [target] sections and chamber); the
     target's radius may be overridden by ``target_radius`` m; ``dome`` defaults to the
@@ -37,7 +38,9 @@ def membrane_from_scene(
     ``target_poisson`` (default the scene's), and ``contact_slave`` passed on to it (None:
     its rule, the softer body's nodes). ``device``: the Warp device of the element kernels.
     ``inflate_from``: for a flat moulding, the membrane's displacement in an earlier model of
-    this scene (or of it with its moduli scaled), which the inflation starts from."""
+    this scene (or of it with its moduli scaled), which the inflation starts from.
+    ``target_turn`` (rad): a soft target's mesh turned about its axis
+    (:data:`~jointsim.mechanics.soft_target.GENERIC_TURN` where derivatives are taken)."""
     m = scene.membrane
     c = scene.chamber
     t = scene.target
@@ -50,6 +53,7 @@ def membrane_from_scene(
             t.poisson_ratio if target_poisson is None else target_poisson,
         )
         kw["contact_slave"] = contact_slave
+        kw["target_turn"] = target_turn
     elif contact_slave is not None:
         raise ValueError(f"contact_slave = {contact_slave!r}: only for a soft target (give target_modulus)")
     flat = m.moulding == "flat"
