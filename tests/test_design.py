@@ -468,9 +468,10 @@ def test_a_study_of_soft_targets_bounds_their_modulus(tmp_path):
     one[[e, p, mu]] = 1.0
     assert abs(one @ info @ one) <= 1e-12 * info[e, e]
     # so as the SNR rises the bound falls to what the priors leave along that direction,
-    # (1/s_p² + 1/s_μ²)^(-1/2), and never below it (measured 4 % above it at 120 dB)
+    # (1/s_p² + 1/s_μ²)^(-1/2), and never below it (on the axis, where E barely moves this
+    # press: measured 81 at 74.2 dB, 2.7× the floor at 120 dB, 3 % above it at 140 dB)
     scene = load_scene(toml).with_mesh_preset("test")
     prior = dict(zip(names[5:], nuisance_prior(scene, names)))
     floor = (prior["ln_pressure"] ** -2 + prior["ln_modulus"] ** -2) ** -0.5
-    b = [design_bounds(rec, scene, snr_db=snr).columns["modulus_rms_marginal"][0] for snr in (74.2, 120.0)]
+    b = [design_bounds(rec, scene, snr_db=snr).columns["modulus_rms_marginal"][0] for snr in (74.2, 140.0)]
     assert b[0] > b[1] >= floor and b[1] <= 1.1 * floor
