@@ -394,22 +394,20 @@ def test_on_the_axis_a_turned_target_mesh_keeps_the_derivative_the_limit_of_diff
     (measured 0.01 %; bar 1 %). (Not everywhere on the axis: at 2 mm whole rings of slaves
     reach the contact's edge together and the response has kinks; SoftTargetModel.
     equilibrium_derivative says so.)"""
-    dome = isotropic_cap(0.02, 0.01, 32)
-    errors = []
-    for turn in (0.0, GENERIC_TURN):
-        m = SoftTargetModel(dome, 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3, target_material=soft_material(2e5),
-                            target_mesh_size=7.5e-3 / 8, target_turn=turn)
-        m.force_rtol = 0.0
-        z0 = m.first_contact_height(np.zeros(2))
-        for d in (0.5e-3, 1e-3):
-            m.press(np.array([0.0, 0.0, z0 - d]))
-        base, c0, nm = m.get_state(), m.contact.centre.copy(), m.n_membrane
-        du = m.equilibrium_derivative(m.target_gradients(m.u)[:, 2:3])[:nm, :, 0]
-        sides = []
-        for sgn in (1, -1):
-            m.set_state(base)
-            m.press(c0 + np.array([0.0, 0.0, sgn * 5e-6]))
-            sides.append(m.u[:nm].copy())
-        fd = (sides[0] - sides[1]) / 1e-5
-        errors.append(np.linalg.norm(fd - du) / np.linalg.norm(fd))
-    assert errors[0] > 0.2 and errors[1] < 0.01, errors
+    # the aligned meshes' 61 % is measured by benchmarks/bench_soft_derivatives.py: with
+    # GENERIC_TURN = 0 this test fails
+    m = SoftTargetModel(isotropic_cap(0.02, 0.01, 32), 2e-3, layers=1, pressure=50.0, target_radius=7.5e-3,
+                        target_material=soft_material(2e5), target_mesh_size=7.5e-3 / 8, target_turn=GENERIC_TURN)
+    m.force_rtol = 0.0
+    z0 = m.first_contact_height(np.zeros(2))
+    for d in (0.5e-3, 1e-3):
+        m.press(np.array([0.0, 0.0, z0 - d]))
+    base, c0, nm = m.get_state(), m.contact.centre.copy(), m.n_membrane
+    du = m.equilibrium_derivative(m.target_gradients(m.u)[:, 2:3])[:nm, :, 0]
+    sides = []
+    for sgn in (1, -1):
+        m.set_state(base)
+        m.press(c0 + np.array([0.0, 0.0, sgn * 5e-6]))
+        sides.append(m.u[:nm].copy())
+    fd = (sides[0] - sides[1]) / 1e-5
+    assert np.linalg.norm(fd - du) <= 0.01 * np.linalg.norm(fd)
