@@ -15,14 +15,13 @@ the lagged Hessian.
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from _machine import atomic_write, machine
+from _machine import machine, write_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -113,9 +112,7 @@ def main() -> None:
               "on-axis c_z to 1 %.", "",
               "Derivatives (all five parameters, one solve): " + ", ".join(
                   f"{p} {r['derivative_s']:.1f} s" for p, r in results["places"].items()) + f"; total {results['total_s']:.0f} s."]
-    OUT.mkdir(parents=True, exist_ok=True)
-    atomic_write(OUT / "soft_derivatives.json", json.dumps(results, indent=1))
-    atomic_write(OUT / "soft_derivatives.md", "\n".join(lines) + "\n")
+    write_pair(OUT / "soft_derivatives", results, "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
