@@ -1,3 +1,5 @@
+import os
+
 import numpy as np
 import pytest
 
@@ -26,6 +28,21 @@ def check_element_derivatives(kernel, mesh, u: np.ndarray, d: np.ndarray, eps: f
     np.testing.assert_allclose(assemble_hessian(mesh, kernel(u, True, elements=True).element_hessians).toarray(), H, rtol=0, atol=tol)
     np.testing.assert_allclose(H, H.T, rtol=0, atol=tol)
     return s
+
+
+def pytest_configure(config):
+    """Each xdist worker runs its numerical libraries on one thread. The suite runs two workers
+    on a 2-core machine; with each BLAS pool as wide as the machine, their spinning threads
+    fought for the cores and some tests ran 5-16x slower than alone. The variables reach the
+    subprocesses the tests start; threadpoolctl limits the libraries already loaded."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    from jointsim._cores import THREAD_VARIABLES
+    from threadpoolctl import threadpool_limits
+
+    for name in THREAD_VARIABLES:
+        os.environ.setdefault(name, "1")
+    threadpool_limits(1)
 
 
 @pytest.fixture(scope="session", autouse=True)
