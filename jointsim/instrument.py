@@ -442,12 +442,19 @@ class Instrument:
         Only for a membrane moulded as a cap: the chamber of one moulded flat is its membrane's."""
         if self.surface is None or self.scene.membrane.moulding != "cap":
             raise ValueError("on_membrane: only for an instrument of a membrane moulded as a cap")
-        surface = InnerSurface.of(model, self.scene.chamber)
+        return self.on_surface(InnerSurface.of(model, self.scene.chamber), model.u)
+
+    def on_surface(self, surface: InnerSurface, u: np.ndarray) -> "Instrument":
+        """This instrument read through a membrane of its scene given by its inner ``surface``
+        and its inflated, untouched displacement ``u`` (:meth:`on_membrane`; a surface turned
+        about the axis: :meth:`~jointsim.mechanics.inner_surface.InnerSurface.turned`)."""
+        if self.surface is None or self.scene.membrane.moulding != "cap":
+            raise ValueError("on_surface: only for an instrument of a membrane moulded as a cap")
         morpher = self.morpher.remapped(surface.dome(None))
         misfit = _misfit(morpher, self.scene)
         if misfit:
             raise ValueError(f"on_membrane: {misfit}")
-        reference_dome = surface.dome(model.u)
+        reference_dome = surface.dome(u)
         return replace(self, surface=surface, morpher=morpher, reference_dome=reference_dome, reference=morpher(reference_dome))
 
     def dome(self, u: np.ndarray | None) -> DomeSurface:

@@ -70,7 +70,7 @@ from ..mechanics.soft_target import GENERIC_TURN
 from ..mechanics.touch import touch
 from ..scene import Scene
 
-__all__ = ["TARGET", "TARGET_MODULUS", "target_names", "ELECTRODE_STEP", "CONTACT_MARGIN", "PressSensitivity", "parameter_names", "press_sensitivity", "electrode_moves",
+__all__ = ["TARGET", "TARGET_MODULUS", "target_names", "ELECTRODE_STEP", "CONTACT_MARGIN", "PressSensitivity", "PressMechanics", "parameter_names", "press_sensitivity", "press_mechanics", "press_electrical", "electrode_moves",
            "unrefinable", "contact_zone", "contact_membrane"]
 
 TARGET = ("x", "y", "depth", "radius")  # the target's parameters, m
@@ -114,15 +114,21 @@ def contact_zone(scene: Scene, radius: float, xy: np.ndarray, depth: float) -> t
 
 
 def contact_membrane(scene: Scene, radius: float, xy: np.ndarray, depth: float, levels: int,
-                     modulus: float | None = None) -> MembraneModel:
+                     modulus: float | None = None, turn: np.ndarray | None = None) -> MembraneModel:
     """The membrane of ``scene`` (inflated, untouched, pressed by a sphere of ``radius`` m:
     rigid, or soft of Young's modulus ``modulus`` Pa, its mesh turned off the membrane's rings:
     :data:`~jointsim.mechanics.soft_target.GENERIC_TURN`) meshed ``levels`` times finer about where
     that sphere coming down at ``xy`` touches, out to its contact at ``depth`` m
     (:func:`contact_zone`; :func:`~jointsim.geometry.refine_near` on the scene's cap at
-    [membrane] rim_vertices)."""
+    [membrane] rim_vertices); ``turn`` (2, 2): that mesh turned about the axis by this rotation,
+    the membrane a press at ``turn @ xy`` is read through when it is :meth:`PressMechanics.turned`."""
     about, zone = contact_zone(scene, radius, xy, depth)
     dome = refine_near(chamber_cap(scene.chamber, scene.membrane.rim_vertices), about, zone, levels)
+    if turn is not None:
+        r = np.eye(3)
+        r[:2, :2] = turn
+        v = dome.vertices @ r.T
+        dome = replace(dome, vertices=v, rim=dome.rim[np.argsort(np.arctan2(v[dome.rim, 1], v[dome.rim, 0]))])
     rigid = replace(scene, target=replace(scene.target, kind="rigid"))
     return membrane_from_scene(rigid, target_radius=radius, dome=dome, target_modulus=modulus,
                                target_turn=GENERIC_TURN)
@@ -187,32 +193,132 @@ def _electrical(inst: Instrument, chamber, moves: list, step: float) -> np.ndarr
     return np.column_stack([dsigma, dz.T, dc.reshape(-1, ro.n_meas).T])
 
 
-def press_sensitivity(inst: Instrument, model: MembraneModel, xy: np.ndarray, depths: np.ndarray, *,
-                      moves: list | None = None, electrode_step: float = ELECTRODE_STEP, probe: float = 10e-6,
-                      step_max: float = 0.5e-3) -> PressSensitivity:
-    """The derivatives of the press of ``model``'s target (its radius; a soft one's modulus) at ``xy`` (2,) m through
-    ``depths`` (K,) m, increasing, past first contact, measured by ``inst`` (the instrument of
-    the same scene, nominal readout). ``model`` must be untouched (as built, or reset to its
-    untouched state); it is left so. ``moves``: :func:`electrode_moves` at ``electrode_step``
-    (computed here when not given); ``probe``: the largest membrane displacement m of a
-    central difference along du/dθ; ``step_max``: the press's load steps, m. Raises what the
-    mechanics raise for a press they cannot take
-    (:class:`~jointsim.mechanics.dome.UnreachablePose`, NewtonError)."""
+@dataclass(frozen=True, eq=False)
+class PressMechanics:
+    """The mechanical half of a press's derivatives (:func:`press_mechanics`), all the
+    electrical half (:func:`press_electrical`) reads: the target's centre ``xy`` (2,) m and
+    ``radius`` m, pressed to ``depths`` (K,) m; the untouched membrane's displacement
+    ``u_ref`` (n, 3) and its derivative along the head ``du_ref`` (n, 3) (None for a membrane
+    moulded flat, whose inflation sets the head); per depth the displacement ``u`` (K, n, 3)
+    and its derivatives ``du`` (K, n, 3, q) along (c_x, c_y, c_z, R[, ln E], ln p); the
+    derivatives of the first contact's height ``dzc`` (x, y, radius, ln_pressure: ∂z_c/∂·);
+    the contact's centre of pressure ``contact`` (K, 3) m and its in-plane derivatives
+    ``dcop`` (K, 2, t) along (c_x, c_y, c_z, R[, ln E]); the normal ``force`` (K,) N."""
+
+    xy: np.ndarray
+    radius: float
+    depths: np.ndarray
+    soft: bool
+    u_ref: np.ndarray
+    du_ref: np.ndarray | None
+    u: np.ndarray
+    du: np.ndarray
+    dzc: dict[str, float]
+    contact: np.ndarray
+    dcop: np.ndarray
+    force: np.ndarray
+
+    def turned(self, m: np.ndarray) -> "PressMechanics":
+        """The same press turned about the chamber's axis by the rotation ``m`` (2, 2): what a
+        membrane whose mesh is this one's turned by ``m`` gives for the target at ``m @ xy``
+        (its equilibria are this one's turned; a round cap's mechanics know no direction).
+        Displacements turn node by node; a derivative along the centre's x and y becomes one
+        along the turned axes (∂/∂c'_i = Σ_j m_ij ∂/∂c_j), as do the touching surface's slopes
+        and the contact's in-plane derivatives."""
+        m = np.asarray(m, float)
+        if m.shape != (2, 2) or abs(np.linalg.det(m) - 1.0) > 1e-9 or not np.allclose(m @ m.T, np.eye(2), atol=1e-12):
+            raise ValueError("turned: a rotation about the axis, (2, 2) orthogonal with determinant +1")
+        r = np.eye(3)
+        r[:2, :2] = m
+
+        def along_c(a: np.ndarray) -> np.ndarray:  # the columns along c_x, c_y (last axis) turned
+            a = a.copy()
+            a[..., :2] = a[..., :2] @ m.T
+            return a
+
+        slope = m @ np.array([self.dzc["x"], self.dzc["y"]])
+        return replace(self, xy=m @ self.xy, u_ref=self.u_ref @ r.T,
+                       du_ref=None if self.du_ref is None else self.du_ref @ r.T, u=self.u @ r.T,
+                       du=along_c(np.einsum("ij,knjq->kniq", r, self.du)),
+                       dzc={**self.dzc, "x": float(slope[0]), "y": float(slope[1])},
+                       contact=self.contact @ r.T, dcop=along_c(np.einsum("ij,kjt->kit", m, self.dcop)))
+
+
+def press_mechanics(model: MembraneModel, xy: np.ndarray, depths: np.ndarray, *, head: bool = True,
+                    step_max: float = 0.5e-3) -> PressMechanics:
+    """The mechanical half of :func:`press_sensitivity`: ``model``'s target (its radius; a soft
+    one's modulus) pressed at ``xy`` (2,) m through ``depths`` (K,) m, increasing, past first
+    contact, in load steps of ``step_max`` m at most, and the equilibria's derivatives by the
+    implicit function theorem (module docstring). ``head``: the reservoir's head moves the
+    untouched membrane (a membrane moulded as a cap; False for one moulded flat, which the
+    inflation sets). ``model`` must be untouched; it is left so."""
     xy = np.asarray(xy, float)
     depths = np.asarray(depths, float)
+    soft = TARGET_MODULUS in model.TARGET_PARAMETERS
+    t = len(target_names(soft))
+    untouched = model.get_state()
+    contact = model.contact
+
+    def head_load(u: np.ndarray) -> np.ndarray:
+        # E_p = −p V(u): ∂g/∂ln p = p ∂g/∂p = −p ∇V
+        return -model.pressure.pressure * model.pressure.volume_gradient(u).ravel()
+
+    rtol = model.force_rtol
+    model.force_rtol = 0.0
+    try:
+        # the untouched sensor: its head derivative, where the sphere touches, and the surface there
+        node, slope = touch(model, xy)
+        nz = 1.0 / math.sqrt(1.0 + slope @ slope)
+        normal = np.array([-slope[0], -slope[1], 1.0]) * nz
+        dzc = {"x": float(slope[0]), "y": float(slope[1]), "radius": 1.0 / nz, "ln_pressure": 0.0}
+        u_ref = model.u.copy()
+        du_ref = None
+        if head:
+            du_ref = model.equilibrium_derivative(head_load(model.u)[:, None])[..., 0]
+            dzc["ln_pressure"] = float(du_ref[contact.nodes[node]] @ normal) / nz
+            model.set_state(untouched)
+        z0 = model.first_contact_height(xy)
+        K = len(depths)
+        u = np.zeros((K,) + u_ref.shape)
+        du = np.zeros((K,) + u_ref.shape + (t + 1,))
+        cop = np.zeros((K, 3))
+        dcop = np.zeros((K, 2, t))
+        force = np.zeros(K)
+        done = 0.0
+        for k, d in enumerate(depths):
+            n = max(1, math.ceil((d - done) / step_max - 1e-9))
+            for s in range(1, n + 1):
+                st = model.press(np.array([xy[0], xy[1], z0 - (done + (d - done) * s / n)]))
+            done = d
+            u[k] = model.u
+            cop[k], force[k] = st.contact_centre, -st.force[2]
+            # the equilibrium's derivatives: the sphere's centre and radius (at fixed z), a soft
+            # one's modulus, the head
+            dg = np.column_stack([model.target_gradients(u[k]), head_load(u[k])])
+            du[k] = model.equilibrium_derivative(dg)
+            # the contact's centre of pressure moves with u and with the sphere (centre, radius)
+            dcop[k] = np.column_stack([_cop_along(contact, u[k], du[k][..., j], j) for j in range(t)])
+    finally:
+        model.force_rtol = rtol
+        model.set_state(untouched)
+    return PressMechanics(xy, contact.radius, depths, soft, u_ref, du_ref, u, du, dzc, cop, dcop, force)
+
+
+def press_electrical(inst: Instrument, mech: PressMechanics, *, moves: list | None = None,
+                     electrode_step: float = ELECTRODE_STEP, probe: float = 10e-6) -> PressSensitivity:
+    """The electrical half of :func:`press_sensitivity`: the press ``mech`` measured by ``inst``
+    (the instrument of the same scene on the membrane ``mech`` was solved on, nominal readout):
+    the frames' voltages, ∂V/∂θ for each mechanical parameter as the central difference of V
+    along du/dθ (the membrane moved by ``probe`` m at most), the electrical nuisances by the
+    adjoint, and the target's columns taken to a fixed depth past first contact."""
     if moves is None:
         moves = electrode_moves(inst, electrode_step)
     ro = inst.readout
-    n_el = len(inst.reference.layout.radii)
-    soft = TARGET_MODULUS in model.TARGET_PARAMETERS
-    names = parameter_names(n_el, soft)
-    t = len(target_names(soft))
+    names = parameter_names(len(inst.reference.layout.radii), mech.soft)
+    t = len(target_names(mech.soft))
     head, modulus = names.index("ln_pressure"), names.index("ln_modulus")
-    P, K, M = len(names), len(depths), ro.n_meas
-    cap = inst.scene.membrane.moulding == "cap"
-    untouched = model.get_state()
-    R = model.contact.radius
-    contact = model.contact
+    K, M, P = len(mech.depths), ro.n_meas, len(names)
+    cap = mech.du_ref is not None
 
     def voltages(u: np.ndarray) -> np.ndarray:
         chamber, _ = inst.morpher.morph(inst.dome(u))
@@ -223,62 +329,45 @@ def press_sensitivity(inst: Instrument, model: MembraneModel, xy: np.ndarray, de
         eps = probe / max(float(np.abs(du).max()), 1e-300)
         return (voltages(u + eps * du) - voltages(u - eps * du)) / (2 * eps)
 
-    def head_load(u: np.ndarray) -> np.ndarray:
-        # E_p = −p V(u): ∂g/∂ln p = p ∂g/∂p = −p ∇V
-        return -model.pressure.pressure * model.pressure.volume_gradient(u).ravel()
-
-    rtol = model.force_rtol
-    model.force_rtol = 0.0
     J = np.zeros((K, M, P))
     J_ref = np.zeros((M, P))
-    try:
-        # the untouched sensor: its head derivative, where the sphere touches, and the surface there
-        node, slope = touch(model, xy)
-        nz = 1.0 / math.sqrt(1.0 + slope @ slope)
-        normal = np.array([-slope[0], -slope[1], 1.0]) * nz
-        dzc = {"x": slope[0], "y": slope[1], "radius": 1.0 / nz, "ln_pressure": 0.0}
+    if cap:
+        J_ref[:, head] = along(mech.u_ref, mech.du_ref)
+    J_ref[:, head + 2:] = _electrical(inst, inst.reference, moves, electrode_step)
+    V = np.zeros((K, M))
+    cj = np.zeros((K, 2, t))
+    for k in range(K):
+        chamber, _ = inst.morpher.morph(inst.dome(mech.u[k]))
+        V[k] = ro.voltages(chamber, True)
+        J[k, :, head + 2:] = _electrical(inst, chamber, moves, electrode_step)
+        dv = [along(mech.u[k], mech.du[k][..., j]) for j in range(mech.du.shape[-1])]  # c_x, c_y, c_z, R, [ln E,] ln p
+        dcop = list(mech.dcop[k].T)
+        J[k, :, :4] = np.column_stack(_at_fixed_depth(dv, mech.dzc))
+        cj[k, :, :4] = np.column_stack(_at_fixed_depth(dcop, mech.dzc))
+        if mech.soft:  # the modulus does not move the first contact: the sphere is not yet strained
+            J[k, :, 4], cj[k, :, 4] = dv[4], dcop[4]
         if cap:
-            du0 = model.equilibrium_derivative(head_load(model.u)[:, None])[..., 0]
-            J_ref[:, head] = along(model.u, du0)
-            dzc["ln_pressure"] = float(du0[contact.nodes[node]] @ normal) / nz
-            model.set_state(untouched)
-        J_ref[:, head + 2:] = _electrical(inst, inst.reference, moves, electrode_step)
-        z0 = model.first_contact_height(xy)
-        V = np.zeros((K, M))
-        cop = np.zeros((K, 3))
-        cj = np.zeros((K, 2, t))
-        force = np.zeros(K)
-        done = 0.0
-        for k, d in enumerate(depths):
-            n = max(1, math.ceil((d - done) / step_max - 1e-9))
-            for s in range(1, n + 1):
-                st = model.press(np.array([xy[0], xy[1], z0 - (done + (d - done) * s / n)]))
-            done = d
-            u = model.u.copy()
-            chamber, _ = inst.morpher.morph(inst.dome(u))
-            V[k] = ro.voltages(chamber, True)
-            J[k, :, head + 2:] = _electrical(inst, chamber, moves, electrode_step)
-            cop[k], force[k] = st.contact_centre, -st.force[2]
-            # the equilibrium's derivatives: the sphere's centre and radius (at fixed z), a soft
-            # one's modulus, the head
-            dg = np.column_stack([model.target_gradients(u), head_load(u)])
-            du = model.equilibrium_derivative(dg)
-            dv = [along(u, du[..., j]) for j in range(dg.shape[1])]  # c_x, c_y, c_z, R, [ln E,] ln p
-            # the contact's centre of pressure moves with u and with the sphere (centre, radius)
-            dcop = [_cop_along(contact, u, du[..., j], j) for j in range(t)]
-            J[k, :, :4] = np.column_stack(_at_fixed_depth(dv, dzc))
-            cj[k, :, :4] = np.column_stack(_at_fixed_depth(dcop, dzc))
-            if soft:  # the modulus does not move the first contact: the sphere is not yet strained
-                J[k, :, 4], cj[k, :, 4] = dv[4], dcop[4]
-            if cap:
-                J[k, :, head] = dv[-1] + dzc["ln_pressure"] * dv[2]
-        if cap:  # every modulus scaled by s acts as the head divided by s (module docstring)
-            J[:, :, modulus] = -J[:, :, head] - (J[:, :, 4] if soft else 0.0)
-            J_ref[:, modulus] = -J_ref[:, head]
-    finally:
-        model.force_rtol = rtol
-        model.set_state(untouched)
-    return PressSensitivity(xy, R, depths, V, ro.v_ref, J, J_ref, cop, cj, force, ro.noise_std, names)
+            J[k, :, head] = dv[-1] + mech.dzc["ln_pressure"] * dv[2]
+    if cap:  # every modulus scaled by s acts as the head divided by s (module docstring)
+        J[:, :, modulus] = -J[:, :, head] - (J[:, :, 4] if mech.soft else 0.0)
+        J_ref[:, modulus] = -J_ref[:, head]
+    return PressSensitivity(mech.xy, mech.radius, mech.depths, V, ro.v_ref, J, J_ref, mech.contact, cj, mech.force,
+                            ro.noise_std, names)
+
+
+def press_sensitivity(inst: Instrument, model: MembraneModel, xy: np.ndarray, depths: np.ndarray, *,
+                      moves: list | None = None, electrode_step: float = ELECTRODE_STEP, probe: float = 10e-6,
+                      step_max: float = 0.5e-3) -> PressSensitivity:
+    """The derivatives of the press of ``model``'s target (its radius; a soft one's modulus) at ``xy`` (2,) m through
+    ``depths`` (K,) m, increasing, past first contact, measured by ``inst`` (the instrument of
+    the same scene, nominal readout): :func:`press_mechanics`, then :func:`press_electrical`.
+    ``model`` must be untouched (as built, or reset to its untouched state); it is left so.
+    ``moves``: :func:`electrode_moves` at ``electrode_step`` (computed here when not given);
+    ``probe``: the largest membrane displacement m of a central difference along du/dθ;
+    ``step_max``: the press's load steps, m. Raises what the mechanics raise for a press they
+    cannot take (:class:`~jointsim.mechanics.dome.UnreachablePose`, NewtonError)."""
+    mech = press_mechanics(model, xy, depths, head=inst.scene.membrane.moulding == "cap", step_max=step_max)
+    return press_electrical(inst, mech, moves=moves, electrode_step=electrode_step, probe=probe)
 
 
 def _at_fixed_depth(d: list, dzc: dict[str, float]) -> list:

@@ -60,6 +60,16 @@ class InnerSurface:
         X[rim, 2] = 0.0
         return cls(nodes, np.ascontiguousarray(faces), rim, X, u0)
 
+    def turned(self, m: np.ndarray) -> "InnerSurface":
+        """This surface turned about the axis by the rotation ``m`` (2, 2): the inner surface of
+        the membrane whose mesh is this one's turned (the same nodes and faces; its rim sorted
+        anticlockwise again). Only a round base maps onto itself under every turn."""
+        r = np.eye(3)
+        r[:2, :2] = m
+        X = self.X @ r.T
+        rim = self.rim[np.argsort(np.arctan2(X[self.rim, 1], X[self.rim, 0]))]
+        return type(self)(self.nodes, self.faces, rim, X, self.u0 @ r.T)
+
     def dome(self, u: np.ndarray | None) -> DomeSurface:
         """The surface displaced by the membrane's ``u`` (n_P2, 3) (None: the reference)."""
         v = self.X.copy() if u is None else self.X + (u[self.nodes] - self.u0)
