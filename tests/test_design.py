@@ -263,7 +263,7 @@ def test_a_press_the_mechanics_cannot_take_is_stored_and_said(test_chamber, tmp_
     def refuse(*a, **k):
         raise UnreachablePose("beyond what the dome can take (a test)")
 
-    monkeypatch.setattr(study, "press_sensitivity", refuse)
+    monkeypatch.setattr(study, "press_mechanics", refuse)
     scene, _ = test_chamber
     missed = []
     h5 = study.run_design(scene, study.Plan(diameters=(15e-3,), depths=(1e-3,), r_max=0.0), tmp_path / "s.h5", workers=1,
@@ -389,6 +389,34 @@ def test_a_symmetric_studys_table_covers_the_whole_grid(coarse, tmp_path):
     assert c["contact_r"][0] < 1e-4 < c["contact_r"][1]
     with pytest.raises(ValueError, match="other settings"):
         study.run_design(scene, replace(plan, symmetric=False), h5, workers=1)
+
+
+def test_a_ring_is_solved_once_and_turned_to_each_centre(coarse, tmp_path):
+    """ring_mechanics: the axis and a ring of 6 centres, each pressed (no symmetry), cost two
+    mechanical solves; a ring centre's stored derivatives are those of its press solved afresh on
+    the membrane turned with it (contact_membrane(turn=)): the same equilibria turned, so equal
+    to the solver's tolerance (measured 1e-7; bar 1e-5 of each column's largest entry)."""
+    from jointsim.design import study
+    from jointsim.design.sensitivity import contact_membrane
+    from jointsim.io.records import open_records
+
+    scene, inst = coarse
+    plan = study.Plan(diameters=(15e-3,), depths=(1.5e-3,), spacing=4e-3, r_max=4e-3, contact_levels=1, symmetric=False)
+    assert plan.ring_mechanics and [len(g) for g in study.press_groups(scene, plan)] == [1, 6]
+    assert not study.Plan(ray=True, contact_levels=1).ring_mechanics and not study.Plan().ring_mechanics
+    rec = open_records(study.run_design(scene, plan, tmp_path / "s.h5", workers=1))
+    xy = rec["xy"]
+    j = 4  # a ring centre turned from the ring's first, xy[1]
+    t = np.arctan2(xy[j, 1], xy[j, 0]) - np.arctan2(xy[1, 1], xy[1, 0])
+    m = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+    model = contact_membrane(scene, 7.5e-3, xy[1], 1.5e-3, 1, turn=m)
+    ps = press_sensitivity(inst.on_membrane(model), model, xy[j], np.array([1.5e-3]))
+    stored = rec["target_jacobian"][j]
+    for q in range(4):
+        assert np.abs(stored[..., q] - ps.jacobian[..., q]).max() <= 1e-5 * np.abs(ps.jacobian[..., q]).max()
+    info = np.einsum("kmp,kmq->kpq", ps.jacobian, ps.jacobian)
+    assert np.abs(rec["info"][j] - info).max() <= 1e-5 * np.abs(info).max()
+    np.testing.assert_allclose(rec["contact"][j], ps.contact, atol=1e-9)
 
 
 def test_a_press_read_together_shares_its_position_and_size():

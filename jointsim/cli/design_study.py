@@ -49,8 +49,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="target centres along the +x axis, --spacing-mm apart, instead of the polar grid (a survey for "
                         "costly presses: the soft ones)")
     p.add_argument("--no-symmetry", dest="symmetric", action="store_false",
-                   help="press every centre of the grid (default: one per set of centres the design's symmetries, "
-                        "protocol included, map onto each other; the others take its bounds)")
+                   help="press every centre of the grid, each solved on its own membrane (default: one press per set of "
+                        "centres the design's symmetries, protocol included, map onto each other, the others taking its "
+                        "bounds; and a round dome's mechanics solved once per target and ring, turned to each centre)")
     p.add_argument("--snr-db", default="", help="further SNRs to tabulate, comma-separated (the scene's is always)")
     p.add_argument("--workers", type=int, help="local worker processes (default: one per core)")
     p.add_argument("--estimators", type=Path, metavar="GOALS_CSV",
@@ -61,7 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..design.report import goals_of, required_snr, summarise, write_comparison, write_design
     from ..design.sensitivity import unrefinable
-    from ..design.study import MAX_CONTACT_LEVELS, Plan, plan_presses, press_joint_bounds, press_layout, run_design
+    from ..design.study import MAX_CONTACT_LEVELS, Plan, plan_presses, press_groups, press_joint_bounds, press_layout, run_design
     from ..io.records import open_records
     from ..scene import MESH_PRESETS, load_scene, scene_toml
 
@@ -87,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     plan = Plan(tuple(d * 1e-3 for d in diameters), tuple(d * 1e-3 for d in depths), args.spacing_mm * 1e-3,
                 None if args.r_max_mm is None else args.r_max_mm * 1e-3, hold_frames=args.hold_frames,
                 contact_levels=args.contact_levels, target_moduli=tuple(e * 1e3 for e in moduli), ray=args.ray,
-                symmetric=args.symmetric)
+                symmetric=args.symmetric, ring_mechanics=args.symmetric)
     scenes = []
     for path in args.scenes:
         scene = load_scene(path)
@@ -108,8 +109,10 @@ def run(args: argparse.Namespace) -> int:
     for path, scene, plan in scenes:
         n, lay = len(plan_presses(scene, plan)), press_layout(scene, plan)
         pressed[scene.name] = n, n * len(lay.grid) // len(lay.computed)
+        solves = len(press_groups(scene, plan))
         print(f"jointsim design-study: {scene.name} (mesh {scene.mesh.preset}, membrane refined {plan.contact_levels}x about "
-              f"the contact), {n} presses x {len(depths)} depths, standing for {pressed[scene.name][1]} by symmetry")
+              f"the contact), {n} presses x {len(depths)} depths, standing for {pressed[scene.name][1]} by symmetry"
+              + (f"; {solves} mechanical solves, one per target and ring" if solves < n else ""))
         todo = [0]  # presses this run computes (the rest were stored)
         t0 = time.perf_counter()
         with tqdm(total=n, unit="press", desc=f"design study {scene.name}", disable=progress_off(args)) as bar:

@@ -34,10 +34,10 @@ from ..mechanics.soft_target import GENERIC_TURN
 from ..mesh.morph import MeshInversionError
 from ..scene import Scene
 from .bounds import Bounds, fisher, joint_bounds, median_error, nuisance_prior, press_bounds, press_fisher
-from .sensitivity import (ELECTRODE_STEP, contact_membrane, electrode_moves, parameter_names, press_sensitivity,
-                          TARGET_MODULUS, target_names, unrefinable)
+from .sensitivity import (ELECTRODE_STEP, contact_membrane, electrode_moves, parameter_names, press_electrical,
+                          press_mechanics, TARGET_MODULUS, target_names, unrefinable)
 
-__all__ = ["Plan", "press_grid", "press_symmetries", "PressLayout", "press_layout", "orbits", "plan_presses", "design_schema", "run_design", "DesignBounds", "design_bounds",
+__all__ = ["Plan", "press_grid", "press_symmetries", "PressLayout", "press_layout", "orbits", "plan_presses", "press_groups", "design_schema", "run_design", "DesignBounds", "design_bounds",
            "press_joint_bounds"]
 
 SCHEMA_NAME, SCHEMA_VERSION = "design_sensitivity", 1
@@ -57,7 +57,12 @@ class Plan:
     the polar grid (a survey of costly presses, the soft ones); ``symmetric``: each ring of the
     grid has a multiple of the design's order of symmetry of points, and only one press of each
     set the sensor's symmetries map onto each other is computed (:func:`press_layout`; False:
-    every centre of the plain grid is pressed)."""
+    every centre of the plain grid is pressed); ``ring_mechanics``: the presses of one target on
+    one ring of the grid share one mechanical solve, at the ring's first centre, turned about
+    the axis to each (:meth:`~.sensitivity.PressMechanics.turned`: a round cap's mechanics know
+    no direction, so each is read through the refined membrane turned with it), and only the
+    measurement is computed per centre (only with ``contact_levels``; False: each centre's
+    membrane refined about it and solved)."""
 
     diameters: tuple[float, ...] = (8e-3, 15e-3, 30e-3)
     depths: tuple[float, ...] = (1e-3, 2e-3, 3e-3)
@@ -69,6 +74,7 @@ class Plan:
     target_moduli: tuple[float, ...] = ()
     ray: bool = False
     symmetric: bool = True
+    ring_mechanics: bool = True
 
     def __post_init__(self) -> None:
         if not self.diameters or any(not d > 0 for d in self.diameters):
@@ -85,6 +91,8 @@ class Plan:
             raise ValueError(f"target_moduli = {self.target_moduli}: each > 0 Pa")
         if self.ray:  # one centre per ring: no two are images of each other
             object.__setattr__(self, "symmetric", False)
+        if self.ray or not self.contact_levels:  # one centre per ring; the scene's own membrane is not turned
+            object.__setattr__(self, "ring_mechanics", False)
 
     def outer_radius(self, scene: Scene) -> float:
         if self.r_max is not None:
@@ -195,6 +203,27 @@ def plan_presses(scene: Scene, plan: Plan) -> list[tuple[float, np.ndarray, floa
     return [(float(d), p, e) for e in (plan.target_moduli or (None,)) for d in plan.diameters for p in xy]
 
 
+def press_groups(scene: Scene, plan: Plan) -> list[list[int]]:
+    """The study's presses (:func:`plan_presses` indices) in groups that share one mechanical
+    solve: with ``plan.ring_mechanics`` one target's presses on one ring of the grid (the
+    first of each group is solved, the others turned from it), else one press each."""
+    presses = plan_presses(scene, plan)
+    if not plan.ring_mechanics:
+        return [[i] for i in range(len(presses))]
+    tol = 1e-9 * max(plan.outer_radius(scene), plan.spacing)
+    groups: dict[tuple, list[int]] = {}
+    for i, (d, xy, e) in enumerate(presses):
+        groups.setdefault((e, d, round(float(np.hypot(*xy)) / tol)), []).append(i)
+    return list(groups.values())
+
+
+def _turn(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The rotation (2, 2) about the axis that takes the in-plane point ``a`` to ``b`` (as far
+    from the axis)."""
+    t = math.atan2(b[1], b[0]) - math.atan2(a[1], a[0])
+    return np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+
+
 def design_schema(n_meas: int, n_params: int, n_depths: int, soft: bool = False) -> Schema:
     K, P = n_depths, n_params
     t = len(target_names(soft))
@@ -252,38 +281,63 @@ def _model(scene: Scene, inst: Instrument, radius: float, modulus: float | None)
     return models[radius, modulus]
 
 
-def _run_press(path: str, scene: Scene, plan: Plan, index: int, diameter: float, xy: np.ndarray,
-               modulus: float | None) -> tuple[int, bool, str]:
-    """Compute and store press ``index``; (index, reached, why not)."""
+def _record(ps, xy: np.ndarray, diameter: float, modulus: float | None, seconds: float) -> dict[str, Any]:
+    J = ps.jacobian
+    rec = {"diameter": diameter, "xy": xy, "reached": 1, "depths": ps.depths, "contact": ps.contact,
+           "contact_jacobian": ps.contact_jacobian, "force": ps.force, "noise_std": ps.noise_std,
+           "voltages": ps.voltages, "target_jacobian": J[:, :, : len(target_names(ps.names))],
+           "info": np.einsum("kmp,kmq->kpq", J, J), "info_ref": ps.jacobian_ref.T @ ps.jacobian_ref, "seconds": seconds}
+    if modulus is not None:
+        rec["target_modulus"] = modulus
+    return rec
+
+
+def _run_group(path: str, scene: Scene, plan: Plan, indices: list[int], centres: np.ndarray, todo: list[int],
+               diameter: float, modulus: float | None) -> list[tuple[int, bool, str]]:
+    """Compute and store the presses ``todo`` of a group (:func:`press_groups`: ``indices``
+    with their ``centres`` (n, 2) m): the mechanics solved once, at the group's first centre
+    (whether or not it is still to do, so that a resumed study computes what an uninterrupted
+    one would), and each press measured; [(index, reached, why not)]."""
     with _LOCK:
         t0 = time.perf_counter()
         inst, moves = _setup(scene)
         store = attach(path)
-        why = ""
-        on = inst
+        depths = np.asarray(plan.depths)
+        head = scene.membrane.moulding == "cap"
+        out = []
         try:
             if plan.contact_levels:  # a membrane of its own; the chamber, morph factor and readout shared
-                model = contact_membrane(scene, diameter / 2, xy, max(plan.depths), plan.contact_levels, modulus)
+                model = contact_membrane(scene, diameter / 2, centres[0], max(plan.depths), plan.contact_levels, modulus)
                 on = inst.on_membrane(model)
             else:
-                model = _model(scene, inst, diameter / 2, modulus)
-            ps = press_sensitivity(on, model, xy, np.asarray(plan.depths), moves=moves)
-            J = ps.jacobian
-            rec = {"diameter": diameter, "xy": xy, "reached": 1, "depths": ps.depths, "contact": ps.contact,
-                   "contact_jacobian": ps.contact_jacobian, "force": ps.force, "noise_std": ps.noise_std,
-                   "voltages": ps.voltages, "target_jacobian": J[:, :, : len(target_names(ps.names))],
-                   "info": np.einsum("kmp,kmq->kpq", J, J), "info_ref": ps.jacobian_ref.T @ ps.jacobian_ref,
-                   "seconds": time.perf_counter() - t0}
-            if modulus is not None:
-                rec["target_modulus"] = modulus
+                model, on = _model(scene, inst, diameter / 2, modulus), inst
+            mech = press_mechanics(model, centres[0], depths, head=head)
+            shared = (time.perf_counter() - t0) / len(todo)  # the solve's time, spread over the presses computed
+            surface = on.surface
+            for i in todo:
+                t1 = time.perf_counter()
+                xy = centres[indices.index(i)]
+                if i == indices[0]:
+                    ps = press_electrical(on, mech, moves=moves)
+                else:  # the first centre's press turned to this one, read through its membrane turned
+                    m = _turn(centres[0], xy)
+                    r = np.eye(3)
+                    r[:2, :2] = m
+                    ps = press_electrical(inst.on_surface(surface.turned(m), mech.u_ref @ r.T), mech.turned(m), moves=moves)
+                store.put(i, _record(ps, xy, diameter, modulus, shared + time.perf_counter() - t1))
+                out.append((i, True, ""))
         except (UnreachablePose, NewtonError, MeshInversionError) as e:
             why = f"{type(e).__name__}: {e}"
             # the model may stand anywhere after a failed press: start the next one afresh
             _WORKER["models"].clear()
-            rec = _nan_record(store.schema, diameter, xy, time.perf_counter() - t0, modulus)
-        store.put(index, rec)
+            seconds = (time.perf_counter() - t0) / len(todo)
+            done = {j for j, _, _ in out}
+            for i in todo:
+                if i not in done:
+                    store.put(i, _nan_record(store.schema, diameter, centres[indices.index(i)], seconds, modulus))
+                    out.append((i, False, why))
         store.flush()
-        return index, bool(rec["reached"]), why
+        return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -325,34 +379,42 @@ def run_design(scene: Scene, plan: Plan, out: str | Path, *, workers: int | None
         missing = store.missing()
         if on_start is not None:
             on_start(n - len(missing), len(missing))
-        tasks = [(str(final), scene, plan, int(i), *presses[i]) for i in missing]
+        todo = set(int(i) for i in missing)
+        tasks = []
+        for g in press_groups(scene, plan):
+            if todo.intersection(g):
+                d, _, e = presses[g[0]]
+                tasks.append((str(final), scene, plan, g, np.array([presses[i][1] for i in g]),
+                              [i for i in g if i in todo], d, e))
+        tasks.sort(key=lambda t: -len(t[5]))  # the longest first: the workers end together
         if tasks:
             w = min(available_cores() if workers is None else workers, len(tasks))
-            def tick(result: tuple[int, bool, str]) -> None:
-                if progress is not None:
-                    progress(1)
-                if not result[1] and on_missed is not None:
-                    on_missed(result[0], result[2])
+            def tick(results: list[tuple[int, bool, str]]) -> None:
+                for index, reached, why in results:
+                    if progress is not None:
+                        progress(1)
+                    if not reached and on_missed is not None:
+                        on_missed(index, why)
 
             if w == 1:
                 for t in tasks:
-                    tick(_run_press(*t))
+                    tick(_run_group(*t))
             else:
-                run_local(tasks, w, tick, _run_press)
+                run_local(tasks, w, tick, _run_group)
         store.finalize(compression="gzip")
     return final
 
 
 # what shapes the stored derivatives (not the frame counts, which the bounds take from the file);
 # the later keys are stored only where set
-_SHAPE = ("diameters", "depths", "spacing", "r_max", "contact_levels", "target_moduli", "ray", "symmetric")
-_LATER = ("contact_levels", "target_moduli", "ray", "symmetric")
+_SHAPE = ("diameters", "depths", "spacing", "r_max", "contact_levels", "target_moduli", "ray", "symmetric", "ring_mechanics")
+_LATER = ("contact_levels", "target_moduli", "ray", "symmetric", "ring_mechanics")
 
 
 def stored_plan(rec: Records) -> Plan:
     """The :class:`Plan` a finished study was computed with (its frame counts the defaults)."""
     p = {k: tuple(v) if isinstance(v, list) else v for k, v in rec.provenance["params"]["plan"].items() if k in _SHAPE}
-    return Plan(**{"symmetric": False, **p})
+    return Plan(**{"symmetric": False, "ring_mechanics": False, **p})
 
 
 def _rows(rec: Records, scene: Scene) -> list[tuple[int, np.ndarray, np.ndarray]]:
