@@ -108,8 +108,8 @@ def run(args: argparse.Namespace) -> int:
     rows, needed, timings, where, joint, joint_moduli, pressed = [], {}, {}, {}, {}, {}, {}
     for path, scene, plan in scenes:
         n, lay = len(plan_presses(scene, plan)), press_layout(scene, plan)
-        pressed[scene.name] = n, n * len(lay.grid) // len(lay.computed)
         solves = len(press_groups(scene, plan))
+        pressed[scene.name] = n, n * len(lay.grid) // len(lay.computed), solves
         print(f"jointsim design-study: {scene.name} (mesh {scene.mesh.preset}, membrane refined {plan.contact_levels}x about "
               f"the contact), {n} presses x {len(depths)} depths, standing for {pressed[scene.name][1]} by symmetry"
               + (f"; {solves} mechanical solves, one per target and ring" if solves < n else ""))

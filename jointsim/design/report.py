@@ -254,7 +254,7 @@ def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[st
                      where: dict[str, DesignBounds] | None = None, refined: dict[str, int] | None = None,
                      joint: dict[str, Summary] | None = None,
                      joint_moduli: dict[str, list[tuple[str, Summary]]] | None = None,
-                     pressed: dict[str, tuple[int, int]] | None = None) -> list[Path]:
+                     pressed: dict[str, tuple[int, int, int]] | None = None) -> list[Path]:
     """``out``/summary.md and summary.csv: the designs side by side (``rows``: a summary and
     what it covers), the SNR each needs to meet each goal (``needed``[design][quantity]), what
     each design cost (``timings``[design]: the stored press times s, and this run's wall s,
@@ -264,7 +264,8 @@ def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[st
     summary of its presses' frames read together (:func:`~.study.press_joint_bounds`), which a
     calibration's per-press route is set beside; ``joint_moduli``[design]: the same per soft
     target's modulus (what, summary); ``pressed``[design]: the presses computed, and those of
-    the grid they stand for by the design's symmetries (:func:`~.study.press_layout`)."""
+    the grid they stand for by the design's symmetries (:func:`~.study.press_layout`), and the
+    mechanical solves they took (:func:`~.study.press_groups`)."""
     lines = ["# Design study: what each design can measure", "", f"Command: `{command}`", "",
              "Cramér–Rao bounds through the coupled model (jointsim.design): an unbiased estimator's error cannot be "
              "smaller. *median*: over the presses (target centres × depths) of an efficient estimator's median |error|; "
@@ -275,10 +276,14 @@ def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[st
         lines += ["Each press read through a membrane refined about its contact (jointsim.design.sensitivity.contact_membrane; "
                   "0: the scene's membrane as meshed, whose size bounds are optimistic): "
                   + ", ".join(f"{d} {n}×" for d, n in refined.items()) + ".", ""]
-    if pressed and any(n < total for n, total in pressed.values()):
+    if pressed and any(n < total for n, total, _ in pressed.values()):
         lines += ["Presses computed, of the grid's: one per set of centres the design's symmetries (its chamber, "
                   "electrodes and protocol) map onto each other, the others given its bounds "
-                  "(jointsim.design.study.press_layout): " + ", ".join(f"{d} {n} of {t}" for d, (n, t) in pressed.items()) + ".", ""]
+                  "(jointsim.design.study.press_layout): " + ", ".join(f"{d} {n} of {t}" for d, (n, t, _) in pressed.items()) + ".", ""]
+    if pressed and any(m < n for n, _, m in pressed.values()):
+        lines += ["Mechanical solves, of the presses computed: one per target and ring of the grid, turned about the axis "
+                  "to the ring's other centres, each measured on its own (jointsim.design.study.press_groups): "
+                  + ", ".join(f"{d} {m} of {n}" for d, (n, _, m) in pressed.items()) + ".", ""]
     lines += ["| design | SNR dB | presses | reached | position median (known / marg.) | position P95 marg. | depth median (known / marg.) "
               "| depth P95 marg. | diameter median (known / marg.) | diameter P95 marg. |",
               "|---|---|---|---|---|---|---|---|---|---|"]
