@@ -58,10 +58,8 @@ def case(ring: float, margin: float) -> dict:
     mech = sens.press_mechanics(model, a, depths)
     turn = math.atan2(b[1], b[0]) - math.atan2(a[1], a[0])
     m = np.array([[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]])
-    r = np.eye(3)
-    r[:2, :2] = m
-    turned = sens.press_electrical(inst.on_surface(inst.on_membrane(model).surface.turned(m), mech.u_ref @ r.T),
-                                   mech.turned(m), moves=moves)
+    mech = mech.turned(m)
+    turned = sens.press_electrical(inst.on_surface(inst.on_membrane(model).surface.turned(m), mech.u_ref), mech, moves=moves)
     J_own, J_turned = own.jacobian[..., :4], turned.jacobian[..., :4]
     rel = np.linalg.norm(J_turned - J_own, axis=1) / np.linalg.norm(J_own, axis=1)
     inst.free()

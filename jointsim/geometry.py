@@ -17,7 +17,7 @@ import trimesh
 from ._surface import SurfaceFile, top_height
 from .scene import Chamber, Scene, read_surface, ring_positions
 
-__all__ = ["DomeSurface", "ElectrodeLayout", "symmetries", "isometries", "cap_height", "chamber_cap", "user_dome", "user_surface", "spherical_cap", "isotropic_cap", "refine_near", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
+__all__ = ["DomeSurface", "axis_turn", "anticlockwise", "ElectrodeLayout", "symmetries", "isometries", "cap_height", "chamber_cap", "user_dome", "user_surface", "spherical_cap", "isotropic_cap", "refine_near", "flat_disc", "chamber_surface", "chamber_from_scene", "dome_from_scene", "electrode_layout"]
 
 
 @dataclass(frozen=True)
@@ -29,6 +29,24 @@ class DomeSurface:
     vertices: np.ndarray
     faces: np.ndarray
     rim: np.ndarray
+
+    def turned(self, m: np.ndarray) -> "DomeSurface":
+        """This surface turned about the axis by the rotation ``m`` (2, 2), its rim sorted
+        anticlockwise again."""
+        v = self.vertices @ axis_turn(m).T
+        return DomeSurface(v, self.faces, anticlockwise(self.rim, v))
+
+
+def axis_turn(m: np.ndarray) -> np.ndarray:
+    """The rotation (3, 3) about the chamber's axis (z) whose in-plane part is ``m`` (2, 2)."""
+    r = np.eye(3)
+    r[:2, :2] = m
+    return r
+
+
+def anticlockwise(rim: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The indices ``rim`` into ``points`` (n, ≥2) ordered by their angle about the axis."""
+    return rim[np.argsort(np.arctan2(points[rim, 1], points[rim, 0]))]
 
 
 @dataclass(frozen=True)

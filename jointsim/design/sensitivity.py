@@ -62,7 +62,7 @@ from ..eit.parameters import (
     electrode_position_sensitivity,
     moved_discs,
 )
-from ..geometry import chamber_cap, refine_near
+from ..geometry import axis_turn, chamber_cap, refine_near
 from ..instrument import Instrument
 from ..mechanics.build import membrane_from_scene
 from ..mechanics.dome import MembraneModel
@@ -125,10 +125,7 @@ def contact_membrane(scene: Scene, radius: float, xy: np.ndarray, depth: float, 
     about, zone = contact_zone(scene, radius, xy, depth)
     dome = refine_near(chamber_cap(scene.chamber, scene.membrane.rim_vertices), about, zone, levels)
     if turn is not None:
-        r = np.eye(3)
-        r[:2, :2] = turn
-        v = dome.vertices @ r.T
-        dome = replace(dome, vertices=v, rim=dome.rim[np.argsort(np.arctan2(v[dome.rim, 1], v[dome.rim, 0]))])
+        dome = dome.turned(turn)
     rigid = replace(scene, target=replace(scene.target, kind="rigid"))
     return membrane_from_scene(rigid, target_radius=radius, dome=dome, target_modulus=modulus,
                                target_turn=GENERIC_TURN)
@@ -228,8 +225,7 @@ class PressMechanics:
         m = np.asarray(m, float)
         if m.shape != (2, 2) or abs(np.linalg.det(m) - 1.0) > 1e-9 or not np.allclose(m @ m.T, np.eye(2), atol=1e-12):
             raise ValueError("turned: a rotation about the axis, (2, 2) orthogonal with determinant +1")
-        r = np.eye(3)
-        r[:2, :2] = m
+        r = axis_turn(m)
 
         def along_c(a: np.ndarray) -> np.ndarray:  # the columns along c_x, c_y (last axis) turned
             a = a.copy()

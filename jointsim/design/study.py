@@ -321,9 +321,8 @@ def _run_group(path: str, scene: Scene, plan: Plan, indices: list[int], centres:
                     ps = press_electrical(on, mech, moves=moves)
                 else:  # the first centre's press turned to this one, read through its membrane turned
                     m = _turn(centres[0], xy)
-                    r = np.eye(3)
-                    r[:2, :2] = m
-                    ps = press_electrical(inst.on_surface(surface.turned(m), mech.u_ref @ r.T), mech.turned(m), moves=moves)
+                    turned = mech.turned(m)
+                    ps = press_electrical(inst.on_surface(surface.turned(m), turned.u_ref), turned, moves=moves)
                 store.put(i, _record(ps, xy, diameter, modulus, shared + time.perf_counter() - t1))
                 out.append((i, True, ""))
         except (UnreachablePose, NewtonError, MeshInversionError) as e:

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import DomeSurface
+from ..geometry import DomeSurface, anticlockwise, axis_turn
 from ..scene import Chamber
 from .dome import MembraneModel
 
@@ -49,7 +49,7 @@ class InnerSurface:
         # the rim: the surface's nodes the model bonds (by the base plane for a cap, by the rim
         # circle for a flat sheet, whose whole inner surface lies in the base plane)
         rim = np.flatnonzero(model.fixed[nodes, 0])
-        rim = rim[np.argsort(np.arctan2(X[rim, 1], X[rim, 0]))]
+        rim = anticlockwise(rim, X)
         a = chamber.base_radius
         if chamber.outline:  # a user's chamber: its rim is the file's polygon
             pass
@@ -64,11 +64,9 @@ class InnerSurface:
         """This surface turned about the axis by the rotation ``m`` (2, 2): the inner surface of
         the membrane whose mesh is this one's turned (the same nodes and faces; its rim sorted
         anticlockwise again). Only a round base maps onto itself under every turn."""
-        r = np.eye(3)
-        r[:2, :2] = m
+        r = axis_turn(m)
         X = self.X @ r.T
-        rim = self.rim[np.argsort(np.arctan2(X[self.rim, 1], X[self.rim, 0]))]
-        return type(self)(self.nodes, self.faces, rim, X, self.u0 @ r.T)
+        return type(self)(self.nodes, self.faces, anticlockwise(self.rim, X), X, self.u0 @ r.T)
 
     def dome(self, u: np.ndarray | None) -> DomeSurface:
         """The surface displaced by the membrane's ``u`` (n_P2, 3) (None: the reference)."""
