@@ -465,6 +465,7 @@ def test_calibrate_command_writes_the_map_and_report(stores, tmp_path, capsys):
     assert "Not estimable" in md and "held out by press" in md
     m = load_map(out / "calibration_map.h5")
     np.testing.assert_allclose(m.size["depth/sum_sigma"].levels, [1e-3, 2e-3, 3e-3])
+    assert ("## Model-based estimation" in md and "within 1σ" in md) == (m.emulator is not None)
     # bad input: one line and exit 2, nothing written
     assert main(["calibrate", str(tmp_path / "none.h5"), "--out", str(tmp_path / "x")]) == 2
     assert main(["calibrate", str(stores["rigid"]), "--out", str(tmp_path / "y"), "--depths-mm", "2,1"]) == 2

@@ -28,22 +28,25 @@ PALPATION_FIELDS = ("target", "frame", "target_radius", "position", "depth", "co
 
 def calibrate_frames(cmap: CalibrationMap, rec: Records) -> dict[str, np.ndarray]:
     """Per frame (n,) arrays: the palpation's target, frame, true position and depth, and the
-    map's :data:`APPLIED` values (SI; modulus per target, from its press-in frames)."""
+    map's :data:`APPLIED` values (SI; modulus per target, from its press-in frames; the
+    emulator's fits at the run's SNR)."""
     f = {k: np.asarray(rec[k]) for k in PALPATION_FIELDS}
-    out = cmap.apply({**f, "group": f["target"]})
+    snr = rec.provenance.get("params", {}).get("noise", {}).get("snr_db")
+    out = cmap.apply({**f, "group": f["target"], "snr_db": snr})
     return {"target": f["target"], "frame": f["frame"], "true_x": f["position"][:, 0], "true_y": f["position"][:, 1],
             "true_depth": f["depth"], "true_diameter": 2 * f["target_radius"],
             "force": np.linalg.norm(f["force"], axis=1), **{k: out[k] for k in APPLIED}}
 
 
 def calibrate_measured(cmap: CalibrationMap, voltages: np.ndarray, dv: np.ndarray, com: np.ndarray,
-                       sum_sigma: np.ndarray, diameter: np.ndarray) -> dict[str, np.ndarray]:
+                       sum_sigma: np.ndarray, diameter: np.ndarray, snr_db: float | None = None) -> dict[str, np.ndarray]:
     """The map's :data:`APPLIED` values (n,) for measured frames (their ``voltages`` and ``dv``
-    (n, n_meas) V, image ``com`` (n, 3) m, ``sum_sigma``, ``diameter`` (n,)). A measured frame
-    has no force: the size route along force and the modulus are NaN there."""
+    (n, n_meas) V, image ``com`` (n, 3) m, ``sum_sigma``, ``diameter`` (n,)), the emulator's
+    fits at the instrument's ``snr_db`` (None: the map's training SNRs'). A measured frame has
+    no force: the size route along force and the modulus are NaN there."""
     n = len(voltages)
     frames = {"com": com, "voltages": voltages, "dv": dv, "force": np.full((n, 3), np.nan), "sum_sigma": sum_sigma,
-              "diameter": diameter}
+              "diameter": diameter, "snr_db": snr_db}
     return cmap.apply(frames)
 
 

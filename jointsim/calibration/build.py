@@ -21,7 +21,7 @@ from ..io.provenance import package_versions, utc_now
 from .com import fit_com_map
 from .curves import ALONG, LevelCurves, default_levels, fit_level_curves, value_at
 from .data import Samples, split_groups, voltage_features
-from .emulator import Emulator, fit_emulator, fit_frames, fit_presses
+from .emulator import Emulator, coverage, fit_emulator, fit_frames, fit_presses
 from .maps import PRESS_MIN_DEPTH, VERSION_PACKAGES, CalibrationMap, outside_region, trained_region
 from .regression import KINDS, OUTPUTS, fit_regressor, moved_by_symmetry, noisy_features, regression_targets
 from .stiffness import decades, fit_stiffness, force_sensitivity, group_features
@@ -207,26 +207,27 @@ def _size_at_levels(curves: dict[str, LevelCurves], test: Samples) -> tuple[list
 
 def _model_based(train: Samples, test: Samples, start: np.ndarray, inside: np.ndarray, band: np.ndarray,
                  seed: int) -> tuple[Emulator, dict[str, Any], dict[str, dict[str, Any]]]:
-    """The emulator trained on the training presses' noise-free features (its covariance with the
-    noise's draws at the training SNRs), and its held-out fits from the regression's estimates
-    ``start``: per frame, and each press's frames at least PRESS_MIN_DEPTH deep jointly. (the
+    """The emulator trained on the training presses' noise-free features (its noise from draws at
+    the training samples' SNRs), and its held-out fits at each frame's SNR from the regression's
+    estimates ``start``: per frame, and each press's frames at least PRESS_MIN_DEPTH deep
+    jointly; with their errors and how often their σ covers them in the goal band. (the
     emulator, the evaluation, the goals' rows by route)."""
     rng = np.random.default_rng([seed, 11])
-    snr = (float(train.snr_db.min()), float(train.snr_db.max()))
     clean = train.clean_features
-    noise = noisy_features(train.voltages_clean, train.reference_clean, snr, train.reference_frames, 1, rng) - clean
-    emu = fit_emulator(clean, train.press, train.group, noise, seed=seed)
+    noise = noisy_features(train.voltages_clean, train.reference_clean, train.snr_db, train.reference_frames, 1, rng) - clean
+    emu = fit_emulator(clean, train.press, train.group, noise, train.snr_db, train.reference_frames, seed=seed)
     Z, T = emu.whiten(test.clean_features), test.press
     r2 = 1.0 - float(((Z - emu(T)) ** 2).sum() / ((Z - Z.mean(axis=0)) ** 2).sum())
     features = voltage_features(test.voltages, test.dv)
-    frame = fit_frames(emu, features, start)[0]
-    press = fit_presses(emu, features, start, test.group, PRESS_MIN_DEPTH)[0]
+    frame = fit_frames(emu, features, start, test.snr_db)
+    press = fit_presses(emu, features, start, test.group, PRESS_MIN_DEPTH, test.snr_db)
     ev, goal = {"emulator_r2": r2, "press_min_depth_m": PRESS_MIN_DEPTH}, {}
     in_range = (test.size >= SIZE_RANGE[0] - 1e-12) & (test.size <= SIZE_RANGE[1] + 1e-12)
-    for name, P in (("per frame", frame), ("press", press)):
+    for name, (P, cov) in (("per frame", frame), ("press", press)):
         e = P - T
         exy = np.hypot(e[:, 0], e[:, 1])
-        ev[name] = {"xy_r15": err_stats(exy[inside]), "depth": err_stats(e[:, 2]), "size": err_stats(e[:, 3][in_range])}
+        ev[name] = {"xy_r15": err_stats(exy[inside]), "depth": err_stats(e[:, 2]), "size": err_stats(e[:, 3][in_range]),
+                    "coverage": coverage(P[band], cov[band], T[band])}
         goal[f"emulator ({name})"] = {"com_xy": err_stats(exy[inside & band]), "depth": err_stats(e[band, 2]),
                                       "size": err_stats(e[in_range & band, 3])}
     return emu, ev, goal

@@ -49,10 +49,13 @@ FORMAT = "jointsim-calibration"
 FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2)
 VERSION_PACKAGES = ("jointsim", "numpy", "scipy", "scikit-learn", "h5py")
+# the emulator's fields a map may lack (written before them): the fits then go without them
+EMULATOR_LATER = ("residual", "shared", "noise_0db", "prior_mean", "prior_sd")
 # what apply() returns per frame (SI): the image route, the direct regression, the modulus, and
 # the emulator's fits (NaN from a map without one): per frame, and a press's frames jointly
 APPLIED = ("cal_x", "cal_y", "cal_depth", "cal_diameter", *(f"direct_{o}" for o in OUTPUTS), "outside", "modulus",
-           *(f"model_{p}" for p in PARAMETERS), *(f"press_{p}" for p in PARAMETERS))
+           *(f"{fit}_{p}" for fit in ("model", "press") for p in PARAMETERS),
+           *(f"{fit}_sd_{p}" for fit in ("model", "press") for p in PARAMETERS))
 PRESS_MIN_DEPTH = 0.3e-3  # m: a press's frames fitted jointly are those the regression puts this deep or more
 
 
@@ -95,7 +98,8 @@ class CalibrationMap:
         ``voltages`` and ``dv`` (n, 256), ``force`` (n, 3), ``sum_sigma``, ``diameter`` (n,);
         with ``group`` (press ids) and ``depth`` (the stage's indentation, m) also the modulus
         of each press (the same on all its frames; the press-in frames are used, up to its
-        deepest), NaN where it cannot be estimated."""
+        deepest), NaN where it cannot be estimated; with ``snr_db`` (one, or (n,)) the emulator's
+        fits weigh the noise at that SNR, else at the training SNRs'."""
         com = np.asarray(frames["com"], float)
         n = len(com)
         pos = self.com(com)
@@ -117,21 +121,28 @@ class CalibrationMap:
                                             metrics["diameter"][press_in])
             lookup = dict(zip(ids.tolist(), E.tolist()))
             out["modulus"] = np.array([lookup.get(i, np.nan) for i in g.tolist()])
-        out.update(self._model_based(features, direct[:, :4], frames.get("group")))
+        out.update(self._model_based(features, direct[:, :4], frames.get("group"), frames.get("snr_db")))
         return out
 
-    def _model_based(self, features: np.ndarray, start: np.ndarray, group: np.ndarray | None) -> dict[str, np.ndarray]:
-        """The emulator's fits (:mod:`.emulator`) from the regression's estimates: each frame's, and
-        with ``group`` each press's frames at least PRESS_MIN_DEPTH deep jointly (x, y and the
-        diameter shared); NaN without an emulator."""
+    def _model_based(self, features: np.ndarray, start: np.ndarray, group: np.ndarray | None,
+                     snr_db: float | np.ndarray | None) -> dict[str, np.ndarray]:
+        """The emulator's fits (:mod:`.emulator`) from the regression's estimates, and their σ:
+        each frame's, and with ``group`` each press's frames at least PRESS_MIN_DEPTH deep
+        jointly (x, y and the diameter shared), at the frames' ``snr_db`` (None: the training
+        SNRs'); NaN without an emulator."""
         n = len(features)
-        model, press = np.full((n, 4), np.nan), np.full((n, 4), np.nan)
+        fits = {"model": (np.full((n, 4), np.nan), np.full((n, 4, 4), np.nan))}
+        fits["press"] = fits["model"]
         if self.emulator is not None:
-            model = fit_frames(self.emulator, features, start)[0]
+            fits["model"] = fit_frames(self.emulator, features, start, snr_db)
             if group is not None:
-                press = fit_presses(self.emulator, features, start, np.asarray(group), PRESS_MIN_DEPTH)[0]
-        return {**{f"model_{p}": model[:, j] for j, p in enumerate(PARAMETERS)},
-                **{f"press_{p}": press[:, j] for j, p in enumerate(PARAMETERS)}}
+                fits["press"] = fit_presses(self.emulator, features, start, np.asarray(group), PRESS_MIN_DEPTH, snr_db)
+        out = {}
+        for name, (est, cov) in fits.items():
+            sd = np.sqrt(np.einsum("nii->ni", cov))
+            out.update({f"{name}_{p}": est[:, j] for j, p in enumerate(PARAMETERS)})
+            out.update({f"{name}_sd_{p}": sd[:, j] for j, p in enumerate(PARAMETERS)})
+        return out
 
 
 def trained_region(xy: np.ndarray, depth: np.ndarray, diameter: np.ndarray) -> dict[str, Any]:
@@ -223,12 +234,13 @@ def save_map(cmap: CalibrationMap, path: str | Path) -> Path:
             t.attrs.update(estimable=st.estimable, reason=st.reason, intercept=st.intercept)
             if (emu := cmap.emulator) is not None:
                 e = h5.create_group("emulator")
-                for name in ("t_mean", "t_scale", "x_mean", "components", "x_scale", "covariance"):
-                    e.create_dataset(name, data=getattr(emu, name))
+                for name in ("t_mean", "t_scale", "x_mean", "components", "x_scale", "covariance", *EMULATOR_LATER):
+                    if getattr(emu, name) is not None:
+                        e.create_dataset(name, data=getattr(emu, name))
                 for i, (W, b) in enumerate(zip(emu.weights, emu.biases)):
                     e.create_dataset(f"W{i}", data=W)
                     e.create_dataset(f"b{i}", data=b)
-                e.attrs.update(layers=len(emu.weights), parameters=_json(list(PARAMETERS)))
+                e.attrs.update(layers=len(emu.weights), parameters=_json(list(PARAMETERS)), reference_share=emu.reference_share)
     return path
 
 
@@ -279,7 +291,8 @@ def load_map(path: str | Path) -> CalibrationMap:
             k = int(e.attrs["layers"])
             emu = Emulator(e["t_mean"][()], e["t_scale"][()], tuple(e[f"W{i}"][()] for i in range(k)),
                            tuple(e[f"b{i}"][()] for i in range(k)), e["x_mean"][()], e["components"][()], e["x_scale"][()],
-                           e["covariance"][()])
+                           e["covariance"][()], **{n: e[n][()] for n in EMULATOR_LATER if n in e},
+                           reference_share=float(e.attrs.get("reference_share", 0.0)))
         return CalibrationMap(
             json.loads(a["fingerprint"]), com, size, str(a["size_route"]), reg, st, json.loads(a["source"]),
             json.loads(a["settings"]), json.loads(a["evaluation"]), json.loads(a["versions"]), str(a["created"]),

@@ -68,10 +68,11 @@ class DirectRegressor:
         return out
 
 
-def noisy_features(voltages_clean: np.ndarray, reference_clean: np.ndarray, snr_db: tuple[float, float],
+def noisy_features(voltages_clean: np.ndarray, reference_clean: np.ndarray, snr_db: tuple[float, float] | np.ndarray,
                    reference_frames: int, copies: int, rng: np.random.Generator) -> np.ndarray:
     """``copies`` fresh noisy versions of each sample, as features (copies·n, m), copy-major.
-    Each draws an SNR uniform in ``snr_db`` (lo, hi) dB and the instrument's white noise as
+    Each draws an SNR uniform in ``snr_db`` (a tuple (lo, hi) dB; an array (n,) is each
+    sample's SNR) and the instrument's white noise as
     ``jointsim dataset`` does: standard deviation re the mean standing |V| of the sample's
     ``reference_clean`` (n, m), on ``voltages_clean`` (n, m) once and on the reference averaged
     over ``reference_frames`` (drawn per sample here; a dataset draws one reference per press,
@@ -83,7 +84,7 @@ def noisy_features(voltages_clean: np.ndarray, reference_clean: np.ndarray, snr_
     v, ref = np.asarray(voltages_clean, float), np.asarray(reference_clean, float)
     out = []
     for _ in range(copies):
-        snr = rng.uniform(snr_db[0], snr_db[1], len(v))
+        snr = rng.uniform(snr_db[0], snr_db[1], len(v)) if isinstance(snr_db, tuple) else np.asarray(snr_db, float)
         std = np.array([noise_std(r, q) for r, q in zip(ref, snr)])[:, None]
         measured = v + std * rng.standard_normal(v.shape)
         measured_ref = ref + std / np.sqrt(reference_frames) * rng.standard_normal(v.shape)

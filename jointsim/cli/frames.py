@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     from ..io.export import atomic_path, write_voxels_vtu
     from ..io.frames import read_frames
     from ..calibration.report import write_csv
-    from ..studies.measured import check_frames, image_frames
+    from ..studies.measured import check_frames, image_frames, reference_snr_db
     from ..instrument import Instrument
 
     scene = scene_from_args(args)
@@ -71,14 +71,17 @@ def run(args: argparse.Namespace) -> int:
         inst.free()
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
+    snr = reference_snr_db(reference.voltages)  # the noise the emulator's fits weigh
     table = {"frame": np.arange(len(frames)), "com_x": res.com[:, 0], "com_y": res.com[:, 1], "com_z": res.com[:, 2],
              "sum_sigma": res.sum_sigma, "diameter": res.diameter, "rms_dv": np.sqrt(np.mean(res.dv**2, axis=1))}
     if cmap is not None:
         from ..calibration.apply import calibrate_measured
 
-        est = calibrate_measured(cmap, res.voltages, res.dv, res.com, res.sum_sigma, res.diameter)
+        est = calibrate_measured(cmap, res.voltages, res.dv, res.com, res.sum_sigma, res.diameter, snr)
         table.update({k: est[k] for k in ("cal_x", "cal_y", "cal_depth", "direct_x", "direct_y", "direct_depth",
                                           "direct_diameter", "outside")})
+        if cmap.emulator is not None:  # the model-based fit per frame, with its σ
+            table.update({k: est[k] for k in est if k.startswith("model_")})
     written = [write_csv(out / "frames.csv", table)]
     k = min(VTU_FRAMES, len(frames))
     written.append(write_voxels_vtu(out / "images.vtu", grid, {f"frame{i}": res.images[i] for i in range(k)}))
@@ -86,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
                "n": len(frames)}, "reference": {"path": str(args.reference), "sha256": _sha256(args.reference), "n": len(reference)},
                "calibration": None if cmap is None else {"map": str(args.calibration), "trained_region": cmap.region},
                "channel_order": "voltages[s * n_meas_per_stim + m] = measurement m of injection s",
+               "reference_snr_db": snr,
                "fitted_sensor": fit}
     with atomic_path(out / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=2))

@@ -22,7 +22,7 @@ from ..io.frames import MeasuredFrames, check_patterns
 from ..metrics import metric_fields
 from ..scene import Scene
 
-__all__ = ["MeasuredImages", "check_frames", "image_frames"]
+__all__ = ["MeasuredImages", "check_frames", "image_frames", "reference_snr_db"]
 
 
 @dataclass(frozen=True)
@@ -49,6 +49,18 @@ def check_frames(scene: Scene, *frames: MeasuredFrames) -> None:
     proto = scene_protocol(scene)
     for f in frames:
         check_patterns(f, proto.stim, proto.meas, proto.n_meas)
+
+
+def reference_snr_db(reference: np.ndarray) -> float | None:
+    """The instrument's SNR in the paper's convention, 20 log10(mean |V̄| / σ), from the scatter
+    of the untouched sensor's frames ``reference`` (r, n_meas) V about their mean V̄ (σ² the
+    channels' mean unbiased variance); None from fewer than two frames, or frames that scatter
+    by round-off only (past 200 dB: copies of one frame)."""
+    if len(reference) < 2:
+        return None
+    level = float(np.mean(np.abs(reference.mean(axis=0))))
+    sd = float(np.sqrt(np.mean(np.var(reference, axis=0, ddof=1))))
+    return 20.0 * float(np.log10(level / sd)) if sd > 1e-10 * level else None
 
 
 def image_frames(scene: Scene, frames: MeasuredFrames, reference: MeasuredFrames,
