@@ -71,7 +71,7 @@ from ..mechanics.touch import touch
 from ..scene import Scene
 
 __all__ = ["TARGET", "TARGET_MODULUS", "target_names", "ELECTRODE_STEP", "CONTACT_MARGIN", "PressSensitivity", "PressMechanics", "parameter_names", "press_sensitivity", "press_mechanics", "press_electrical", "electrode_moves",
-           "unrefinable", "contact_zone", "contact_membrane"]
+           "unrefinable", "contact_zone", "contact_membrane", "head_moves"]
 
 TARGET = ("x", "y", "depth", "radius")  # the target's parameters, m
 # a soft target's Young's modulus (ln E), after TARGET: parameter_names(soft=True)
@@ -240,14 +240,19 @@ class PressMechanics:
                        contact=self.contact @ r.T, dcop=along_c(np.einsum("ij,kjt->kit", m, self.dcop)))
 
 
+def head_moves(scene: Scene) -> bool:
+    """Whether the reservoir's head moves the scene's untouched membrane: one moulded as a cap
+    (a membrane moulded flat takes its shape from the inflation, which the head sets)."""
+    return scene.membrane.moulding == "cap"
+
+
 def press_mechanics(model: MembraneModel, xy: np.ndarray, depths: np.ndarray, *, head: bool = True,
                     step_max: float = 0.5e-3) -> PressMechanics:
     """The mechanical half of :func:`press_sensitivity`: ``model``'s target (its radius; a soft
     one's modulus) pressed at ``xy`` (2,) m through ``depths`` (K,) m, increasing, past first
     contact, in load steps of ``step_max`` m at most, and the equilibria's derivatives by the
     implicit function theorem (module docstring). ``head``: the reservoir's head moves the
-    untouched membrane (a membrane moulded as a cap; False for one moulded flat, which the
-    inflation sets). ``model`` must be untouched; it is left so."""
+    untouched membrane (:func:`head_moves`). ``model`` must be untouched; it is left so."""
     xy = np.asarray(xy, float)
     depths = np.asarray(depths, float)
     soft = TARGET_MODULUS in model.TARGET_PARAMETERS
@@ -362,7 +367,7 @@ def press_sensitivity(inst: Instrument, model: MembraneModel, xy: np.ndarray, de
     ``probe``: the largest membrane displacement m of a central difference along du/dθ;
     ``step_max``: the press's load steps, m. Raises what the mechanics raise for a press they
     cannot take (:class:`~jointsim.mechanics.dome.UnreachablePose`, NewtonError)."""
-    mech = press_mechanics(model, xy, depths, head=inst.scene.membrane.moulding == "cap", step_max=step_max)
+    mech = press_mechanics(model, xy, depths, head=head_moves(inst.scene), step_max=step_max)
     return press_electrical(inst, mech, moves=moves, electrode_step=electrode_step, probe=probe)
 
 

@@ -34,7 +34,7 @@ from ..mechanics.soft_target import GENERIC_TURN
 from ..mesh.morph import MeshInversionError
 from ..scene import Scene
 from .bounds import Bounds, fisher, joint_bounds, median_error, nuisance_prior, press_bounds, press_fisher
-from .sensitivity import (ELECTRODE_STEP, contact_membrane, electrode_moves, parameter_names, press_electrical,
+from .sensitivity import (ELECTRODE_STEP, contact_membrane, electrode_moves, head_moves, parameter_names, press_electrical,
                           press_mechanics, TARGET_MODULUS, target_names, unrefinable)
 
 __all__ = ["Plan", "press_grid", "press_symmetries", "PressLayout", "press_layout", "orbits", "plan_presses", "press_groups", "design_schema", "run_design", "DesignBounds", "design_bounds",
@@ -303,7 +303,6 @@ def _run_group(path: str, scene: Scene, plan: Plan, indices: list[int], centres:
         inst, moves = _setup(scene)
         store = attach(path)
         depths = np.asarray(plan.depths)
-        head = scene.membrane.moulding == "cap"
         out = []
         try:
             if plan.contact_levels:  # a membrane of its own; the chamber, morph factor and readout shared
@@ -311,7 +310,7 @@ def _run_group(path: str, scene: Scene, plan: Plan, indices: list[int], centres:
                 on = inst.on_membrane(model)
             else:
                 model, on = _model(scene, inst, diameter / 2, modulus), inst
-            mech = press_mechanics(model, centres[0], depths, head=head)
+            mech = press_mechanics(model, centres[0], depths, head=head_moves(scene))
             shared = (time.perf_counter() - t0) / len(todo)  # the solve's time, spread over the presses computed
             surface = on.surface
             for i in todo:
