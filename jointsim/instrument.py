@@ -49,7 +49,9 @@ from .mesh.electrodes import ElectrodePatch, disc_patches, layout_patches
 from .mesh.morph import MIN_QUALITY_RATIO, ChamberMorpher, DeformedChamber, MeshInversionError, deform_chamber
 from .metrics import ImageMetrics, image_metrics
 from .reconstruction.grid import ChamberGrid
-from .reconstruction.tikhonov import DEPTH_EXPONENT, SVD, Reconstructor, choose_lambda, prior_matrix
+from .reconstruction.tikhonov import DEPTH_EXPONENT, LAPLACIAN_RIDGE, SVD, Reconstructor, choose_lambda, prior_matrix
+from .reconstruction.tv import BETA as TV_BETA
+from .reconstruction.tv import TVImager, difference_operator, discrepancy_lambda
 from .scene import Scene
 from .timing import timed
 
@@ -229,25 +231,39 @@ class Readout:
 class Imager:
     """The instrument's reconstruction: the voxel ``grid``, the ``jacobian`` (n_meas, n_cells)
     of the reference chamber, the Tikhonov ``reconstructor`` (λ chosen once), and each cell's
-    image noise std ``cell_noise`` (n_cells,) under the frame's δV noise."""
+    image noise std ``cell_noise`` (n_cells,) under the frame's δV noise; ``tv`` the total
+    variation imager that refines the reconstructor's image (prior "tv"), else None."""
 
     grid: ChamberGrid
     jacobian: np.ndarray
     reconstructor: Reconstructor
     cell_noise: np.ndarray
+    tv: TVImager | None = None
 
     @classmethod
     def choose(cls, grid: ChamberGrid, J: np.ndarray, dv_for_lambda: np.ndarray, method: str, dv_noise_std: float,
                seed: int, prior: str = "tikhonov", depth_exponent: float = DEPTH_EXPONENT) -> "Imager":
         """λ by ``method`` cross-validation on the noisy frames ``dv_for_lambda`` (k, n_meas),
         for the image ``prior`` (:data:`~jointsim.reconstruction.tikhonov.PRIORS`; "depth" with
-        ``depth_exponent``)."""
-        P = prior_matrix(prior, J, grid.laplacian() if prior == "laplacian" else None, grid.centroid[:, 2], depth_exponent,
-                         0.5 * float(np.cbrt(grid.voxel_volume)))
+        ``depth_exponent``; "tv": the Laplacian's image refined by total variation, its λ by
+        the discrepancy principle on the same frames, :mod:`~jointsim.reconstruction.tv`; the
+        cell noise stays the Laplacian's, a normalisation of the image)."""
+        L = grid.laplacian() if prior in ("laplacian", "tv") else None
+        P = prior_matrix(prior, J, L, grid.centroid[:, 2], depth_exponent, 0.5 * float(np.cbrt(grid.voxel_volume)))
         svd = SVD.of(J) if P is None else SVD.generalized(J, P)
         choice = choose_lambda(svd, dv_for_lambda, method, seed=seed)
         rec = Reconstructor(svd.reconstruction_matrix(choice.lam), choice)
-        return cls(grid, J, rec, rec.noise_std(dv_noise_std))
+        tv = None
+        if prior == "tv":
+            lam2 = choice.lam**2
+            starts = np.array([rec.image(d) for d in np.atleast_2d(dv_for_lambda)])
+            D = difference_operator(L)
+            edges = np.abs(D @ starts[0])
+            # start the search where TV's weight equals the Laplacian's at the smooth image's median edge
+            lam0 = 2 * lam2 * float(np.median(np.sqrt(edges**2 + (TV_BETA * edges.max()) ** 2))) or lam2
+            tv = discrepancy_lambda(J, D, dv_for_lambda, starts, dv_noise_std,
+                                    lam2 * LAPLACIAN_RIDGE * float(L.diagonal().mean()), lam0)
+        return cls(grid, J, rec, rec.noise_std(dv_noise_std), tv)
 
     def image(self, dv: np.ndarray, true_centre: np.ndarray | None = None,
               target_volume: float | None = None) -> tuple[np.ndarray, np.ndarray, ImageMetrics | None]:
@@ -255,6 +271,8 @@ class Imager:
         their :class:`ImageMetrics` (None when the image is all zero; ``true_centre`` (3,) m with
         NaN and ``target_volume`` 0 count as not known)."""
         image = self.reconstructor.image(dv)
+        if self.tv is not None:
+            image = self.tv.image(dv, image)
         normalised = image / self.cell_noise
         metrics = None
         if np.any(image):

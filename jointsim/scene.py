@@ -1158,7 +1158,7 @@ def load_scene(path: str | Path) -> Scene:
 PALPATION_MODES = ("position", "force", "compliant")
 MESH_UPDATES = ("auto", "morph", "remesh")
 LAMBDA_METHODS = ("kfold", "loo", "gcv", "lcurve")
-IMAGE_PRIORS = ("tikhonov", "noser", "laplacian", "depth")  # as jointsim.reconstruction.tikhonov.PRIORS (tested)
+IMAGE_PRIORS = ("tikhonov", "noser", "laplacian", "depth", "tv")  # as jointsim.reconstruction.tikhonov.PRIORS (tested)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1169,7 +1169,8 @@ IMAGE_PRIORS = ("tikhonov", "noser", "laplacian", "depth")  # as jointsim.recons
 class ReconstructionSpec:
     """The instrument's reconstruction (SI): Tikhonov images on ``cells`` voxels of the
     reference chamber with the ``prior`` (zeroth order "tikhonov", the paper's; "noser";
-    "laplacian"; "depth", cells near the base weighted up by ((z + z₀)/H)^−``depth_exponent``:
+    "laplacian"; "depth", cells near the base weighted up by ((z + z₀)/H)^−``depth_exponent``;
+    "tv", total variation from the Laplacian's image, its own λ by the discrepancy principle:
     jointsim.reconstruction.tikhonov.PRIORS), λ chosen once by ``lambda_method`` cross-validation on the noisy
     δV of a representative press: a geometric indentation of the untouched sensor by a sphere
     of ``lambda_radius`` m, ``lambda_depth`` m past first contact, at ``lambda_xy`` (m). Every

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["PRIORS", "prior_matrix", "SVD", "LambdaChoice", "Reconstructor", "choose_lambda", "lambda_grid", "tikhonov_solve"]
+__all__ = ["PRIORS", "LAPLACIAN_RIDGE", "prior_matrix", "SVD", "LambdaChoice", "Reconstructor", "choose_lambda", "lambda_grid", "tikhonov_solve"]
 
 METHODS = ("kfold", "loo", "gcv", "lcurve")
 # the image's prior ‖x‖²_P: "tikhonov" P = I (zeroth order, the paper's); "noser" P = diag(JᵀJ)
@@ -32,8 +32,10 @@ METHODS = ("kfold", "loo", "gcv", "lcurve")
 # P = diag(((z + z₀)/H)^−q), z a cell's height above the base (where the electrodes are), H the
 # highest cell's, z₀ half a voxel, q the exponent: a cell near the base costs more, which counters
 # the pull of the image towards the electrodes (its CoM sits ~3 mm low under Tikhonov;
-# results/image_priors.md), as geophysics' depth weighting does for surface sensors
-PRIORS = ("tikhonov", "noser", "laplacian", "depth")
+# results/image_priors.md), as geophysics' depth weighting does for surface sensors; "tv" total
+# variation (jointsim.reconstruction.tv), started from the Laplacian's image
+PRIORS = ("tikhonov", "noser", "laplacian", "depth", "tv")
+LAPLACIAN_RIDGE = 1e-3  # "laplacian"'s ε (and "tv"'s), × L's mean diagonal
 DEPTH_EXPONENT = 2.0  # [reconstruction] depth_exponent's default
 
 
@@ -51,10 +53,10 @@ def prior_matrix(name: str, J: np.ndarray, laplacian: sp.spmatrix | None = None,
         return sp.diags((z / z.max()) ** (-float(exponent))).tocsr()
     if name == "noser":
         return sp.diags(np.einsum("ij,ij->j", J, J)).tocsr()
-    if name == "laplacian":
+    if name in ("laplacian", "tv"):  # tv: its smooth start (jointsim.reconstruction.tv)
         if laplacian is None:
-            raise ValueError("prior 'laplacian': the cells' graph Laplacian is needed")
-        eps = 1e-3 * float(laplacian.diagonal().mean())
+            raise ValueError(f"prior {name!r}: the cells' graph Laplacian is needed")
+        eps = LAPLACIAN_RIDGE * float(laplacian.diagonal().mean())
         return (laplacian + eps * sp.identity(laplacian.shape[0])).tocsr()
     raise ValueError(f"prior = {name!r}: one of {', '.join(PRIORS)}")
 
