@@ -7,10 +7,11 @@ direct regression it starts from.
         # writes results/calibration/model_based.{md,json}
 
 Per split (press groups held out as `jointsim calibrate` holds them out, 20 %): the emulator
-trained on the training presses' noise-free features (its covariance from held-out training
-presses' residuals, their part shared by a press's frames, and the noise's draws scaled to each
-frame's SNR; the training labels its prior); the direct regression as `jointsim calibrate` fits
-it on the same training presses (its MLP, 30 fresh noise draws per sample); both evaluated on
+and the direct regression as `jointsim calibrate` fits them on the training presses (the
+emulator on their noise-free features, its covariance from the residuals of training presses it
+holds out, their part shared by a press's frames, and the noise's draws scaled to each frame's
+SNR; the training labels its prior; its σ recalibrated on the presses it held out. The
+regression: its MLP, 30 fresh noise draws per sample); both evaluated on
 the held-out presses, at the goals' 74.2 dB (their noise-free voltages re-noised) and at the
 dataset's own SNRs (the stored noisy frames). Errors: in-plane position within r ≤ 15 mm,
 depth, diameter (median, P95); the emulator's own error against the simulator (its held-out
@@ -33,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from jointsim.calibration.data import load_samples, split_groups, voltage_features  # noqa: E402
-from jointsim.calibration.emulator import PARAMETERS, coverage, fit_emulator, fit_frames, fit_presses  # noqa: E402
+from jointsim.calibration.emulator import PARAMETERS, coverage, fit_frames, fit_presses  # noqa: E402
 from jointsim.calibration.regression import noisy_features  # noqa: E402
 
 COPIES = 3  # fresh noise draws of each held-out sample at the goals' SNR
@@ -73,18 +74,14 @@ def split(samples, seed: int) -> dict:
     from jointsim.calibration.build import Settings, calibrate
 
     tr, te = split_groups(samples.group, 0.2, seed)
-    A, B = samples.subset(tr), samples.subset(te)
+    B = samples.subset(te)
     rng = np.random.default_rng([seed, 7])
-    noise = noisy_features(A.voltages_clean, A.reference_clean, A.snr_db, A.reference_frames, 1, rng) - A.clean_features
     t0 = time.perf_counter()
-    emu = fit_emulator(A.clean_features, A.press, A.group, noise, A.snr_db, A.reference_frames, seed=seed)
-    t_emu = time.perf_counter() - t0
+    cal = calibrate(samples, Settings(seed=seed), progress=lambda _: None)  # the emulator and regression as `jointsim calibrate` fits them
+    t_cal = time.perf_counter() - t0
+    emu, reg = cal.map.emulator, cal.map.regressor
     Zb, Tb = emu.whiten(B.clean_features), B.press
     r2 = 1.0 - float(((Zb - emu(Tb)) ** 2).sum() / ((Zb - Zb.mean(axis=0)) ** 2).sum())
-    t0 = time.perf_counter()
-    cal = calibrate(samples, Settings(seed=seed), progress=lambda _: None)  # the direct regression as `jointsim calibrate` fits it
-    t_cal = time.perf_counter() - t0
-    reg = cal.map.regressor
     t0 = time.perf_counter()
     stored = _scores(_estimates(emu, reg, voltage_features(B.voltages, B.dv), B.group, B.snr_db), Tb)
     t_fit = time.perf_counter() - t0
@@ -92,9 +89,9 @@ def split(samples, seed: int) -> dict:
     F = noisy_features(B.voltages_clean, B.reference_clean, (GOAL_SNR_DB, GOAL_SNR_DB), B.reference_frames, COPIES, rng)
     goal = _scores(_estimates(emu, reg, F, np.tile(B.group, COPIES) + np.repeat(np.arange(COPIES), len(B)) * (B.group.max() + 1),
                               GOAL_SNR_DB), np.tile(Tb, (COPIES, 1)))
-    out = {"seed": seed, "train_presses": int(len(np.unique(A.group))), "test_presses": int(len(np.unique(B.group))),
-           "test_frames": int(len(B)), "emulator_r2": r2,
-           "seconds": {"emulator": t_emu, "calibrate": t_cal, "fits_stored_frames": t_fit}, "stored": stored, "goal_snr": goal}
+    out = {"seed": seed, "train_presses": int(len(np.unique(samples.group[tr]))), "test_presses": int(len(np.unique(B.group))),
+           "test_frames": int(len(B)), "emulator_r2": r2, "sd_scale": np.asarray(emu.sd_scale).tolist(),
+           "seconds": {"calibrate": t_cal, "fits_stored_frames": t_fit}, "stored": stored, "goal_snr": goal}
     print({k: v for k, v in out.items() if k not in ("stored", "goal_snr")},
           {k: (v["xy"]["median_mm"], v["xy"]["p95_mm"], v["depth"]["median_mm"]) for k, v in goal.items()}, flush=True)
     return out
@@ -122,12 +119,13 @@ def markdown(r: dict) -> str:
                              f"{x['depth']['median_mm']:.3f} / {x['depth']['p95_mm']:.2f} | {x['diameter']['median_mm']:.2f} / "
                              f"{x['diameter']['p95_mm']:.1f} | {cov[0]} | {cov[1]} | {cov[2]} |")
         lines.append("")
-    lines += ["| split | train / test presses | test frames | emulator held-out R² (whitened features) | s: emulator, calibrate, fits of the stored frames |",
-              "|---|---|---:|---:|---|"]
+    lines += ["| split | train / test presses | test frames | emulator held-out R² (whitened features) | σ scale, per frame (x, y, depth, diameter) | σ scale, press | s: calibrate (the emulator in it), fits of the stored frames |",
+              "|---|---|---:|---:|---|---|---|"]
     for s in r["splits"]:
-        t = s["seconds"]
+        t, sc = s["seconds"], s["sd_scale"]
         lines.append(f"| {s['seed']} | {s['train_presses']} / {s['test_presses']} | {s['test_frames']} | {s['emulator_r2']:.3f} | "
-                     f"{t['emulator']:.0f}, {t['calibrate']:.0f}, {t['fits_stored_frames']:.1f} |")
+                     f"{' / '.join(f'{v:.2g}' for v in sc[0])} | {' / '.join(f'{v:.2g}' for v in sc[1])} | "
+                     f"{t['calibrate']:.0f}, {t['fits_stored_frames']:.1f} |")
     return "\n".join(lines) + "\n"
 
 

@@ -21,7 +21,7 @@ from ..io.provenance import package_versions, utc_now
 from .com import fit_com_map
 from .curves import ALONG, LevelCurves, default_levels, fit_level_curves, value_at
 from .data import Samples, split_groups, voltage_features
-from .emulator import Emulator, coverage, fit_emulator, fit_frames, fit_presses
+from .emulator import Emulator, coverage, fit_emulator, fit_frames, fit_presses, held_out_presses, recalibrated
 from .maps import PRESS_MIN_DEPTH, VERSION_PACKAGES, CalibrationMap, outside_region, trained_region
 from .regression import KINDS, OUTPUTS, fit_regressor, moved_by_symmetry, noisy_features, regression_targets
 from .stiffness import decades, fit_stiffness, force_sensitivity, group_features
@@ -205,10 +205,11 @@ def _size_at_levels(curves: dict[str, LevelCurves], test: Samples) -> tuple[list
     return rows, {k: np.concatenate(v) if v else np.zeros(0) for k, v in tab.items()}
 
 
-def _model_based(train: Samples, test: Samples, start: np.ndarray, inside: np.ndarray, band: np.ndarray,
+def _model_based(train: Samples, test: Samples, regressor, start: np.ndarray, inside: np.ndarray, band: np.ndarray,
                  seed: int) -> tuple[Emulator, dict[str, Any], dict[str, dict[str, Any]]]:
     """The emulator trained on the training presses' noise-free features (its noise from draws at
-    the training samples' SNRs), and its held-out fits at each frame's SNR from the regression's
+    the training samples' SNRs; its σ recalibrated on the training presses it held out, from
+    ``regressor``'s estimates), and its held-out fits at each frame's SNR from the regression's
     estimates ``start``: per frame, and each press's frames at least PRESS_MIN_DEPTH deep
     jointly; with their errors and how often their σ covers them in the goal band. (the
     emulator, the evaluation, the goals' rows by route)."""
@@ -216,6 +217,10 @@ def _model_based(train: Samples, test: Samples, start: np.ndarray, inside: np.nd
     clean = train.clean_features
     noise = noisy_features(train.voltages_clean, train.reference_clean, train.snr_db, train.reference_frames, 1, rng) - clean
     emu = fit_emulator(clean, train.press, train.group, noise, train.snr_db, train.reference_frames, seed=seed)
+    # its σ recalibrated on the training presses it held out: their stored noisy frames, from the regression
+    out = held_out_presses(train.group, seed=seed)
+    own = voltage_features(train.voltages, train.dv)[out]
+    emu = recalibrated(emu, own, regressor(own)[:, :4], train.press[out], train.group[out], train.snr_db[out], PRESS_MIN_DEPTH)
     Z, T = emu.whiten(test.clean_features), test.press
     r2 = 1.0 - float(((Z - emu(T)) ** 2).sum() / ((Z - Z.mean(axis=0)) ** 2).sum())
     features = voltage_features(test.voltages, test.dv)
@@ -347,7 +352,8 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
     emulator, model_goal = None, {}
     if s.emulator and train.has_clean and len(train) >= 50:
         progress("emulator of the coupled model (model-based estimation)")
-        emulator, ev["model_based"], model_goal = _model_based(train, test, direct[s.regressor][:, :4], inside, band, s.seed)
+        emulator, ev["model_based"], model_goal = _model_based(train, test, regs[s.regressor], direct[s.regressor][:, :4], inside,
+                                                               band, s.seed)
 
     # stiffness
     progress("stiffness")

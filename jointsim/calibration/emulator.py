@@ -36,7 +36,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-__all__ = ["PARAMETERS", "Emulator", "coverage", "fit_emulator", "fit_frames", "fit_press", "fit_presses", "shared_part"]
+__all__ = ["PARAMETERS", "Emulator", "coverage", "fit_emulator", "fit_frames", "fit_press", "fit_presses", "held_out_presses",
+           "recalibrated", "shared_part"]
 
 PARAMETERS = ("x", "y", "depth", "diameter")
 HIDDEN = (128, 128)
@@ -52,7 +53,9 @@ class Emulator:
     independent, no prior: ``residual`` (k, k) R, the emulator's error and the nuisances;
     ``shared`` (k, k) R's part common to a press's frames; ``noise_0db`` (k, k) N₀;
     ``reference_share`` N's part common to a press's frames; ``prior_mean`` and ``prior_sd``
-    (4,) m the prior on θ."""
+    (4,) m the prior on θ; ``sd_scale`` (2, 4) the factors on each parameter's σ that make the
+    per-frame fits' (row 0) and the press fits' (row 1) cover the truth of presses the
+    emulator was not fitted on (:func:`recalibrated`)."""
 
     t_mean: np.ndarray
     t_scale: np.ndarray
@@ -68,6 +71,7 @@ class Emulator:
     reference_share: float = 0.0
     prior_mean: np.ndarray | None = None
     prior_sd: np.ndarray | None = None
+    sd_scale: np.ndarray | None = None
 
     def covariances(self, snr_db: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(C, S) (k, k): a frame's residual covariance at ``snr_db`` (None: the training
@@ -119,8 +123,7 @@ def fit_emulator(features: np.ndarray, theta: np.ndarray, groups: np.ndarray, no
         raise ValueError(f"an emulator needs at least 50 samples with finite features and labels, got {len(X)}")
     x_mean, components, x_scale, Z = pca_whitening(X, n_components)
     k = len(x_scale)
-    ids = np.unique(g)
-    out = np.isin(g, np.random.default_rng(seed).permutation(ids)[: max(2, int(round(held_out * len(ids))))])
+    out = held_out_presses(g, held_out, seed)
     t_mean, t_scale = T[~out].mean(axis=0), T[~out].std(axis=0)
     t_scale = np.where(t_scale > 0, t_scale, 1.0)
     m = MLPRegressor(hidden_layer_sizes=HIDDEN, alpha=1e-4, learning_rate_init=1e-3, max_iter=3000, early_stopping=True,
@@ -138,6 +141,13 @@ def fit_emulator(features: np.ndarray, theta: np.ndarray, groups: np.ndarray, no
             N0 = np.cov((W * 10.0 ** (np.asarray(noise_snr_db, float)[:, None] / 20.0)).T)
     return replace(emu, covariance=C, residual=R, shared=S, noise_0db=N0, reference_share=1.0 / (reference_frames + 1),
                    prior_mean=t_mean, prior_sd=t_scale)
+
+
+def held_out_presses(groups: np.ndarray, fraction: float = 0.2, seed: int = 0) -> np.ndarray:
+    """Which samples (n,) bool belong to the presses :func:`fit_emulator` holds out (the
+    ``fraction`` of ``groups``' press ids, at least two, drawn by ``seed``)."""
+    ids = np.unique(groups)
+    return np.isin(groups, np.random.default_rng(seed).permutation(ids)[: max(2, int(round(fraction * len(ids))))])
 
 
 def shared_part(R: np.ndarray, groups: np.ndarray, C: np.ndarray) -> np.ndarray:
@@ -213,7 +223,15 @@ def fit_frames(emulator: Emulator, features: np.ndarray, start: np.ndarray,
         Ci = np.linalg.inv(emulator.covariances(None if np.isnan(snr[i]) else snr[i])[0])
         p, H, _ = _levenberg_marquardt(rj, start[i], Ci, mean, precision)
         est[i], cov[i] = p, np.linalg.pinv(H)
-    return est, cov
+    return est, _scaled(emulator, cov, 0)
+
+
+def _scaled(emulator: Emulator, cov: np.ndarray, row: int) -> np.ndarray:
+    """``cov`` (n, 4, 4) with each parameter's σ times ``sd_scale[row]`` (unchanged without)."""
+    if emulator.sd_scale is None:
+        return cov
+    s = np.asarray(emulator.sd_scale, float)[row]
+    return cov * np.outer(s, s)
 
 
 def fit_press(emulator: Emulator, features: np.ndarray, start: np.ndarray,
@@ -258,7 +276,7 @@ def fit_press(emulator: Emulator, features: np.ndarray, start: np.ndarray,
     for j, i in enumerate(np.flatnonzero(ok)):
         sel = [0, 1, 3 + j, 2]  # x, y, depth_j, diameter in θ's order
         cov[i] = P[np.ix_(sel, sel)]
-    return est, cov
+    return est, _scaled(emulator, cov, 1)
 
 
 def fit_presses(emulator: Emulator, features: np.ndarray, start: np.ndarray, group: np.ndarray,
@@ -273,6 +291,23 @@ def fit_presses(emulator: Emulator, features: np.ndarray, start: np.ndarray, gro
         if len(i):
             est[i], cov[i] = fit_press(emulator, features[i], start[i], None if snr is None else float(snr[i].mean()))
     return est, cov
+
+
+def recalibrated(emulator: Emulator, features: np.ndarray, start: np.ndarray, theta: np.ndarray, group: np.ndarray,
+                 snr_db: float | np.ndarray | None = None, min_depth: float = -np.inf) -> Emulator:
+    """The emulator with ``sd_scale``: fitted to the noisy ``features`` (n, m) of presses it was
+    not trained on (frames from ``start`` (n, 4), presses by ``group``, their frames at least
+    ``min_depth`` deep, at ``snr_db``), each parameter's factor is the 68.3th percentile of
+    |θ̂ − θ|/σ against the truth ``theta`` (n, 4): what makes σ cover it as often as a
+    Gaussian's does. (The Gaussian residual is an average over presses; the emulator's error
+    near one press, and the nuisances' effect there, are coherent in θ and not in it.)"""
+    plain = replace(emulator, sd_scale=None)
+    fits = (fit_frames(plain, features, start, snr_db), fit_presses(plain, features, start, group, min_depth, snr_db))
+    scale = []
+    for est, cov in fits:
+        z = np.abs(est - theta) / np.sqrt(np.einsum("nii->ni", cov))
+        scale.append([float(np.nanquantile(z[:, j], 0.6827)) if np.isfinite(z[:, j]).any() else 1.0 for j in range(4)])
+    return replace(emulator, sd_scale=np.array(scale))
 
 
 def coverage(estimates: np.ndarray, covariances: np.ndarray, truth: np.ndarray) -> dict[str, dict[str, float]]:

@@ -50,7 +50,7 @@ FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2)
 VERSION_PACKAGES = ("jointsim", "numpy", "scipy", "scikit-learn", "h5py")
 # the emulator's fields a map may lack (written before them): the fits then go without them
-EMULATOR_LATER = ("residual", "shared", "noise_0db", "prior_mean", "prior_sd")
+EMULATOR_LATER = ("residual", "shared", "noise_0db", "prior_mean", "prior_sd", "sd_scale")
 # what apply() returns per frame (SI): the image route, the direct regression, the modulus, and
 # the emulator's fits (NaN from a map without one): per frame, and a press's frames jointly
 APPLIED = ("cal_x", "cal_y", "cal_depth", "cal_diameter", *(f"direct_{o}" for o in OUTPUTS), "outside", "modulus",
