@@ -205,11 +205,14 @@ def _size_at_levels(curves: dict[str, LevelCurves], test: Samples) -> tuple[list
     return rows, {k: np.concatenate(v) if v else np.zeros(0) for k, v in tab.items()}
 
 
+RECALIBRATION_COPIES = 2  # fresh noise draws of each held-out training sample the emulator's σ is recalibrated on
+
+
 def _model_based(train: Samples, test: Samples, regressor, start: np.ndarray, inside: np.ndarray, band: np.ndarray,
-                 seed: int) -> tuple[Emulator, dict[str, Any], dict[str, dict[str, Any]]]:
+                 seed: int, goal_snr_db: float) -> tuple[Emulator, dict[str, Any], dict[str, dict[str, Any]]]:
     """The emulator trained on the training presses' noise-free features (its noise from draws at
-    the training samples' SNRs; its σ recalibrated on the training presses it held out, from
-    ``regressor``'s estimates), and its held-out fits at each frame's SNR from the regression's
+    the training samples' SNRs; its σ recalibrated on the training presses it held out, at
+    ``goal_snr_db``, from ``regressor``'s estimates), and its held-out fits at each frame's SNR from the regression's
     estimates ``start``: per frame, and each press's frames at least PRESS_MIN_DEPTH deep
     jointly; with their errors and how often their σ covers them in the goal band. (the
     emulator, the evaluation, the goals' rows by route)."""
@@ -217,10 +220,15 @@ def _model_based(train: Samples, test: Samples, regressor, start: np.ndarray, in
     clean = train.clean_features
     noise = noisy_features(train.voltages_clean, train.reference_clean, train.snr_db, train.reference_frames, 1, rng) - clean
     emu = fit_emulator(clean, train.press, train.group, noise, train.snr_db, train.reference_frames, seed=seed)
-    # its σ recalibrated on the training presses it held out: their stored noisy frames, from the regression
+    # its σ recalibrated on the training presses it held out, their frames drawn afresh at the
+    # instrument's SNR (the factor grows with the SNR: there the emulator's own error dominates), from the regression
     out = held_out_presses(train.group, seed=seed)
-    own = voltage_features(train.voltages, train.dv)[out]
-    emu = recalibrated(emu, own, regressor(own)[:, :4], train.press[out], train.group[out], train.snr_db[out], PRESS_MIN_DEPTH)
+    copies = RECALIBRATION_COPIES
+    own = noisy_features(train.voltages_clean[out], train.reference_clean[out], (goal_snr_db, goal_snr_db),
+                         train.reference_frames, copies, rng)
+    group = np.tile(train.group[out], copies) + np.repeat(np.arange(copies), out.sum()) * (train.group.max() + 1)
+    emu = recalibrated(emu, own, regressor(own)[:, :4], np.tile(train.press[out], (copies, 1)), group, goal_snr_db,
+                       PRESS_MIN_DEPTH)
     Z, T = emu.whiten(test.clean_features), test.press
     r2 = 1.0 - float(((Z - emu(T)) ** 2).sum() / ((Z - Z.mean(axis=0)) ** 2).sum())
     features = voltage_features(test.voltages, test.dv)
@@ -353,7 +361,7 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
     if s.emulator and train.has_clean and len(train) >= 50:
         progress("emulator of the coupled model (model-based estimation)")
         emulator, ev["model_based"], model_goal = _model_based(train, test, regs[s.regressor], direct[s.regressor][:, :4], inside,
-                                                               band, s.seed)
+                                                               band, s.seed, s.goal_snr_db)
 
     # stiffness
     progress("stiffness")

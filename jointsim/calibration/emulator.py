@@ -55,7 +55,8 @@ class Emulator:
     ``reference_share`` N's part common to a press's frames; ``prior_mean`` and ``prior_sd``
     (4,) m the prior on θ; ``sd_scale`` (2, 4) the factors on each parameter's σ that make the
     per-frame fits' (row 0) and the press fits' (row 1) cover the truth of presses the
-    emulator was not fitted on (:func:`recalibrated`)."""
+    emulator was not fitted on (:func:`recalibrated`), at one SNR (``jointsim calibrate``: the
+    instrument's): the factor grows with the SNR, where the emulator's own error dominates."""
 
     t_mean: np.ndarray
     t_scale: np.ndarray
