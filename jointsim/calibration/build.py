@@ -220,9 +220,10 @@ def _model_based(train: Samples, test: Samples, regressor, start: np.ndarray, in
     clean = train.clean_features
     noise = noisy_features(train.voltages_clean, train.reference_clean, train.snr_db, train.reference_frames, 1, rng) - clean
     emu = fit_emulator(clean, train.press, train.group, noise, train.snr_db, train.reference_frames, seed=seed)
-    # its σ recalibrated on the training presses it held out, their frames drawn afresh at the
-    # instrument's SNR (the factor grows with the SNR: there the emulator's own error dominates), from the regression
-    out = held_out_presses(train.group, seed=seed)
+    # its σ recalibrated on the training presses it held out and measured nothing on, their frames
+    # drawn afresh at the instrument's SNR (the factor grows with the SNR: there the emulator's own
+    # error dominates), each fit from the regression's estimate
+    out = held_out_presses(train.group, seed=seed)[1]
     copies = RECALIBRATION_COPIES
     own = noisy_features(train.voltages_clean[out], train.reference_clean[out], (goal_snr_db, goal_snr_db),
                          train.reference_frames, copies, rng)

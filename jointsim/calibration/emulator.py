@@ -108,8 +108,9 @@ def fit_emulator(features: np.ndarray, theta: np.ndarray, groups: np.ndarray, no
                  seed: int = 0, n_components: int = 32, held_out: float = 0.2) -> Emulator:
     """Train on noise-free ``features`` (n, m) of presses ``theta`` (n, 4) m, press ids
     ``groups`` (n,): the whitening from all, the perceptron on the presses not held out, R and
-    its shared part from the held-out presses' residuals (the emulator's error and the
-    nuisances, as a new press meets them), the prior from the training presses' labels. With
+    its shared part from half the held-out presses' residuals (the emulator's error and the
+    nuisances, as a new press meets them; :func:`held_out_presses`), the prior from the
+    training presses' labels. With
     ``noise`` (features' noisy minus clean, (r, m), the instrument's) C adds its covariance,
     and with their SNRs ``noise_snr_db`` (r,) N₀; ``reference_frames``: the frames the
     reference averages."""
@@ -124,16 +125,17 @@ def fit_emulator(features: np.ndarray, theta: np.ndarray, groups: np.ndarray, no
         raise ValueError(f"an emulator needs at least 50 samples with finite features and labels, got {len(X)}")
     x_mean, components, x_scale, Z = pca_whitening(X, n_components)
     k = len(x_scale)
-    out = held_out_presses(g, held_out, seed)
+    residual, recalibration = held_out_presses(g, held_out, seed)
+    out = residual | recalibration
     t_mean, t_scale = T[~out].mean(axis=0), T[~out].std(axis=0)
     t_scale = np.where(t_scale > 0, t_scale, 1.0)
     m = MLPRegressor(hidden_layer_sizes=HIDDEN, alpha=1e-4, learning_rate_init=1e-3, max_iter=3000, early_stopping=True,
                      n_iter_no_change=50, tol=1e-7, random_state=seed).fit((T[~out] - t_mean) / t_scale, Z[~out])
     emu = Emulator(t_mean, t_scale, tuple(w.copy() for w in m.coefs_), tuple(b.copy() for b in m.intercepts_),
                    x_mean, components, x_scale, np.eye(k))
-    Rs = Z[out] - emu(T[out])
+    Rs = Z[residual] - emu(T[residual])
     R = np.cov(Rs.T)
-    S = shared_part(Rs - Rs.mean(axis=0), g[out], R)
+    S = shared_part(Rs - Rs.mean(axis=0), g[residual], R)
     C, N0 = R, None
     if noise is not None and len(noise):
         W = np.asarray(noise, float) @ components.T / x_scale
@@ -144,11 +146,14 @@ def fit_emulator(features: np.ndarray, theta: np.ndarray, groups: np.ndarray, no
                    prior_mean=t_mean, prior_sd=t_scale)
 
 
-def held_out_presses(groups: np.ndarray, fraction: float = 0.2, seed: int = 0) -> np.ndarray:
-    """Which samples (n,) bool belong to the presses :func:`fit_emulator` holds out (the
-    ``fraction`` of ``groups``' press ids, at least two, drawn by ``seed``)."""
-    ids = np.unique(groups)
-    return np.isin(groups, np.random.default_rng(seed).permutation(ids)[: max(2, int(round(fraction * len(ids))))])
+def held_out_presses(groups: np.ndarray, fraction: float = 0.2, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The samples (n,) bool of the presses :func:`fit_emulator` holds out (the ``fraction`` of
+    ``groups``' press ids, at least two, drawn by ``seed``), in two halves: those its residual
+    covariance is measured on, and those its σ is recalibrated on (:func:`recalibrated`),
+    which nothing of the emulator has seen."""
+    ids = np.random.default_rng(seed).permutation(np.unique(groups))[: max(2, int(round(fraction * len(np.unique(groups)))))]
+    half = (len(ids) + 1) // 2
+    return np.isin(groups, ids[:half]), np.isin(groups, ids[half:])
 
 
 def shared_part(R: np.ndarray, groups: np.ndarray, C: np.ndarray) -> np.ndarray:
@@ -222,9 +227,26 @@ def fit_frames(emulator: Emulator, features: np.ndarray, start: np.ndarray,
             f, J = emulator.evaluate(p)
             return z - f[0], -J[0]
         Ci = np.linalg.inv(emulator.covariances(None if np.isnan(snr[i]) else snr[i])[0])
-        p, H, _ = _levenberg_marquardt(rj, start[i], Ci, mean, precision)
+        p, H = _best_of(lambda p0: _levenberg_marquardt(rj, p0, Ci, mean, precision), start[i], _diameters(emulator), 3)
         est[i], cov[i] = p, np.linalg.pinv(H)
     return est, _scaled(emulator, cov, 0)
+
+
+def _diameters(emulator: Emulator) -> np.ndarray:
+    """The diameters a fit starts from besides its start's: the prior's mean and ± one spread
+    (none without a prior). The objective has local minima along the diameter, which the
+    frames hold least: a fit from one start answers as well as that start."""
+    if emulator.prior_mean is None:
+        return np.zeros(0)
+    return emulator.prior_mean[3] + emulator.prior_sd[3] * np.array([-1.0, 0.0, 1.0])
+
+
+def _best_of(fit, start: np.ndarray, diameters: np.ndarray, at: int) -> tuple[np.ndarray, np.ndarray]:
+    """The lowest-cost of ``fit(p0)`` ((p, H, cost)) from ``start`` and from ``start`` with its
+    entry ``at`` set to each of ``diameters``: (p, H)."""
+    starts = [start] + [np.where(np.arange(len(start)) == at, d, start) for d in diameters]
+    p, H, _ = min((fit(np.asarray(p0, float)) for p0 in starts), key=lambda r: r[2])
+    return p, H
 
 
 def _scaled(emulator: Emulator, cov: np.ndarray, row: int) -> np.ndarray:
@@ -270,7 +292,7 @@ def fit_press(emulator: Emulator, features: np.ndarray, start: np.ndarray,
 
     s = start[ok]
     p0 = np.concatenate([[s[:, 0].mean(), s[:, 1].mean(), s[:, 3].mean()], s[:, 2]])
-    p, H, _ = _levenberg_marquardt(rj, p0, Cim, mean, precision)
+    p, H = _best_of(lambda q: _levenberg_marquardt(rj, q, Cim, mean, precision), p0, _diameters(emulator), 2)
     P = np.linalg.pinv(H)
     est, cov = np.full((len(features), 4), np.nan), np.full((len(features), 4, 4), np.nan)
     est[ok] = unpack(p)
