@@ -503,3 +503,12 @@ def test_a_study_of_soft_targets_bounds_their_modulus(tmp_path):
     floor = (prior["ln_pressure"] ** -2 + prior["ln_modulus"] ** -2) ** -0.5
     b = [design_bounds(rec, scene, snr_db=snr).columns["modulus_rms_marginal"][0] for snr in (74.2, 140.0)]
     assert b[0] > b[1] >= floor and b[1] <= 1.1 * floor
+
+
+def test_a_report_only_run_costs_what_the_store_s_run_did():
+    """A design-study run that computes nothing reports the store's own wall time, from its
+    creation to its finalisation (ISO times with their offsets)."""
+    from jointsim.cli.design_study import store_wall
+
+    run = {"created": "2026-11-28T08:30:00.209+00:00", "finalised": "2026-11-28T09:35:49.775+01:00"}
+    assert store_wall(run) == pytest.approx(349.566, abs=1e-6)

@@ -59,6 +59,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_progress_argument(p)
 
 
+def store_wall(run: dict) -> float:
+    """Seconds from a store's creation to its finalisation (its sessions' wall, and any pause
+    between them)."""
+    from datetime import datetime
+
+    return (datetime.fromisoformat(run["finalised"]) - datetime.fromisoformat(run["created"])).total_seconds()
+
+
 def run(args: argparse.Namespace) -> int:
     from ..design.report import goals_of, required_snr, summarise, write_comparison, write_design
     from ..design.sensitivity import unrefinable
@@ -129,7 +137,9 @@ def run(args: argparse.Namespace) -> int:
         workers = min(args.workers or available_cores(), max(todo[0], 1))
         wall = time.perf_counter() - t0
         study = open_records(h5)  # read once: every table and SNR below is computed from it
-        timings[scene.name] = (study["seconds"], wall, todo[0], workers, study.data_sha256)
+        if todo[0] == 0:  # nothing computed here: the cost is the run that wrote the store (its workers not recorded)
+            workers, wall = None, store_wall(study.run)
+        timings[scene.name] = (study["seconds"], wall, todo[0] or len(study["seconds"]), workers, study.data_sha256)
         frames = {"reference_frames": plan.reference_frames, "hold_frames": plan.hold_frames}
         written, summaries, where[scene.name] = write_design(args.out / scene.name, scene, study, snrs, **frames)
         rows += summaries

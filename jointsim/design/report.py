@@ -258,7 +258,8 @@ def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[st
     """``out``/summary.md and summary.csv: the designs side by side (``rows``: a summary and
     what it covers), the SNR each needs to meet each goal (``needed``[design][quantity]), what
     each design cost (``timings``[design]: the stored press times s, and this run's wall s,
-    presses computed and workers, and the store's data digest), and a calibration's estimators beside the first design's
+    presses computed and workers, or the store's own run's with workers None; and the store's
+    data digest), and a calibration's estimators beside the first design's
     bound (``estimators``: the design's name and the calibration's goals.csv); ``refined``[design]:
     how many times its membrane was refined about each press's contact; ``joint``[design]: the
     summary of its presses' frames read together (:func:`~.study.press_joint_bounds`), which a
@@ -367,11 +368,13 @@ def write_comparison(out: Path, rows: list[tuple[Summary, str]], needed: dict[st
     if timings:
         lines += ["", "## Cost", "",
                   "Press times are stored with each press (one worker, single-threaded, derivatives of every depth); "
-                  "the wall time is this command's, which computed only what was not stored.", "",
-                  "| design | presses | mean s per press | sum s | this run: computed, workers, wall s | sensitivities.h5 data SHA-256 |",
+                  "the wall time is this command's, which computed only what was not stored; where it computed none, the "
+                  "run's that wrote the store (from its creation to its finalisation; its workers not recorded: –).", "",
+                  "| design | presses | mean s per press | sum s | computed, workers, wall s | sensitivities.h5 data SHA-256 |",
                   "|---|---|---|---|---|---|"]
         for design, (stored, wall, n, w, sha) in timings.items():
-            lines.append(f"| {design} | {len(stored)} | {np.mean(stored):.1f} | {np.sum(stored):.0f} | {n}, {w}, {wall:.0f} | `{sha[:16]}…` |")
+            lines.append(f"| {design} | {len(stored)} | {np.mean(stored):.1f} | {np.sum(stored):.0f} | {n}, {w or '–'}, {wall:.0f} "
+                         f"| `{sha[:16]}…` |")
     out.mkdir(parents=True, exist_ok=True)
     md = out / "summary.md"
     md.write_text("\n".join(lines) + "\n")
