@@ -4,8 +4,9 @@
 
 The paper's sensor, each [reconstruction] prior ("tikhonov": zeroth order, the paper's;
 "noser"; "laplacian": voxel smoothness; "depth": cells near the base weighted up by
-((z + z₀)/H)^−q, for q = 1, 2 (the default) and 3), λ chosen by each instrument's own rule (k-fold CV on
-its representative press). Presses: a 15 mm sphere 2 mm past first contact (geometric, on the
+((z + z₀)/H)^−q, for q = 1, 2 (the default) and 3; "tv": total variation from the Laplacian's
+image), λ chosen by each instrument's own rule (k-fold CV on its representative press; for
+"tv", the discrepancy principle on it). Presses: a 15 mm sphere 2 mm past first contact (geometric, on the
 inflated dome) at 0, 5, 10 and 13 mm off the axis and at (7, 7) mm; each imaged from 20 frames at
 the instrument's noise (74.2 dB). Per prior and press, means over the frames: the in-plane
 distance of the image's CoM from the dent's centroid (:func:`jointsim.instrument.dent_centroid`),
