@@ -27,7 +27,15 @@ of the data's σ); where they do not (the diameter, mostly), the estimate stays 
 training mean and says so with a σ near the training spread, instead of an extrapolation with
 a σ the linearisation makes up. A press's frames share x, y and the diameter and each has its
 depth: fitted jointly, their 3 + m parameters at once, with the covariance of the m frames'
-residuals I ⊗ (C − S) + 11ᵀ ⊗ S, so that what the frames share is not counted m times.
+residuals I ⊗ (C − S) + 11ᵀ ⊗ S, so that what the frames share is not counted m times. Each
+fit starts from the given start and from it with the diameter at the prior's mean and ± its
+spread, and keeps the lowest objective: the objective has local minima along the diameter.
+
+The σ that covariance gives is recalibrated (:func:`recalibrated`): C is an average over
+presses, while the emulator's error near one press, and the nuisances' effect there, are
+coherent in θ and not in C, so the σ of a frame's fit came out too small (the diameter's
+most, tenfold and more). Each parameter's σ is multiplied by the factor that makes it cover
+the truth as often as a Gaussian's does, on presses the emulator was fitted on in no way.
 """
 
 from __future__ import annotations
@@ -320,10 +328,9 @@ def recalibrated(emulator: Emulator, features: np.ndarray, start: np.ndarray, th
                  snr_db: float | np.ndarray | None = None, min_depth: float = -np.inf) -> Emulator:
     """The emulator with ``sd_scale``: fitted to the noisy ``features`` (n, m) of presses it was
     not trained on (frames from ``start`` (n, 4), presses by ``group``, their frames at least
-    ``min_depth`` deep, at ``snr_db``), each parameter's factor is the 68.3th percentile of
+    ``min_depth`` deep, at ``snr_db``), each parameter's factor is the 68.3rd percentile of
     |θ̂ − θ|/σ against the truth ``theta`` (n, 4): what makes σ cover it as often as a
-    Gaussian's does. (The Gaussian residual is an average over presses; the emulator's error
-    near one press, and the nuisances' effect there, are coherent in θ and not in it.)"""
+    Gaussian's does (module docstring)."""
     plain = replace(emulator, sd_scale=None)
     fits = (fit_frames(plain, features, start, snr_db), fit_presses(plain, features, start, group, min_depth, snr_db))
     scale = []
