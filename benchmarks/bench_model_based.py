@@ -34,8 +34,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from jointsim.calibration.data import load_samples, split_groups, voltage_features  # noqa: E402
-from jointsim.calibration.emulator import PARAMETERS, coverage, fit_frames, fit_presses  # noqa: E402
-from jointsim.calibration.regression import noisy_features  # noqa: E402
+from jointsim.calibration.emulator import PARAMETERS, coverage, fit_frames, fit_presses, sigmas  # noqa: E402
+from jointsim.calibration.regression import copy_groups, noisy_features  # noqa: E402
 
 COPIES = 3  # fresh noise draws of each held-out sample at the goals' SNR
 GOAL_SNR_DB = 74.2
@@ -64,7 +64,7 @@ def _scores(est: dict, T: np.ndarray) -> dict:
             cov = coverage(P, C, T)
             for key in ("within_1sd", "within_2sd", "rms_z"):
                 row[key] = {k: c[key] for k, c in cov.items()}
-            sd = np.sqrt(np.einsum("nii->ni", C))
+            sd = sigmas(C)
             row["median_sd_mm"] = {k: float(np.nanmedian(sd[:, j]) * 1e3) for j, k in enumerate(PARAMETERS)}
         out[name] = row
     return out
@@ -87,8 +87,7 @@ def split(samples, seed: int) -> dict:
     t_fit = time.perf_counter() - t0
     # the goals' SNR: every held-out sample re-noised at 74.2 dB, COPIES times (a press's frames one copy each)
     F = noisy_features(B.voltages_clean, B.reference_clean, (GOAL_SNR_DB, GOAL_SNR_DB), B.reference_frames, COPIES, rng)
-    goal = _scores(_estimates(emu, reg, F, np.tile(B.group, COPIES) + np.repeat(np.arange(COPIES), len(B)) * (B.group.max() + 1),
-                              GOAL_SNR_DB), np.tile(Tb, (COPIES, 1)))
+    goal = _scores(_estimates(emu, reg, F, copy_groups(B.group, COPIES), GOAL_SNR_DB), np.tile(Tb, (COPIES, 1)))
     out = {"seed": seed, "train_presses": int(len(np.unique(samples.group[tr]))), "test_presses": int(len(np.unique(B.group))),
            "test_frames": int(len(B)), "emulator_r2": r2, "sd_scale": np.asarray(emu.sd_scale).tolist(),
            "seconds": {"calibrate": t_cal, "fits_stored_frames": t_fit}, "stored": stored, "goal_snr": goal}

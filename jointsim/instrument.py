@@ -50,7 +50,6 @@ from .mesh.morph import MIN_QUALITY_RATIO, ChamberMorpher, DeformedChamber, Mesh
 from .metrics import ImageMetrics, image_metrics
 from .reconstruction.grid import ChamberGrid
 from .reconstruction.tikhonov import DEPTH_EXPONENT, LAPLACIAN_RIDGE, SVD, Reconstructor, choose_lambda, prior_matrix
-from .reconstruction.tv import BETA as TV_BETA
 from .reconstruction.tv import TVImager, difference_operator, discrepancy_lambda
 from .scene import Scene
 from .timing import timed
@@ -257,12 +256,8 @@ class Imager:
         if prior == "tv":
             lam2 = choice.lam**2
             starts = np.array([rec.image(d) for d in np.atleast_2d(dv_for_lambda)])
-            D = difference_operator(L)
-            edges = np.abs(D @ starts[0])
-            # start the search where TV's weight equals the Laplacian's at the smooth image's median edge
-            lam0 = 2 * lam2 * float(np.median(np.sqrt(edges**2 + (TV_BETA * edges.max()) ** 2))) or lam2
-            tv = discrepancy_lambda(J, D, dv_for_lambda, starts, dv_noise_std,
-                                    lam2 * LAPLACIAN_RIDGE * float(L.diagonal().mean()), lam0)
+            tv = discrepancy_lambda(J, difference_operator(L), dv_for_lambda, starts, dv_noise_std,
+                                    lam2 * LAPLACIAN_RIDGE * float(L.diagonal().mean()), lam2)
         return cls(grid, J, rec, rec.noise_std(dv_noise_std), tv)
 
     def image(self, dv: np.ndarray, true_centre: np.ndarray | None = None,

@@ -56,7 +56,7 @@ def test_the_discrepancy_lambda_leaves_the_noise_and_finds_the_block():
     lean to smoothing)."""
     J, x_true, dv, sigma, x0, D = block_problem()
     J2, _, dv2, _, x02, _ = block_problem(seed=1)
-    tv = discrepancy_lambda(J, D, np.array([dv, dv2]), np.array([x0, x02]), sigma, 1e-6, lam0=0.05)
+    tv = discrepancy_lambda(J, D, np.array([dv, dv2]), np.array([x0, x02]), sigma, 1e-6, lam_smooth=0.3)  # x0 is the 0.3-weighted smooth image
     r = [J @ tv.image(d, s) - d for d, s in ((dv, x0), (dv2, x02))]
     assert abs(np.mean([e @ e for e in r]) / (len(dv) * sigma**2) - 1) < 0.15
     assert np.linalg.norm(tv.image(dv, x0) - x_true) < 0.75 * np.linalg.norm(x0 - x_true)

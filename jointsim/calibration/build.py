@@ -23,7 +23,7 @@ from .curves import ALONG, LevelCurves, default_levels, fit_level_curves, value_
 from .data import Samples, split_groups, voltage_features
 from .emulator import Emulator, coverage, fit_emulator, fit_frames, fit_presses, held_out_presses, recalibrated
 from .maps import PRESS_MIN_DEPTH, VERSION_PACKAGES, CalibrationMap, outside_region, trained_region
-from .regression import KINDS, OUTPUTS, fit_regressor, moved_by_symmetry, noisy_features, regression_targets
+from .regression import KINDS, OUTPUTS, copy_groups, fit_regressor, moved_by_symmetry, noisy_features, regression_targets
 from .stiffness import decades, fit_stiffness, force_sensitivity, group_features
 
 __all__ = ["Settings", "Calibration", "calibrate", "err_stats", "worse_than_uncalibrated", "METRICS", "GOALS"]
@@ -227,9 +227,8 @@ def _model_based(train: Samples, test: Samples, regressor, start: np.ndarray, in
     copies = RECALIBRATION_COPIES
     own = noisy_features(train.voltages_clean[out], train.reference_clean[out], (goal_snr_db, goal_snr_db),
                          train.reference_frames, copies, rng)
-    group = np.tile(train.group[out], copies) + np.repeat(np.arange(copies), out.sum()) * (train.group.max() + 1)
-    emu = recalibrated(emu, own, regressor(own)[:, :4], np.tile(train.press[out], (copies, 1)), group, goal_snr_db,
-                       PRESS_MIN_DEPTH)
+    emu = recalibrated(emu, own, regressor(own)[:, :4], np.tile(train.press[out], (copies, 1)),
+                       copy_groups(train.group[out], copies), goal_snr_db, PRESS_MIN_DEPTH)
     Z, T = emu.whiten(test.clean_features), test.press
     r2 = 1.0 - float(((Z - emu(T)) ** 2).sum() / ((Z - Z.mean(axis=0)) ** 2).sum())
     features = voltage_features(test.voltages, test.dv)

@@ -45,7 +45,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 __all__ = ["PARAMETERS", "Emulator", "coverage", "fit_emulator", "fit_frames", "fit_press", "fit_presses", "held_out_presses",
-           "recalibrated", "shared_part"]
+           "recalibrated", "shared_part", "sigmas"]
 
 PARAMETERS = ("x", "y", "depth", "diameter")
 HIDDEN = (128, 128)
@@ -324,6 +324,11 @@ def fit_presses(emulator: Emulator, features: np.ndarray, start: np.ndarray, gro
     return est, cov
 
 
+def sigmas(covariances: np.ndarray) -> np.ndarray:
+    """Each parameter's σ (n, 4) from the estimates' covariances (n, 4, 4)."""
+    return np.sqrt(np.einsum("nii->ni", covariances))
+
+
 def recalibrated(emulator: Emulator, features: np.ndarray, start: np.ndarray, theta: np.ndarray, group: np.ndarray,
                  snr_db: float | np.ndarray | None = None, min_depth: float = -np.inf) -> Emulator:
     """The emulator with ``sd_scale``: fitted to the noisy ``features`` (n, m) of presses it was
@@ -335,7 +340,7 @@ def recalibrated(emulator: Emulator, features: np.ndarray, start: np.ndarray, th
     fits = (fit_frames(plain, features, start, snr_db), fit_presses(plain, features, start, group, min_depth, snr_db))
     scale = []
     for est, cov in fits:
-        z = np.abs(est - theta) / np.sqrt(np.einsum("nii->ni", cov))
+        z = np.abs(est - theta) / sigmas(cov)
         scale.append([float(np.nanquantile(z[:, j], 0.6827)) if np.isfinite(z[:, j]).any() else 1.0 for j in range(4)])
     return replace(emulator, sd_scale=np.array(scale))
 
@@ -344,8 +349,7 @@ def coverage(estimates: np.ndarray, covariances: np.ndarray, truth: np.ndarray) 
     """How well the reported uncertainties hold: per parameter, the share of finite estimates
     (n, 4) within 1σ and 2σ of ``truth`` (n, 4), σ from ``covariances`` (n, 4, 4) (68.3 % and
     95.4 % when they are right), and the errors' RMS in σ (1 when right)."""
-    sd = np.sqrt(np.einsum("nii->ni", covariances))
-    z = np.abs(np.asarray(estimates) - truth) / sd
+    z = np.abs(np.asarray(estimates) - truth) / sigmas(covariances)
     ok = np.isfinite(z)
     out = {}
     for j, name in enumerate(PARAMETERS):

@@ -37,7 +37,7 @@ from ..scene import Scene
 from .com import ComMap
 from .curves import LevelCurves, Monotone
 from .data import voltage_features
-from .emulator import PARAMETERS, Emulator, fit_frames, fit_presses
+from .emulator import PARAMETERS, Emulator, fit_frames, fit_presses, sigmas
 from .fingerprint import check_fingerprint, sensor_fingerprint
 from .regression import OUTPUTS, DirectRegressor
 from .stiffness import StiffnessModel
@@ -139,7 +139,7 @@ class CalibrationMap:
                 fits["press"] = fit_presses(self.emulator, features, start, np.asarray(group), PRESS_MIN_DEPTH, snr_db)
         out = {}
         for name, (est, cov) in fits.items():
-            sd = np.sqrt(np.einsum("nii->ni", cov))
+            sd = sigmas(cov)
             out.update({f"{name}_{p}": est[:, j] for j, p in enumerate(PARAMETERS)})
             out.update({f"{name}_sd_{p}": sd[:, j] for j, p in enumerate(PARAMETERS)})
         return out

@@ -92,6 +92,14 @@ def noisy_features(voltages_clean: np.ndarray, reference_clean: np.ndarray, snr_
     return np.vstack(out) if out else np.empty((0, v.shape[1]))
 
 
+def copy_groups(group: np.ndarray, copies: int) -> np.ndarray:
+    """Press ids (copies·n,) for :func:`noisy_features`' copy-major rows of samples of presses
+    ``group`` (n,): each copy of a press a press of its own (its frames share one noise draw of
+    the reference, as a press's do)."""
+    group = np.asarray(group)
+    return np.tile(group, copies) + np.repeat(np.arange(copies), len(group)) * (group.max() + 1)
+
+
 def moved_by_symmetry(features: np.ndarray, targets: np.ndarray, symmetries: Sequence[RingSymmetry],
                       rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Each sample (features (n, m), targets (n, 5)) moved by one of ``symmetries`` drawn

@@ -93,21 +93,25 @@ class TVImager:
 
 
 def discrepancy_lambda(J: np.ndarray, D: sp.csr_matrix, frames: np.ndarray, starts: np.ndarray, noise_std: float,
-                       ridge: float, lam0: float) -> TVImager:
+                       ridge: float, lam_smooth: float) -> TVImager:
     """The imager whose λ leaves the images of ``frames`` (k, n_meas; the first LAMBDA_FRAMES)
-    — started from their smooth images ``starts`` (k, n_cells) — a mean squared residual of
-    n_meas ``noise_std``² (module docstring): bisection on log λ in [lam0/1e3, lam0·1e3]; β
-    from the first frame's smooth image. At a bracket's end (the noise above every residual, or
-    below) λ is that end."""
+    — started from their smooth images ``starts`` (k, n_cells), whose prior weighs ‖Dx‖² by
+    ``lam_smooth`` — a mean squared residual of n_meas ``noise_std``² (module docstring):
+    bisection on log λ in [lam0/1e3, lam0·1e3], lam0 the λ at which TV's weight equals the smooth
+    prior's at the first smooth image's median edge; β from that image too. At a bracket's end
+    (the noise above every residual, or below) λ is that end."""
     frames, starts = np.atleast_2d(frames)[:LAMBDA_FRAMES], np.atleast_2d(starts)[:LAMBDA_FRAMES]
-    beta = BETA * float(np.abs(D @ starts[0]).max())
+    edges = np.abs(D @ starts[0])
+    beta = BETA * float(edges.max())
+    lam0 = 2 * lam_smooth * float(np.median(np.sqrt(edges**2 + beta**2))) or lam_smooth
     target = J.shape[0] * noise_std**2
     last = list(starts)  # each evaluation starts from the last one's images
 
     def excess(log_lam: float) -> float:
         imager = TVImager(J, D, float(np.exp(log_lam)), beta, ridge)
         last[:] = [imager.image(d, x) for d, x in zip(frames, last)]
-        return float(np.mean([(J @ x - d) @ (J @ x - d) for d, x in zip(frames, last)])) - target
+        residuals = [J @ x - d for d, x in zip(frames, last)]
+        return float(np.mean([r @ r for r in residuals])) - target
 
     lo, hi = np.log(lam0) - np.log(1e3), np.log(lam0) + np.log(1e3)
     if excess(lo) >= 0:
