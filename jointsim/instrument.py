@@ -111,12 +111,13 @@ class Readout:
 
     @classmethod
     def on(cls, reference: ChamberMesh, scene: Scene, protocol: Protocol, *, rng: np.random.Generator | None,
-           reference_frames: int, conductivity: float | None = None, contact_impedance: float | None = None,
+           reference_frames: int, conductivity: float | None = None, contact_impedance: float | np.ndarray | None = None,
            offsets: np.ndarray | None = None, snr_db: float | None = None, fdm: bool = False,
            backend: str = "auto") -> "Readout":
         """The readout of ``scene``'s electrodes on the chamber ``reference`` (the untouched
         sensor), with the scene's saline, contact impedances and SNR unless given
-        (``contact_impedance``: one value for every electrode, the ground included;
+        (``contact_impedance``: one value for every electrode, the ground included, or one per
+        electrode in the layout's order (a fitted sensor: :mod:`~jointsim.eit.fit`);
         ``offsets`` (k, 2) m: the first k electrodes moved in the base plane, the driven ones and
         a floating reference; a passive reference stays). The measured
         reference is drawn from ``rng`` (None: noise-free). ``fdm``: per-carrier contact
@@ -137,7 +138,7 @@ class Readout:
         if contact_impedance is None:
             z = np.append(np.asarray(e.contact_impedance), e.ground_contact_impedance)
         else:
-            z = np.full(len(patches), float(contact_impedance))
+            z = np.broadcast_to(np.asarray(contact_impedance, float), (len(patches),)).copy()
         forward = ForwardModel(reference.mesh, patches, reference.ground, z, backend, order).shared()
         z_by_freq = carrier = None
         if fdm:

@@ -1,0 +1,381 @@
+"""A press refined through the simulator itself: its target fitted to the measured frames by
+Levenberg–Marquardt on the coupled model, from the emulator's (or the regression's) estimate.
+
+The emulator (:mod:`.emulator`) is fast and approximate: its own error, not the noise, sets
+its accuracy (held-out R² 0.64–0.69 in the whitened features; results/calibration/model_based.md).
+Where an estimate must be as good as the frames allow, the press is refitted through the
+simulator that made the emulator's training data: the membrane pressed, the chamber morphed,
+the forward solved, with the derivatives of :func:`~jointsim.design.sensitivity.press_sensitivity`
+(the implicit function theorem through the mechanics, differences along the morph) — the
+estimator whose error the Cramér–Rao bounds of :mod:`jointsim.design` describe.
+
+The data of one press: the measured reference frame y₀ (the mean of r untouched frames) and
+the press's K frames y_k. The unknowns
+
+    p = (x_c, y_c, R, d̃_1 … d̃_K, ln s, ln σ, ln z_1 … ln z_n),
+
+the target's centre in the base plane, its radius, each frame's depth, the membrane's modulus
+scale s, the saline's conductivity and every electrode's contact impedance; a prior over the
+scene's [dataset] randomisation about the scene's values holds the nuisances (the radius
+weakly, over its range; the head at the scene's, since a cap's press sees only its ratio to
+the modulus). The depths d̃_k are past the height where the sphere touches one membrane node,
+the same node at every trial (the one touched first at the start): the height of first contact
+itself, what a dataset's depths are measured from and what the estimates report, has a kink
+wherever the node touched first changes. The misfit
+
+    Φ(p) = Σ_k ‖y_k − V_k(p)‖²/σ_n² + r ‖y₀ − V₀(p)‖²/σ_n² + (p − m)ᵀ P (p − m),
+
+σ_n the noise of one frame, P the prior's precision, is minimised by Levenberg–Marquardt, each
+trial point one press through the simulator (a few seconds at the dataset fidelity).
+
+The electrodes' centres are held during a descent and refitted between descents
+(:data:`ELECTRODE_CYCLES`), to the reference frame on the chamber of the scale found so far
+(:func:`~jointsim.eit.fit.fit_reference`, which re-clips the discs at each iterate). A tenth of
+a millimetre of electrode placement moves the frames by tens of noise σ, so they cannot be left
+out; but the voltages follow a disc's centre only piecewise smoothly (it is clipped against the
+base's triangles), and inside the descent they made it crawl. The first descent starts from
+:func:`fit_electrical`, the reference frame fitted at the scene's scale.
+
+The estimate's covariance is (JᵀJ/σ_n² + P)⁻¹ at the fit; the contact's (its centre of
+pressure, what the calibration labels as position) and the depths' through their own
+derivatives. A press the emulator already fits within the goals gains nothing; one it fits
+poorly gains most (:func:`worth_refining`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..design.bounds import nuisance_prior
+from ..design.sensitivity import ELECTRODE_STEP, head_moves, parameter_names, press_electrical, press_mechanics
+from ..eit.fit import ElectricalFit, fit_reference
+from ..eit.parameters import moved_discs
+from ..instrument import Instrument, Readout
+from ..mechanics.build import membrane_from_scene
+from ..mechanics.dome import MembraneModel, UnreachablePose
+from ..mechanics.newton import NewtonError
+from ..mechanics.touch import centre_touching
+from ..mesh.morph import MeshInversionError
+
+__all__ = ["PressRefit", "fit_electrical", "refine_press", "worth_refining"]
+
+try:  # a factorisation that breaks down at a trial point far off (a zero pivot) rejects the trial
+    from pypardiso.pardiso_wrapper import PyPardisoError as _FactorisationError
+except ImportError:  # pragma: no cover - PARDISO absent: SuperLU raises RuntimeError
+    _FactorisationError = RuntimeError
+# what a trial point can cause: it is rejected and the damping raised
+_TRIAL_FAILURES = (UnreachablePose, NewtonError, MeshInversionError, ValueError, _FactorisationError)
+
+MIN_DEPTH = 20e-6  # m: a frame's depth is kept past first contact by at least this
+MAX_TRIALS = 20  # presses through the simulator per fit, at most
+ELECTRODE_CYCLES = 3  # the press fitted with the electrodes held, their centres refitted between
+
+
+@dataclass(frozen=True, eq=False)
+class PressRefit:
+    """One press fitted through the simulator: per frame the contact's centre of pressure
+    ``contact`` (K, 2) m and ``depth`` (K,) m; the target's ``diameter`` m and centre ``centre``
+    (2,) m; the membrane's modulus ``scale``; their standard deviations ``contact_sd`` (K, 2),
+    ``depth_sd`` (K,), ``diameter_sd``, ``scale_sd``; the misfit per channel in noise σ
+    ``misfit`` (before, after: √(Φ_data / n)); ``trials`` presses through the simulator,
+    ``iterations`` accepted steps, ``seconds``."""
+
+    contact: np.ndarray
+    depth: np.ndarray
+    diameter: float
+    centre: np.ndarray
+    scale: float
+    contact_sd: np.ndarray
+    depth_sd: np.ndarray
+    diameter_sd: float
+    scale_sd: float
+    misfit: tuple[float, float]
+    trials: int
+    iterations: int
+    seconds: float
+
+
+def fit_electrical(inst: Instrument, v_ref: np.ndarray, reference_frames: int, noise_std: float,
+                   max_iterations: int = 10, positions: bool = True) -> ElectricalFit:
+    """The saline, contact impedances and electrode centres of ``inst``'s sensor fitted to the
+    measured reference ``v_ref`` (n_meas,) V, the mean of ``reference_frames`` frames of noise
+    ``noise_std`` V each (:func:`~jointsim.eit.fit.fit_reference` on the nominal chamber): the
+    start of :func:`refine_press`, which fits them again with the press, so ``max_iterations``
+    need not be many."""
+    ch, scene = inst.reference, inst.scene
+    e = scene.electrodes
+    z0 = np.append(np.asarray(e.contact_impedance), e.ground_contact_impedance)
+    return fit_reference(ch.mesh, ch.layout.centres, ch.layout.radii, ch.ground, inst.protocol, v_ref,
+                         scene.saline.conductivity, z0, noise_std / math.sqrt(reference_frames),
+                         order=scene.mesh.element_order, membrane=ch.layout.membrane,
+                         membrane_patch=ch.layout.membrane_patch, max_iterations=max_iterations, positions=positions)
+
+
+class _Press:
+    """The simulator of one press for the fit: p ↦ (the reference's and the frames' voltages,
+    their derivatives, the contacts) on a membrane rebuilt when the modulus scale moves and a
+    readout rebuilt for the electrical nuisances of p (a few tenths of a second beside the
+    press's seconds; linearising them about a fixed readout left the Jacobian blind to how
+    their effect moves with the target, and the iteration crawled)."""
+
+    def __init__(self, inst: Instrument, K: int, offsets: np.ndarray | None = None):
+        self.inst = inst
+        self.K = K
+        self.scene = inst.scene
+        self.names = parameter_names(len(inst.reference.layout.radii))
+        self.n_el = len(inst.reference.layout.radii)
+        # the electrodes' centres, held (module docstring), and their discs moved for no derivative
+        self.offsets = np.zeros((self.n_el, 2)) if offsets is None else np.asarray(offsets, float).reshape(-1, 2)
+        self.moves = self.moves_at(self.offsets)
+        self.model: MembraneModel | None = None
+        self.scale = math.nan
+        self.trials = 0
+        self.node: int | None = None  # the node whose touch the depths are past (module docstring)
+
+    def membrane(self, scale: float, radius: float) -> MembraneModel:
+        if self.model is None or abs(math.log(scale / self.scale)) > 1e-9:
+            sc = self.scene
+            scaled = replace(sc, membrane=sc.membrane.scaled(scale), target=replace(sc.target, kind="rigid"))
+            self.model = membrane_from_scene(scaled, target_radius=radius, inflate_from=self.inst.inflated_u)
+            self.scale = scale
+        self.model.contact.radius = float(radius)
+        return self.model
+
+    def moves_at(self, offsets: np.ndarray) -> list:
+        """The electrode discs at ``offsets`` (2 n_el,) m from the layout's centres, each moved
+        either way for the position derivatives (:func:`~jointsim.design.sensitivity.electrode_moves`
+        moves them about the layout's own centres)."""
+        layout = self.inst.reference.layout
+        centres = layout.centres.copy()
+        centres[:, :2] += np.asarray(offsets).reshape(-1, 2)
+        return moved_discs(self.inst.reference.mesh, centres, layout.radii, ELECTRODE_STEP,
+                           self.inst.readout.forward.order == 2, layout.membrane, layout.membrane_patch)
+
+    def readout(self, eta: np.ndarray) -> Readout:
+        """The readout of the electrical nuisances ``eta`` = (ln σ, ln z_l…) with the electrodes
+        at :attr:`offsets` from the layout's centres."""
+        n = self.n_el
+        inst = self.inst
+        return Readout.on(inst.reference, self.scene, inst.protocol, rng=None, reference_frames=inst.readout.reference_frames,
+                          conductivity=math.exp(eta[0]), contact_impedance=np.exp(eta[1:1 + n]),
+                          offsets=self.offsets, snr_db=inst.readout.snr_db)
+
+    def __call__(self, p: np.ndarray) -> tuple[np.ndarray, ...]:
+        """At ``p`` (module docstring): V₀ (M,), V (K, M), ∂[V₀; V]/∂p ((K+1)·M, n_p), the
+        contacts (K, 2) and ∂contact_k/∂p (K, 2, n_p), the depths (K,) past first contact and
+        ∂depth_k/∂p (K, n_p). A ValueError where a frame's sphere would be above the membrane."""
+        K = self.K
+        centre, radius, depths_node, ln_s = p[:2], float(p[2]), p[3:3 + K], float(p[3 + K])
+        self.trials += 1
+        model = self.membrane(math.exp(ln_s), radius)
+        if self.node is None:
+            self.node = model.first_contact(centre)[1]
+        z_node, _ = _node_touch(model, centre, model.u, None, self.node)
+        z_first = model.first_contact_height(centre)
+        depths = z_first - (z_node - depths_node)  # past the first contact, as the dataset measures
+        if depths.min() <= 0.0:
+            raise ValueError("refine_press: a frame's sphere above the membrane")
+        order = np.argsort(depths, kind="stable")
+        d = np.maximum.accumulate(depths[order])  # the press goes down: ties kept in order
+        mech = press_mechanics(model, centre, d, head=head_moves(self.scene))
+        # the depths are the fit's past one node's touch, the same node at every trial: the
+        # height of first contact has a kink wherever the node touched first changes, and the
+        # centre's height as the parameter made a valley curved along the modulus scale
+        # (the dome's rise with it) that Levenberg–Marquardt crawled along
+        _, along = _node_touch(model, centre, mech.u_ref, mech.du_ref, self.node)
+        _, first = _node_touch(model, centre, mech.u_ref, mech.du_ref)
+        mech = replace(mech, dzc=along)
+        readout = self.readout(p[4 + K:])
+        try:
+            inst = replace(self.inst, readout=readout)
+            ps = press_electrical(inst, mech, moves=self.moves)
+            chamber, _ = inst.morpher.morph(inst.dome(mech.u_ref))
+            v0 = readout.voltages(chamber, True)
+        finally:
+            readout.free()
+        n = self.names
+        ix, iy, idep, irad, imod = (n.index(k) for k in ("x", "y", "depth", "radius", "ln_modulus"))
+        electrical = slice(n.index("ln_conductivity"), n.index("ln_conductivity") + 1 + self.n_el)
+        M, n_p = len(v0), len(p)
+        J = np.zeros(((K + 1) * M, n_p))
+        J[:M, 3 + K] = ps.jacobian_ref[:, imod]
+        J[:M, 4 + K:] = ps.jacobian_ref[:, electrical]
+        V = np.zeros((K, M))
+        contact = np.zeros((K, 2))
+        cj = np.zeros((K, 2, n_p))
+        dd = np.zeros((K, n_p))
+        for j, k in enumerate(order):  # frame k is the j-th deepest of the press
+            V[k] = ps.voltages[j]
+            rows = slice((k + 1) * M, (k + 2) * M)
+            Jk = ps.jacobian[j]  # at a fixed depth past the node's touch
+            J[rows, 0], J[rows, 1], J[rows, 2] = Jk[:, ix], Jk[:, iy], Jk[:, irad]
+            J[rows, 3 + k] = Jk[:, idep]
+            J[rows, 3 + K] = Jk[:, imod]
+            J[rows, 4 + K:] = Jk[:, electrical]
+            contact[k] = ps.contact[j, :2]
+            c = ps.contact_jacobian[j]  # (2, 4) the same way
+            cj[k, :, 0], cj[k, :, 1], cj[k, :, 2], cj[k, :, 3 + k] = c[:, 0], c[:, 1], c[:, 3], c[:, 2]
+            # depth = z_first − z_node + the fit's depth; the modulus scale acts as the head's inverse
+            dd[k, :3] = (first["x"] - along["x"], first["y"] - along["y"], first["radius"] - along["radius"])
+            dd[k, 3 + k], dd[k, 3 + K] = 1.0, -(first["ln_pressure"] - along["ln_pressure"])
+        return v0, V, J, contact, cj, depths, dd
+
+
+def _node_touch(model: MembraneModel, xy: np.ndarray, u: np.ndarray, du: np.ndarray | None,
+                node: int | None = None) -> tuple[float, dict[str, float]]:
+    """The height at which the sphere coming down at ``xy`` touches the membrane's outer node
+    ``node`` (an index into the contact's nodes; default the one it touches first: its
+    :meth:`~jointsim.mechanics.dome.MembraneModel.first_contact_height`, what a dataset's
+    depths are measured from), z = z_n + √(R² − ρ²) at in-plane distance ρ, on the untouched
+    membrane ``u``; and ∂z/∂(x, y, radius, ln p) with ``du`` the membrane's head derivative.
+    Not the smooth surface's slope (:func:`~jointsim.design.sensitivity.press_mechanics`): off
+    a node the two differ by tens of per cent, and a fit must follow the depths the dataset
+    pressed to."""
+    R = model.contact.radius
+    n = model.contact.nodes[model.first_contact(xy)[1] if node is None else node]
+    xn = model.contact.X[n] + u[n]
+    off = np.asarray(xy, float) - xn[:2]
+    s = math.sqrt(max(R * R - off @ off, (0.01 * R) ** 2))
+    head = 0.0 if du is None else float(du[n, 2] + off @ du[n, :2] / s)
+    return float(xn[2] + s), {"x": float(-off[0] / s), "y": float(-off[1] / s), "radius": R / s, "ln_pressure": head}
+
+
+def _levenberg_marquardt(evaluate, objective, p: np.ndarray, state: tuple, precision: np.ndarray, mean: np.ndarray,
+                         budget: int, sim: "_Press", tol: float, K: int, r_lo: float) -> tuple[np.ndarray, tuple, int]:
+    """Levenberg–Marquardt on Φ from ``p`` (its ``evaluate`` ``state``) until the steps fall
+    below ``tol`` σ or the simulator has been called ``budget`` times: (p, its state, accepted
+    steps). The damping follows the gain ratio ρ, Φ's actual fall over the quadratic model's
+    (Nielsen's rule: divided by at most 3 where the model held). Undamped, a step along the weak
+    directions (depths, radius, scale and contact impedances are strongly correlated) reaches
+    where the node the sphere touches first changes, and Φ rises tenfold; dividing the damping
+    by 10 on every good step made the iteration alternate between the two."""
+    r, J = state[0], state[1]
+    phi = objective(p, r)
+    mu, nu, accepted = 1e-3, 2.0, 0
+    while sim.trials < budget:
+        A = J.T @ J + np.diag(precision)
+        g = J.T @ r + precision * (p - mean)
+        D = np.diag(A) + 1e-12 * np.diag(A).max()
+        step = -np.linalg.solve(A + mu * np.diag(D), g)
+        trial = p + step
+        trial[2] = max(trial[2], 0.5 * r_lo)
+        step = trial - p
+        predicted = -(2 * g @ step + step @ A @ step)
+        try:
+            out = evaluate(trial)
+        except _TRIAL_FAILURES:
+            mu, nu = mu * nu, 2 * nu
+            continue
+        phi_t = objective(trial, out[0])
+        rho = (phi - phi_t) / max(predicted, 1e-300)
+        if os.environ.get("JOINTSIM_REFINE_TRACE"):
+            z = step / np.sqrt(np.diag(np.linalg.inv(A)))
+            top = np.argsort(-np.abs(z))[:4]
+            print(f"  trial {sim.trials}: Φ {phi_t:.5g} (from {phi:.5g}, gain ratio {rho:.2f}), damping {mu:.2g}; "
+                  f"largest steps in σ: {', '.join(f'{i}: {z[i]:+.2f}' for i in top)}", flush=True)
+        if phi_t < phi:
+            p, state, phi = trial, out, phi_t
+            r, J = state[0], state[1]
+            mu, nu = mu * max(1 / 3, 1 - (2 * rho - 1) ** 3), 2.0
+            accepted += 1
+            sd = np.sqrt(np.diag(np.linalg.inv(J.T @ J + np.diag(precision))))
+            if np.all(np.abs(step) < tol * sd):
+                break
+        else:
+            mu, nu = mu * nu, 2 * nu
+            if mu > 1e6:
+                break
+    return p, state, accepted
+
+
+def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, reference_frames: int,
+                 contact: np.ndarray, depths: np.ndarray, diameter: float, *, electrical: ElectricalFit | None = None,
+                 noise_std: float | None = None, max_trials: int = MAX_TRIALS, tol: float = 0.1) -> PressRefit:
+    """The press of measured ``frames`` (K, n_meas) V against the measured reference ``v_ref``
+    (n_meas,) V (the mean of ``reference_frames`` frames), fitted through the simulator of
+    ``inst``'s scene, from a start: the contact (2,) m (the first frame's centre of pressure, or
+    where the target first touched), the frames' ``depths`` (K,) m, the target's ``diameter`` m
+    and the sensor's ``electrical`` nuisances (:func:`fit_electrical`; default the scene's), the
+    modulus scale at 1 (module docstring). ``noise_std`` V of one frame (default the
+    instrument's, at its SNR). Stops when every step is below ``tol`` of its parameter's σ, or
+    after ``max_trials`` presses through the simulator."""
+    t0 = time.perf_counter()
+    frames = np.atleast_2d(np.asarray(frames, float))
+    K, M = frames.shape
+    sigma = inst.readout.noise_std if noise_std is None else float(noise_std)
+    layout = inst.reference.layout
+    sim = _Press(inst, K, None if electrical is None else electrical.centres[:, :2] - layout.centres[:, :2])
+    scene, n = inst.scene, sim.n_el
+    # the prior: the modulus scale and the electrical nuisances over the scene's randomisation
+    # about its values, the radius weakly over its range
+    names = sim.names[sim.names.index("ln_modulus"):sim.names.index("ln_conductivity") + 1 + n]
+    nuisance_sd = nuisance_prior(scene, ("x", "y", "depth", "radius") + names)
+    z_scene = np.append(np.asarray(scene.electrodes.contact_impedance), scene.electrodes.ground_contact_impedance)
+    eta_scene = np.concatenate([[math.log(scene.saline.conductivity)], np.log(z_scene)])
+    r_lo, r_hi = scene.dataset.radius
+    n_p = 3 + K + len(nuisance_sd)
+    mean = np.zeros(n_p)
+    mean[2] = 0.5 * (r_lo + r_hi)
+    mean[4 + K:] = eta_scene
+    precision = np.zeros(n_p)
+    precision[2] = 1.0 / (r_hi - r_lo) ** 2
+    precision[3 + K:] = 1.0 / np.maximum(nuisance_sd, 1e-12) ** 2
+    w = np.concatenate([np.full(M, math.sqrt(reference_frames)), np.ones(K * M)]) / sigma
+    y = np.concatenate([v_ref, frames.ravel()])
+
+    def evaluate(p):
+        v0, V, J, c, cj, d, dd = sim(p)
+        r = w * (np.concatenate([v0, V.ravel()]) - y)
+        return r, w[:, None] * J, c, cj, d, dd
+
+    def objective(p, r):
+        dp = p - mean
+        return float(r @ r + dp @ (precision * dp))
+
+    eta = eta_scene.copy()
+    if electrical is not None:
+        eta = np.concatenate([[math.log(electrical.conductivity)], np.log(electrical.contact_impedance)])
+    radius = 0.5 * float(diameter)
+    start_model = sim.membrane(1.0, radius)
+    centre = centre_touching(start_model, np.asarray(contact, float))[:2]
+    p = np.concatenate([centre, [radius], np.maximum(np.asarray(depths, float), MIN_DEPTH), [0.0], eta])
+    state = evaluate(p)
+    before = math.sqrt(float(state[0] @ state[0]) / len(state[0]))
+    iterations = 0
+    for cycle in range(ELECTRODE_CYCLES):
+        if cycle:
+            # the electrodes' centres again, now on the reference chamber of the fitted scale: a
+            # reference frame read at the scene's scale puts the dome's rise into them
+            model = sim.membrane(math.exp(p[3 + K]), float(p[2]))
+            chamber, _ = inst.morpher.morph(inst.dome(model.u))
+            el = fit_reference(chamber.mesh, layout.centres, layout.radii, chamber.ground, inst.protocol, v_ref,
+                               math.exp(p[4 + K]), np.exp(p[5 + K:]), sigma / math.sqrt(reference_frames),
+                               order=scene.mesh.element_order, membrane=layout.membrane,
+                               membrane_patch=layout.membrane_patch, max_iterations=10)
+            sim.offsets = el.centres[:, :2] - layout.centres[:, :2]
+            sim.moves = sim.moves_at(sim.offsets)
+            state = evaluate(p)
+        budget = sim.trials + (max_trials - sim.trials) // (ELECTRODE_CYCLES - cycle)
+        p, state, done = _levenberg_marquardt(evaluate, objective, p, state, precision, mean, budget, sim, tol, K, r_lo)
+        iterations += done
+    r, J, c, cj, d, dd = state
+    C = np.linalg.inv(J.T @ J + np.diag(precision))
+    sd = np.sqrt(np.diag(C))
+    contact_sd = np.sqrt(np.einsum("kip,pq,kiq->ki", cj, C, cj))
+    depth_sd = np.sqrt(np.einsum("kp,pq,kq->k", dd, C, dd))
+    ln_s = float(p[3 + K])
+    return PressRefit(c, d, 2 * float(p[2]), p[:2].copy(), math.exp(ln_s), contact_sd, depth_sd,
+                      2 * float(sd[2]), math.exp(ln_s) * float(sd[3 + K]), (before, math.sqrt(float(r @ r) / len(r))),
+                      sim.trials, iterations, time.perf_counter() - t0)
+
+
+def worth_refining(sd: np.ndarray, goals: np.ndarray) -> np.ndarray:
+    """Which estimates (n,) are worth a fit through the simulator: those whose reported σ
+    ``sd`` (n, q) exceeds half its goal ``goals`` (q,) (a median error ≈ 0.67 σ) in any
+    parameter. Where the emulator already meets the goals the simulator's seconds buy nothing."""
+    return np.any(np.asarray(sd) > 0.5 * np.asarray(goals), axis=1)
