@@ -71,6 +71,12 @@ except ImportError:  # pragma: no cover - PARDISO absent: SuperLU raises Runtime
 # what a trial point can cause: it is rejected and the damping raised
 _TRIAL_FAILURES = (UnreachablePose, NewtonError, MeshInversionError, ValueError, _FactorisationError)
 
+def _step_limits(K: int, n_p: int) -> np.ndarray:
+    """The largest step of each of the ``n_p`` parameters of a ``K``-frame press: 0.5 mm of
+    centre, 1 mm of radius, 0.2 mm of depth, 0.5 in a log (×1.65)."""
+    return np.concatenate([[0.5e-3, 0.5e-3, 1e-3], np.full(K, 0.2e-3), np.full(n_p - 3 - K, 0.5)])
+
+
 MIN_DEPTH = 20e-6  # m: a frame's depth is kept past first contact by at least this
 MAX_TRIALS = 20  # presses through the simulator per fit, at most
 ELECTRODE_CYCLES = 3  # the press fitted with the electrodes held, their centres refitted between
@@ -101,12 +107,12 @@ class PressRefit:
 
 
 def fit_electrical(inst: Instrument, v_ref: np.ndarray, reference_frames: int, noise_std: float,
-                   max_iterations: int = 10, positions: bool = True) -> ElectricalFit:
+                   max_iterations: int = 30, positions: bool = True) -> ElectricalFit:
     """The saline, contact impedances and electrode centres of ``inst``'s sensor fitted to the
     measured reference ``v_ref`` (n_meas,) V, the mean of ``reference_frames`` frames of noise
     ``noise_std`` V each (:func:`~jointsim.eit.fit.fit_reference` on the nominal chamber): the
-    start of :func:`refine_press`, which fits them again with the press, so ``max_iterations``
-    need not be many."""
+    start of :func:`refine_press` (a start 10 % off in the contact impedances left the first
+    descents to chase them, and the modulus scale with them, by tens of thousands of σ)."""
     ch, scene = inst.reference, inst.scene
     e = scene.electrodes
     z0 = np.append(np.asarray(e.contact_impedance), e.ground_contact_impedance)
@@ -262,6 +268,9 @@ def _levenberg_marquardt(evaluate, objective, p: np.ndarray, state: tuple, preci
         g = J.T @ r + precision * (p - mean)
         D = np.diag(A) + 1e-12 * np.diag(A).max()
         step = -np.linalg.solve(A + mu * np.diag(D), g)
+        # a trust region: no step past what one linearisation can hold (far from the fit, the
+        # first steps asked contact impedances to change ×e^10 and the scale ×100)
+        step *= min(1.0, float(np.min(_step_limits(K, len(p)) / np.maximum(np.abs(step), 1e-300))))
         trial = p + step
         trial[2] = max(trial[2], 0.5 * r_lo)
         step = trial - p
