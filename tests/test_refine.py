@@ -97,3 +97,23 @@ def test_a_rough_start_reaches_the_truth_within_its_sigma(pressed):
 def test_worth_refining_where_the_sigma_misses_the_goal():
     sd = np.array([[0.1e-3, 0.01e-3], [0.1e-3, 0.04e-3], [0.4e-3, 0.01e-3]])
     assert worth_refining(sd, np.array([0.3e-3, 0.05e-3])).tolist() == [False, True, True]
+
+
+def test_frames_refine_is_refused_without_what_it_needs(tmp_path, capsys):
+    """`jointsim frames --refine` starts from a calibration map's estimate and weighs the frames
+    by the reference frames' scatter: without a map, or with one reference frame, one line
+    naming --refine (exit 2), before any instrument is built."""
+    from jointsim.cli.main import main
+    from jointsim.eit.protocol import scene_protocol
+    from jointsim.scene import SCENES_DIR, load_scene
+
+    n = scene_protocol(load_scene(SCENES_DIR / "paper_sensor.toml")).n_meas
+    rows = np.random.default_rng(0).normal(1.0, 1e-3, (3, n))
+    frames, ref1, ref3 = tmp_path / "f.csv", tmp_path / "r1.csv", tmp_path / "r3.csv"
+    for path, data in ((frames, rows[:2]), (ref1, rows[:1]), (ref3, rows)):
+        path.write_text("\n".join(",".join(f"{v:.9g}" for v in r) for r in data) + "\n")
+    for ref, extra, why in ((ref3, [], "give --calibration MAP"), (ref1, ["--calibration", str(tmp_path / "m.h5")], "give 2 or more")):
+        assert main(["frames", "--frames", str(frames), "--reference", str(ref), "--refine", *extra,
+                     "--out", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--refine:" in err[0] and why in err[0], err

@@ -39,14 +39,18 @@ def calibrate_frames(cmap: CalibrationMap, rec: Records) -> dict[str, np.ndarray
 
 
 def calibrate_measured(cmap: CalibrationMap, voltages: np.ndarray, dv: np.ndarray, com: np.ndarray,
-                       sum_sigma: np.ndarray, diameter: np.ndarray, snr_db: float | None = None) -> dict[str, np.ndarray]:
+                       sum_sigma: np.ndarray, diameter: np.ndarray, snr_db: float | None = None,
+                       one_press: bool = False) -> dict[str, np.ndarray]:
     """The map's :data:`APPLIED` values (n,) for measured frames (their ``voltages`` and ``dv``
     (n, n_meas) V, image ``com`` (n, 3) m, ``sum_sigma``, ``diameter`` (n,)), the emulator's
-    fits at the instrument's ``snr_db`` (None: the map's training SNRs'). A measured frame has
-    no force: the size route along force and the modulus are NaN there."""
+    fits at the instrument's ``snr_db`` (None: the map's training SNRs'); ``one_press``: the
+    frames are one press's, fitted jointly too (``press_*``). A measured frame has no force:
+    the size route along force and the modulus are NaN there."""
     n = len(voltages)
     frames = {"com": com, "voltages": voltages, "dv": dv, "force": np.full((n, 3), np.nan), "sum_sigma": sum_sigma,
               "diameter": diameter, "snr_db": snr_db}
+    if one_press:
+        frames["group"] = np.zeros(n, int)
     return cmap.apply(frames)
 
 

@@ -3,7 +3,8 @@ EIDORS .mat, imaged with the scene's instrument against the mean of reference fr
 untouched sensor, with the paper's image metrics per frame and, given a calibration map, its
 estimates (position, depth, size; flagged outside the map's trained region); --fit-reference
 fits the sensor's conductivity, contact impedances and electrode positions to the reference
-frames. The channel order
+frames; --refine fits the frames, one press at several depths, through the simulator from the
+map's estimate (jointsim.calibration.refine: minutes, not milliseconds). The channel order
 is voltages[s * n_meas_per_stim + m] (measurement m of injection s); patterns carried by the
 files are checked against the scene's protocol first. Writes OUT/frames.csv, OUT/images.vtu
 (the first frames' images) and OUT/summary.json."""
@@ -32,6 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fit-reference", action="store_true",
                    help="fit the sensor's conductivity, contact impedances and electrode positions to the mean reference "
                         "frame and report them (summary.json)")
+    p.add_argument("--refine", action="store_true",
+                   help="the frames are one press (a target held at several depths): fit them through the simulator, "
+                        "from the calibration map's estimate, with the sensor's modulus scale, saline, contact "
+                        "impedances and electrode positions (a few minutes; needs --calibration and 2+ reference frames)")
     add_progress_argument(p)
 
 
@@ -51,12 +56,24 @@ def run(args: argparse.Namespace) -> int:
     scene = scene_from_args(args)
     frames, reference = read_frames(args.frames), read_frames(args.reference)
     check_frames(scene, frames, reference)  # before the instrument is built (seconds)
+    if args.refine and args.calibration is None:
+        raise ValueError("--refine: starts from a calibration map's estimate; give --calibration MAP")
+    if args.refine and len(reference) < 2:
+        raise ValueError(f"--refine: weighs the frames by the noise the reference frames scatter with; {args.reference} "
+                         f"holds {len(reference)} frame(s), give 2 or more")
+    snr = reference_snr_db(reference.voltages)  # the noise the emulator's fits weigh
+    if args.refine and snr is None:
+        raise ValueError(f"--refine: the reference frames in {args.reference} do not scatter (copies of one frame?): "
+                         "their noise weighs the fit; give the instrument's own frames of the untouched sensor")
     cmap = None
     if args.calibration is not None:  # refused before any work when built for another sensor
         from ..calibration import load_map
 
         cmap = load_map(args.calibration)
         cmap.check_scene(scene, f"calibration map {args.calibration}")
+        if args.refine and cmap.emulator is None:
+            raise ValueError(f"--refine: calibration map {args.calibration} has no emulator to start from "
+                             "(rebuild it with jointsim calibrate)")
     print(f"jointsim frames: scene {scene.name}, {len(frames)} frame(s) of {frames.voltages.shape[1]} channels, "
           f"reference the mean of {len(reference)} -> {args.out}")
     from tqdm import tqdm
@@ -67,21 +84,29 @@ def run(args: argparse.Namespace) -> int:
             res = image_frames(scene, frames, reference, instrument=inst, progress=bar.update)
         grid = inst.grid
         fit = _fit(scene, inst, res.reference, len(reference)) if args.fit_reference else None
+        est = refined = None
+        if cmap is not None:
+            from ..calibration.apply import calibrate_measured
+
+            est = calibrate_measured(cmap, res.voltages, res.dv, res.com, res.sum_sigma, res.diameter, snr,
+                                     one_press=args.refine)
+            if args.refine:
+                refined = _refine(inst, est, res, snr, len(reference))
     finally:
         inst.free()
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    snr = reference_snr_db(reference.voltages)  # the noise the emulator's fits weigh
     table = {"frame": np.arange(len(frames)), "com_x": res.com[:, 0], "com_y": res.com[:, 1], "com_z": res.com[:, 2],
              "sum_sigma": res.sum_sigma, "diameter": res.diameter, "rms_dv": np.sqrt(np.mean(res.dv**2, axis=1))}
-    if cmap is not None:
-        from ..calibration.apply import calibrate_measured
-
-        est = calibrate_measured(cmap, res.voltages, res.dv, res.com, res.sum_sigma, res.diameter, snr)
+    if est is not None:
         table.update({k: est[k] for k in ("cal_x", "cal_y", "cal_depth", "direct_x", "direct_y", "direct_depth",
                                           "direct_diameter", "outside")})
         if cmap.emulator is not None:  # the model-based fit per frame, with its σ
             table.update({k: est[k] for k in est if k.startswith("model_")})
+        if args.refine:
+            table.update({k: est[k] for k in est if k.startswith("press_")})
+    if refined is not None:
+        table.update(refined.pop("columns"))
     written = [write_csv(out / "frames.csv", table)]
     k = min(VTU_FRAMES, len(frames))
     written.append(write_voxels_vtu(out / "images.vtu", grid, {f"frame{i}": res.images[i] for i in range(k)}))
@@ -90,7 +115,8 @@ def run(args: argparse.Namespace) -> int:
                "calibration": None if cmap is None else {"map": str(args.calibration), "trained_region": cmap.region},
                "channel_order": "voltages[s * n_meas_per_stim + m] = measurement m of injection s",
                "reference_snr_db": snr,
-               "fitted_sensor": fit}
+               "fitted_sensor": fit,
+               "refined_through_the_simulator": refined}
     with atomic_path(out / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=2))
     written.append(out / "summary.json")
@@ -106,6 +132,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"  fitted to the reference: saline {fit['conductivity_s_per_m']:.4g} S/m, contact impedance "
               f"{min(fit['contact_impedance_ohm_m2']):.3g}-{max(fit['contact_impedance_ohm_m2']):.3g} ohm m^2, electrodes moved "
               f"up to {fit['largest_move_mm']:.3f} mm; misfit {fit['misfit_before']:.2e} -> {fit['misfit_after']:.2e} of the frame")
+    if refined is not None:
+        print(f"  refined through the simulator ({refined['trials']} presses, {refined['seconds']:.0f} s): diameter "
+              f"{refined['diameter_mm']:.2f} +- {refined['diameter_sd_mm']:.2f} mm, membrane modulus x{refined['modulus_scale']:.3f}; "
+              f"misfit {refined['misfit_before']:.3g} -> {refined['misfit_after']:.3g} noise sd per channel")
     print(f"  wrote {', '.join(p.name for p in written)} to {out}")
     return 0
 
@@ -126,3 +156,29 @@ def _fit(scene, inst, v_ref, n_frames: int) -> dict:
     return {"conductivity_s_per_m": f.conductivity, "contact_impedance_ohm_m2": f.contact_impedance.tolist(),
             "centres_mm": np.round(f.centres * 1e3, 6).tolist(), "largest_move_mm": float(move.max() * 1e3),
             "misfit_before": f.before, "misfit_after": f.after, "iterations": f.iterations}
+
+
+def _refine(inst, est: dict, res, snr_db: float, n_reference: int) -> dict:
+    """The frames of ``res`` fitted as one press through the simulator (jointsim.calibration.refine)
+    from the map's press fit ``est``; per-frame columns (SI) and the fit's summary, JSON-ready (mm)."""
+    import numpy as np
+
+    from ..calibration.refine import fit_electrical, refine_press
+
+    def joint(name: str) -> np.ndarray:  # the press fit's, else (a frame it left out) the regression's
+        return np.where(np.isfinite(est[f"press_{name}"]), est[f"press_{name}"], est[f"direct_{name}"])
+
+    depth = joint("depth")
+    sigma = float(np.mean(np.abs(res.reference))) * 10 ** (-snr_db / 20)
+    electrical = fit_electrical(inst, res.reference, n_reference, sigma)
+    start = np.array([np.mean(joint("x")), np.mean(joint("y"))])
+    f = refine_press(inst, res.voltages, res.reference, n_reference, start, depth, float(np.mean(joint("diameter"))),
+                     electrical=electrical, noise_std=sigma)
+    n = len(res.voltages)
+    columns = {"refined_x": f.contact[:, 0], "refined_y": f.contact[:, 1], "refined_depth": f.depth,
+               "refined_diameter": np.full(n, f.diameter), "refined_sd_x": f.contact_sd[:, 0], "refined_sd_y": f.contact_sd[:, 1],
+               "refined_sd_depth": f.depth_sd, "refined_sd_diameter": np.full(n, f.diameter_sd)}
+    return {"columns": columns, "diameter_mm": f.diameter * 1e3, "diameter_sd_mm": f.diameter_sd * 1e3,
+            "centre_mm": (f.centre * 1e3).tolist(), "modulus_scale": f.scale, "modulus_scale_sd": f.scale_sd,
+            "misfit_before": f.misfit[0], "misfit_after": f.misfit[1], "trials": f.trials, "seconds": f.seconds,
+            "noise_sd_v": sigma, "snr_db": snr_db}
