@@ -59,7 +59,7 @@ from ..instrument import Instrument, Readout
 from ..mechanics.build import membrane_from_scene
 from ..mechanics.dome import MembraneModel, UnreachablePose
 from ..mechanics.newton import NewtonError
-from ..mechanics.touch import centre_touching
+from ..mechanics.touch import centre_touching, depth_reach
 from ..mesh.morph import MeshInversionError
 
 __all__ = ["PressRefit", "fit_electrical", "refine_press", "worth_refining"]
@@ -352,7 +352,13 @@ def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, refere
     radius = 0.5 * float(diameter)
     start_model = sim.membrane(1.0, radius)
     centre = centre_touching(start_model, np.asarray(contact, float))[:2]
-    p = np.concatenate([centre, [radius], np.maximum(np.asarray(depths, float), MIN_DEPTH), [0.0], eta])
+    # a start past what the dome allows there (a large sphere near the ring, deep) held short of it
+    reach = depth_reach(start_model, start_model.first_contact_height(centre))
+    if reach <= MIN_DEPTH:
+        raise ValueError(f"refine_press: a {2e3 * radius:.3g} mm sphere touching at {np.round(np.asarray(contact) * 1e3, 2).tolist()} "
+                         "mm cannot press the dome there; start from another diameter")
+    start_depths = np.clip(np.asarray(depths, float), MIN_DEPTH, 0.95 * reach)
+    p = np.concatenate([centre, [radius], start_depths, [0.0], eta])
     state = evaluate(p)
     before = math.sqrt(float(state[0] @ state[0]) / len(state[0]))
     iterations = 0
