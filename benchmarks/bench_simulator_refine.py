@@ -9,9 +9,10 @@ The map is `jointsim calibrate DATASET --seed S`'s (its held-out presses: split 
 first --presses of them by group id are refitted. Each press's noise-free frames and reference are
 re-noised at 74.2 dB (the reference the mean of the store's reference frames; seeded by the
 group); the direct regression and the emulator's press fit (the map's) read them; the
-simulator's fit starts from the emulator's estimate: the sensor's electrical nuisances fitted
-to the reference frame, then the target, every frame's depth, the membrane's modulus scale and
-corrections to the electrical nuisances by Levenberg–Marquardt through the coupled model.
+simulator's fit starts from the emulator's estimate: the sensor's saline, contact impedances and
+electrode centres fitted to the reference frame, then the target, every frame's depth, the
+membrane's modulus scale, the saline and the contact impedances by Levenberg–Marquardt through
+the coupled model, the electrode centres refitted between its three descents.
 Errors: the contact's centre of pressure in the plane, depth, diameter (median, P95), the
 reported σ's coverage (within 1σ, 2σ; RMS error in σ), seconds per press. "Where it pays":
 the emulator's estimate kept for a press whose σ meets the position and depth goals
