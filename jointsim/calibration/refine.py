@@ -36,8 +36,8 @@ out; but the voltages follow a disc's centre only piecewise smoothly (it is clip
 base's triangles), and inside the descent they made it crawl. The first descent starts from
 :func:`fit_electrical`, the reference frame fitted at the scene's scale. The alternation has a
 price: centres fitted at a scale not yet right take up part of the scale's effect on the
-reference frame, and the scale the fit reports is biased by it (7.5 % median on held-out
-dataset presses, results/calibration/simulator_refine_split0.md; its σ does not cover that),
+reference frame, and the scale the fit reports is biased by it (7.5–10 % median on held-out
+dataset presses, results/calibration/simulator_refine_split*.md; its σ does not cover that),
 while the target's estimates are not (their errors within about twice their σ there).
 
 The estimate's covariance is (JᵀJ/σ_n² + P)⁻¹ at the fit; the contact's (its centre of
