@@ -112,7 +112,7 @@ class PressRefit:
 
 
 def fit_electrical(inst: Instrument, v_ref: np.ndarray, reference_frames: int, noise_std: float,
-                   max_iterations: int = 30, positions: bool = True) -> ElectricalFit:
+                   max_iterations: int = 30) -> ElectricalFit:
     """The saline, contact impedances and electrode centres of ``inst``'s sensor fitted to the
     measured reference ``v_ref`` (n_meas,) V, the mean of ``reference_frames`` frames of noise
     ``noise_std`` V each (:func:`~jointsim.eit.fit.fit_reference` on the nominal chamber): the
@@ -124,15 +124,14 @@ def fit_electrical(inst: Instrument, v_ref: np.ndarray, reference_frames: int, n
     return fit_reference(ch.mesh, ch.layout.centres, ch.layout.radii, ch.ground, inst.protocol, v_ref,
                          scene.saline.conductivity, z0, noise_std / math.sqrt(reference_frames),
                          order=scene.mesh.element_order, membrane=ch.layout.membrane,
-                         membrane_patch=ch.layout.membrane_patch, max_iterations=max_iterations, positions=positions)
+                         membrane_patch=ch.layout.membrane_patch, max_iterations=max_iterations)
 
 
 class _Press:
     """The simulator of one press for the fit: p ↦ (the reference's and the frames' voltages,
     their derivatives, the contacts) on a membrane rebuilt when the modulus scale moves and a
-    readout rebuilt for the electrical nuisances of p (a few tenths of a second beside the
-    press's seconds; linearising them about a fixed readout left the Jacobian blind to how
-    their effect moves with the target, and the iteration crawled)."""
+    readout rebuilt for the saline and contact impedances of p (a few tenths of a second beside
+    the press's seconds)."""
 
     def __init__(self, inst: Instrument, K: int, offsets: np.ndarray | None = None):
         self.inst = inst
@@ -140,7 +139,8 @@ class _Press:
         self.scene = inst.scene
         self.names = parameter_names(len(inst.reference.layout.radii))
         self.n_el = len(inst.reference.layout.radii)
-        # the electrodes' centres, held (module docstring), and their discs moved for no derivative
+        # the electrodes' centres, held in a descent (module docstring), and their discs moved
+        # either way (press_electrical's position columns, which a descent does not use)
         self.offsets = np.zeros((self.n_el, 2)) if offsets is None else np.asarray(offsets, float).reshape(-1, 2)
         self.moves = self.moves_at(self.offsets)
         self.model: MembraneModel | None = None
@@ -195,9 +195,7 @@ class _Press:
         d = np.maximum.accumulate(depths[order])  # the press goes down: ties kept in order
         mech = press_mechanics(model, centre, d, head=head_moves(self.scene))
         # the depths are the fit's past one node's touch, the same node at every trial: the
-        # height of first contact has a kink wherever the node touched first changes, and the
-        # centre's height as the parameter made a valley curved along the modulus scale
-        # (the dome's rise with it) that Levenberg–Marquardt crawled along
+        # height of first contact has a kink wherever the node touched first changes
         _, along = _node_touch(model, centre, mech.u_ref, mech.du_ref, self.node)
         _, first = _node_touch(model, centre, mech.u_ref, mech.du_ref)
         mech = replace(mech, dzc=along)
