@@ -64,7 +64,7 @@ def run_size(label: str, pyeit: bool) -> dict:
     t_mesh = time.perf_counter() - t0
     out: dict = {"size": label, "n_tets": mesh.n_tets, "n_nodes": mesh.n_nodes, "mesh_s": t_mesh}
     protocol = skip_protocol(16, scene.drive.skip, scene.drive.current)
-    z = np.append(np.asarray(scene.electrodes.contact_impedance), scene.electrodes.ground_contact_impedance)
+    z = scene.electrodes.contact_impedances
     sigma = np.full(mesh.n_tets, scene.saline.conductivity)
     base_mb = _rss_mb()
     for b in available_backends():  # each library loaded before any timing (PARDISO: locating MKL)

@@ -97,7 +97,7 @@ def chamber_case() -> tuple:
 
     scene = load_scene(ROOT / "scenes" / "paper_sensor.toml").with_mesh_preset("paper")
     ch = chamber_mesh(scene)
-    z = np.append(np.asarray(scene.electrodes.contact_impedance), scene.electrodes.ground_contact_impedance)
+    z = scene.electrodes.contact_impedances
     model = ForwardModel(ch.mesh, ch.electrodes, ch.ground, z)
     A = model.assembler.assemble(np.full(ch.mesh.n_tets, scene.saline.conductivity), z)
     n, L = ch.mesh.n_nodes, model.n_driven

@@ -56,7 +56,7 @@ def main() -> int:
     other = jittered_chamber(scene, 1e-6)  # the "other simulator's" chamber mesh
     lay = other.layout
     n = len(lay.radii)
-    z0 = np.append(np.asarray(e.contact_impedance), e.ground_contact_impedance)
+    z0 = e.contact_impedances
     z_true = z0 * np.exp(rng.uniform(np.log(0.5), np.log(2.0), n))
     ring = [l for l in range(n) if l != other.ground]
     c_true = lay.centres.copy()

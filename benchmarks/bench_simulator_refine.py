@@ -57,11 +57,12 @@ def press(job: dict) -> dict:
     from jointsim.calibration.data import voltage_features
     from jointsim.calibration.emulator import fit_presses, sigmas
     from jointsim.calibration.refine import fit_electrical, refine_press
+    from jointsim.eit.noise import noise_std
 
     cmap, inst = _STATE["map"], _STATE["inst"]
     clean, ref_clean, r = np.asarray(job["clean"]), np.asarray(job["ref_clean"]), int(job["reference_frames"])
     rng = np.random.default_rng([2026, job["group"]])
-    sigma = float(np.mean(np.abs(ref_clean))) * 10 ** (-GOAL_SNR_DB / 20)
+    sigma = noise_std(ref_clean, GOAL_SNR_DB)
     frames = clean + rng.normal(0.0, sigma, clean.shape)
     v_ref = ref_clean + rng.normal(0.0, sigma / math.sqrt(r), ref_clean.shape)
     F = voltage_features(frames, frames - v_ref)

@@ -136,7 +136,7 @@ class Readout:
         else:
             patches = reference.patches(order)
         if contact_impedance is None:
-            z = np.append(np.asarray(e.contact_impedance), e.ground_contact_impedance)
+            z = e.contact_impedances
         else:
             z = np.broadcast_to(np.asarray(contact_impedance, float), (len(patches),)).copy()
         forward = ForwardModel(reference.mesh, patches, reference.ground, z, backend, order).shared()

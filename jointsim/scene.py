@@ -156,6 +156,12 @@ class ElectrodeRing:
         where the reference floats (the protocol's patterns span it; a dataset moves it)."""
         return self.count + (0 if self.reference else 1)
 
+    @property
+    def contact_impedances(self) -> np.ndarray:
+        """Every electrode's contact impedance (Ω·m²) in the layout's order: the driven ones',
+        then the reference's (``ground_contact_impedance``)."""
+        return np.append(np.asarray(self.contact_impedance, float), self.ground_contact_impedance)
+
 
 @dataclass(frozen=True)
 class Saline:

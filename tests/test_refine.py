@@ -11,6 +11,7 @@ import pytest
 
 from jointsim.calibration.refine import _Press, fit_electrical, refine_press, worth_refining
 from jointsim.dataset.generate import DatasetSetup, GroupDraw
+from jointsim.eit.noise import noise_std
 
 SCALE, SIGMA, Z = 0.7, 0.38, 1.5e-3  # the sensor pressed: softer membrane, warmer saline, other contacts
 
@@ -80,7 +81,7 @@ def test_a_rough_start_reaches_the_truth_within_its_sigma(pressed):
     inst, records, _ = pressed
     rng = np.random.default_rng(11)
     ref = records[0]["reference_clean"]
-    sigma = float(np.mean(np.abs(ref))) * 10 ** (-74.2 / 20)
+    sigma = noise_std(ref, 74.2)
     r = 50
     frames = np.array([rec["voltages_clean"] for rec in records]) + rng.normal(0.0, sigma, (2, len(ref)))
     v_ref = ref + rng.normal(0.0, sigma / math.sqrt(r), len(ref))

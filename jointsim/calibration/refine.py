@@ -58,6 +58,7 @@ import numpy as np
 from ..design.bounds import nuisance_prior
 from ..design.sensitivity import ELECTRODE_STEP, head_moves, parameter_names, press_electrical, press_mechanics
 from ..eit.fit import ElectricalFit, fit_reference
+from ..mesh.chamber import ChamberMesh
 from ..eit.parameters import moved_discs
 from ..instrument import Instrument, Readout
 from ..mechanics.build import membrane_from_scene
@@ -111,20 +112,23 @@ class PressRefit:
     seconds: float
 
 
-def fit_electrical(inst: Instrument, v_ref: np.ndarray, reference_frames: int, noise_std: float,
-                   max_iterations: int = 30) -> ElectricalFit:
+def fit_electrical(inst: Instrument, v_ref: np.ndarray, reference_frames: int, noise_std: float, *,
+                   chamber: ChamberMesh | None = None, conductivity: float | None = None,
+                   contact_impedance: np.ndarray | None = None, max_iterations: int = 30) -> ElectricalFit:
     """The saline, contact impedances and electrode centres of ``inst``'s sensor fitted to the
     measured reference ``v_ref`` (n_meas,) V, the mean of ``reference_frames`` frames of noise
-    ``noise_std`` V each (:func:`~jointsim.eit.fit.fit_reference` on the nominal chamber): the
-    start of :func:`refine_press` (a start 10 % off in the contact impedances left the first
-    descents to chase them, and the modulus scale with them, by tens of thousands of σ)."""
-    ch, scene = inst.reference, inst.scene
-    e = scene.electrodes
-    z0 = np.append(np.asarray(e.contact_impedance), e.ground_contact_impedance)
-    return fit_reference(ch.mesh, ch.layout.centres, ch.layout.radii, ch.ground, inst.protocol, v_ref,
-                         scene.saline.conductivity, z0, noise_std / math.sqrt(reference_frames),
-                         order=scene.mesh.element_order, membrane=ch.layout.membrane,
-                         membrane_patch=ch.layout.membrane_patch, max_iterations=max_iterations)
+    ``noise_std`` V each (:func:`~jointsim.eit.fit.fit_reference`), on ``chamber`` (default the
+    instrument's reference chamber; a morph of it) from ``conductivity`` and
+    ``contact_impedance`` (n_el,) (default the scene's). The start of :func:`refine_press` (a
+    start 10 % off in the contact impedances left the first descents to chase them, and the
+    modulus scale with them, by tens of thousands of σ), and ``jointsim frames --fit-reference``."""
+    scene, layout = inst.scene, inst.reference.layout
+    ch = inst.reference if chamber is None else chamber
+    return fit_reference(ch.mesh, layout.centres, layout.radii, ch.ground, inst.protocol, v_ref,
+                         scene.saline.conductivity if conductivity is None else conductivity,
+                         scene.electrodes.contact_impedances if contact_impedance is None else contact_impedance,
+                         noise_std / math.sqrt(reference_frames), order=scene.mesh.element_order,
+                         membrane=layout.membrane, membrane_patch=layout.membrane_patch, max_iterations=max_iterations)
 
 
 class _Press:
@@ -327,7 +331,7 @@ def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, refere
     # about its values, the radius weakly over its range
     names = sim.names[sim.names.index("ln_modulus"):sim.names.index("ln_conductivity") + 1 + n]
     nuisance_sd = nuisance_prior(scene, ("x", "y", "depth", "radius") + names)
-    z_scene = np.append(np.asarray(scene.electrodes.contact_impedance), scene.electrodes.ground_contact_impedance)
+    z_scene = scene.electrodes.contact_impedances
     eta_scene = np.concatenate([[math.log(scene.saline.conductivity)], np.log(z_scene)])
     r_lo, r_hi = scene.dataset.radius
     n_p = 3 + K + len(nuisance_sd)
@@ -371,10 +375,8 @@ def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, refere
             # reference frame read at the scene's scale puts the dome's rise into them
             model = sim.membrane(math.exp(p[3 + K]), float(p[2]))
             chamber, _ = inst.morpher.morph(inst.dome(model.u))
-            el = fit_reference(chamber.mesh, layout.centres, layout.radii, chamber.ground, inst.protocol, v_ref,
-                               math.exp(p[4 + K]), np.exp(p[5 + K:]), sigma / math.sqrt(reference_frames),
-                               order=scene.mesh.element_order, membrane=layout.membrane,
-                               membrane_patch=layout.membrane_patch, max_iterations=10)
+            el = fit_electrical(inst, v_ref, reference_frames, sigma, chamber=chamber, conductivity=math.exp(p[4 + K]),
+                                contact_impedance=np.exp(p[5 + K:]), max_iterations=10)
             sim.offsets = el.centres[:, :2] - layout.centres[:, :2]
             sim.moves = sim.moves_at(sim.offsets)
             state = evaluate(p)

@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         with tqdm(total=len(frames), unit="frame", desc="frames", disable=progress_off(args)) as bar:
             res = image_frames(scene, frames, reference, instrument=inst, progress=bar.update)
         grid = inst.grid
-        fit = _fit(scene, inst, res.reference, len(reference)) if args.fit_reference else None
+        fit = _fit(inst, res.reference, len(reference)) if args.fit_reference else None
         est = refined = None
         if cmap is not None:
             from ..calibration.apply import calibrate_measured
@@ -141,18 +141,14 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _fit(scene, inst, v_ref, n_frames: int) -> dict:
+def _fit(inst, v_ref, n_frames: int) -> dict:
     """The sensor fitted to the mean reference frame (jointsim.eit.fit), JSON-ready (mm, SI)."""
     import numpy as np
 
-    from ..eit.fit import fit_reference
-    from ..eit.protocol import scene_protocol
+    from ..calibration.refine import fit_electrical
 
-    ch, e = inst.reference, scene.electrodes
-    z0 = np.append(np.asarray(e.contact_impedance), e.ground_contact_impedance)
-    f = fit_reference(ch.mesh, ch.layout.centres, ch.layout.radii, ch.ground, scene_protocol(scene), v_ref,
-                      scene.saline.conductivity, z0, inst.readout.noise_std / np.sqrt(n_frames),
-                      order=scene.mesh.element_order, membrane=ch.layout.membrane, membrane_patch=ch.layout.membrane_patch)
+    ch = inst.reference
+    f = fit_electrical(inst, v_ref, n_frames, inst.readout.noise_std)
     move = np.linalg.norm(f.centres[:, :2] - ch.layout.centres[:, :2], axis=1)
     return {"conductivity_s_per_m": f.conductivity, "contact_impedance_ohm_m2": f.contact_impedance.tolist(),
             "centres_mm": np.round(f.centres * 1e3, 6).tolist(), "largest_move_mm": float(move.max() * 1e3),
@@ -165,12 +161,13 @@ def _refine(inst, est: dict, res, snr_db: float, n_reference: int) -> dict:
     import numpy as np
 
     from ..calibration.refine import fit_electrical, refine_press
+    from ..eit.noise import noise_std
 
     def joint(name: str) -> np.ndarray:  # the press fit's, else (a frame it left out) the regression's
         return np.where(np.isfinite(est[f"press_{name}"]), est[f"press_{name}"], est[f"direct_{name}"])
 
     depth = joint("depth")
-    sigma = float(np.mean(np.abs(res.reference))) * 10 ** (-snr_db / 20)
+    sigma = noise_std(res.reference, snr_db)
     electrical = fit_electrical(inst, res.reference, n_reference, sigma)
     start = np.array([np.mean(joint("x")), np.mean(joint("y"))])
     f = refine_press(inst, res.voltages, res.reference, n_reference, start, depth, float(np.mean(joint("diameter"))),

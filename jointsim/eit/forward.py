@@ -101,7 +101,7 @@ class ForwardModel:
         pattern, and shares its solver if it was made :meth:`shared` (module docstring). Free
         that solver with :meth:`free` on any of them."""
         e = scene.electrodes
-        z = np.append(np.asarray(e.contact_impedance), e.ground_contact_impedance)
+        z = e.contact_impedances
         order = scene.mesh.element_order if order is None else order
         electrodes = chamber.patches(order)
         if like is None or like.order != order or like.backend != backend:
