@@ -260,6 +260,8 @@ MESH_PRESETS: dict[str, dict[str, float]] = {
     # convergence checks only (~1 M tets; minutes per mesh and per solve on 2 cores)
     "fine": {"max_edge_mm": 0.66, "electrode_refinement": 10.0},
 }
+# a scene's fidelity where its [mesh] section names none: the forward within 1 % of its limit
+DEFAULT_MESH_PRESET = "dataset_p2"
 GRADING = 0.35  # [mesh] grading: how fast the element size grows away from the electrodes (per unit distance)
 # [mesh] rim_refinement: the element size at the electrodes' outlines is max_edge / rim_refinement
 # (1: no refinement beyond electrode_refinement's); where the complete electrode model's current
@@ -331,15 +333,15 @@ class MeshSpec:
     the mesh follows the membrane (``update``: "morph" the reference mesh, "remesh" every
     deformed chamber, or "auto": morph, remesh when the morph inverts or degrades)."""
 
-    preset: str = "dataset"
-    max_edge: float = 1.9 * MM
-    electrode_refinement: float = 6.0
+    preset: str = DEFAULT_MESH_PRESET
+    max_edge: float = 2.6 * MM
+    electrode_refinement: float = 2.0
     refinement_zone: float = 0.8 * MM
-    grading: float = GRADING
-    element_order: int = 1
+    grading: float = 0.6
+    element_order: int = 2
     update: str = "auto"
-    rim_refinement: float = 1.0
-    dome_rim_vertices: int = 0
+    rim_refinement: float = 10.0
+    dome_rim_vertices: int = 144
 
 
 @dataclass(frozen=True)
@@ -358,7 +360,8 @@ class Scene:
     dataset: "DatasetSpec" = field(default_factory=lambda: DatasetSpec())
 
     def with_mesh_preset(self, preset: str) -> "Scene":
-        """The scene at fidelity ``preset``: that preset's chamber mesh sizes and membrane rim
+        """The scene at fidelity ``preset``: that preset's chamber mesh sizes, element order (P1
+        where the preset names none, as a scene's ``[mesh] preset`` parses) and membrane rim
         vertices, replacing what the scene gave for them."""
         if preset not in MESH_PRESETS:
             raise SceneError(f"mesh.preset = {preset!r}: allowed values are {sorted(MESH_PRESETS)}")
@@ -373,7 +376,7 @@ class Scene:
                 rim_refinement=p.get("rim_refinement", 1.0),
                 dome_rim_vertices=int(p.get("dome_rim_vertices", 0)),
                 grading=p.get("grading", GRADING),
-                element_order=p.get("element_order", self.mesh.element_order),
+                element_order=int(p.get("element_order", 1)),
             ),
             # a fidelity sets the membrane's mesh with the chamber's (MEMBRANE_RIM_VERTICES)
             membrane=replace(self.membrane, rim_vertices=MEMBRANE_RIM_VERTICES[preset]),
@@ -903,7 +906,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     t.finish()
 
     t = _Table(data.get("mesh", {}), "mesh")
-    preset = t.raw("preset", "dataset")
+    preset = t.raw("preset", DEFAULT_MESH_PRESET)
     if not isinstance(preset, str) or (preset not in MESH_PRESETS and preset != "custom"):
         raise SceneError(f"mesh.preset = {preset!r}: allowed values are {sorted(MESH_PRESETS) + ['custom']}")
     p = MESH_PRESETS.get(preset, MESH_PRESETS["dataset"])

@@ -311,11 +311,11 @@ def test_map_refuses_another_sensor_and_accepts_its_own(built):
     other = scene_from_dict(data)
     with pytest.raises(SceneMismatchError, match=r"electrodes\.ring_radius: 0\.015 in the map, 0\.014 in the scene"):
         built.map.check_scene(other)
-    with pytest.raises(SceneMismatchError, match=r"mesh\.preset.*give --mesh dataset\)\.$"):
+    with pytest.raises(SceneMismatchError, match=r"mesh\.preset.*give --mesh dataset_p2\)\.$"):
         built.map.check_scene(scene.with_mesh_preset("test"))
-    # P2 voltages are not the P1 voltages the map learnt
-    with pytest.raises(SceneMismatchError, match=r"mesh\.element_order: 'absent' in the map, 2 in the scene"):
-        built.map.check_scene(replace(scene, mesh=replace(scene.mesh, element_order=2)))
+    # P1 voltages are not the P2 voltages the map learnt
+    with pytest.raises(SceneMismatchError, match=r"mesh\.element_order: 2 in the map, 'absent' in the scene"):
+        built.map.check_scene(replace(scene, mesh=replace(scene.mesh, element_order=1)))
     # values a dataset randomises (saline, noise) do not make another sensor
     built.map.check_scene(replace(scene, noise=replace(scene.noise, snr_db=60.0)))
 
@@ -326,8 +326,10 @@ def test_fingerprint_from_a_datasets_recorded_scene_matches_the_scene():
     from jointsim.calibration.fingerprint import check_fingerprint, provenance_fingerprint
 
     assert provenance_fingerprint({"params": {"scene": d}, "scene_toml": ""}) == sensor_fingerprint(scene)
-    del d["mesh"]["element_order"]  # recorded before the element order existed: P1
-    assert provenance_fingerprint({"params": {"scene": d}, "scene_toml": ""}) == sensor_fingerprint(scene)
+    p1 = json.loads(json.dumps(scene.with_mesh_preset("dataset").to_dict()))
+    del p1["mesh"]["element_order"]  # recorded before the element order existed: P1
+    assert provenance_fingerprint({"params": {"scene": p1}, "scene_toml": ""}) == sensor_fingerprint(scene.with_mesh_preset("dataset"))
+    assert provenance_fingerprint({"params": {"scene": p1}, "scene_toml": ""}) != sensor_fingerprint(scene)
     prov = {"scene_toml": SCENE.read_text(), "params": {"mesh_preset": "test"}}
     assert scene_from_provenance(prov).mesh.preset == "test"
     # recorded before [reconstruction]: the image settings sat in [palpation], and maps built

@@ -63,9 +63,12 @@ def test_dataset_p2_preset_and_the_new_mesh_keys():
     s = scene_from_dict({"mesh": {"preset": "dataset_p2"}})
     assert (s.mesh.element_order, s.mesh.rim_refinement, s.mesh.dome_rim_vertices) == (2, 10.0, 144)
     assert s.mesh.max_edge == pytest.approx(2.6 * MM) and s.mesh.grading == pytest.approx(0.6)
-    # another preset resets the sizes; the element order a scene chose stays where the preset names none
+    # another preset resets the sizes and the element order, P1 where it names none (as it parses)
     t = s.with_mesh_preset("test")
-    assert (t.mesh.rim_refinement, t.mesh.dome_rim_vertices, t.mesh.grading, t.mesh.element_order) == (1.0, 0, 0.35, 2)
+    assert (t.mesh.rim_refinement, t.mesh.dome_rim_vertices, t.mesh.grading, t.mesh.element_order) == (1.0, 0, 0.35, 1)
+    assert t.mesh == scene_from_dict({"mesh": {"preset": "test"}}).mesh
+    # a scene that names no fidelity gets dataset_p2's
+    assert scene_from_dict({}).mesh == s.mesh
     assert s.with_mesh_preset("dataset_p2").mesh == s.mesh
     # sizes given by hand make the mesh a custom one
     assert scene_from_dict({"mesh": {"rim_refinement": 5.0}}).mesh.preset == "custom"
@@ -81,4 +84,5 @@ def test_dome_rim_vertices_sets_the_chamber_dome(paper_scene):
         return int(np.sum((np.abs(v[:, 2]) < 1e-12) & (np.hypot(v[:, 0], v[:, 1]) > 0.99 * scene.chamber.base_radius)))
 
     assert rim_vertices(replace(paper_scene, mesh=replace(paper_scene.mesh, dome_rim_vertices=144))) == 144
-    assert rim_vertices(paper_scene) == 96  # 0: from max_edge, at least geometry.DOME_RIM_VERTICES
+    assert rim_vertices(paper_scene) == 144  # dataset_p2's
+    assert rim_vertices(paper_scene.with_mesh_preset("dataset")) == 96  # 0: from max_edge, at least geometry.DOME_RIM_VERTICES

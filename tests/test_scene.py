@@ -85,7 +85,7 @@ def test_digest_changes_with_content(paper_scene):
 
 
 def test_the_membrane_mesh_follows_the_fidelity_unless_given(paper_scene):
-    assert paper_scene.mesh.preset == "dataset" and paper_scene.membrane.rim_vertices == MEMBRANE_RIM_VERTICES["dataset"]
+    assert paper_scene.mesh.preset == "dataset_p2" and paper_scene.membrane.rim_vertices == MEMBRANE_RIM_VERTICES["dataset_p2"]
     assert paper_scene.with_mesh_preset("paper").membrane.rim_vertices == MEMBRANE_RIM_VERTICES["paper"]
     assert scene_from_dict({"mesh": {"preset": "paper"}}).membrane.rim_vertices == MEMBRANE_RIM_VERTICES["paper"]
     assert scene_from_dict({"mesh": {"max_edge_mm": 1.5}}).membrane.rim_vertices == MEMBRANE_RIM_VERTICES["custom"]
@@ -117,8 +117,9 @@ def test_a_scene_extends_another_section_by_section(tmp_path, paper_scene):
     s = load_scene(study)
     assert s.name == "paper_sensor_stiffness"
     assert s.dataset.rigid_fraction == 0.0
-    # every other value is the paper scene's, [dataset] included
-    assert replace(s, name=paper_scene.name, dataset=replace(s.dataset, rigid_fraction=1.0)) == paper_scene
+    # every other value is the paper scene's, [dataset] included, at the fidelity the study pins
+    assert s.mesh == paper_scene.with_mesh_preset("dataset").mesh
+    assert replace(s, name=paper_scene.name, dataset=replace(s.dataset, rigid_fraction=1.0), mesh=paper_scene.mesh) == paper_scene
     # the provenance text is self-contained and reads back as the same scene
     text = scene_toml(study)
     assert "extends" not in tomllib.loads(text)
