@@ -107,7 +107,7 @@ def main() -> None:
     ap.add_argument("--draws", type=int, default=20)
     ap.add_argument("--contact-levels", type=int, default=2)
     args = ap.parse_args()
-    scene = load_scene(SCENES_DIR / "paper_sensor.toml")
+    scene = load_scene(SCENES_DIR / "paper_sensor.toml").with_mesh_preset("dataset")  # the design study's fidelity
     inst = Instrument.build(scene, imaging=False)
     sigma = inst.readout.noise_std
     rng = np.random.default_rng(2026)

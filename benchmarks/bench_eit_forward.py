@@ -54,7 +54,8 @@ def run_size(label: str, pyeit: bool) -> dict:
     from jointsim.scene import load_scene
 
     h, refine, n_uniform = SIZES[label]
-    scene = load_scene(ROOT / "scenes" / "paper_sensor.toml")
+    # P1 meshes refined in the electrodes' discs (not graded at their rims, as dataset_p2 is)
+    scene = load_scene(ROOT / "scenes" / "paper_sensor.toml").with_mesh_preset("dataset")
     scene = replace(scene, mesh=replace(scene.mesh, preset="custom", max_edge=h * 1e-3, electrode_refinement=refine))
     t0 = time.perf_counter()
     ch = chamber_mesh(scene)

@@ -42,14 +42,13 @@ GOALS = np.array([0.3e-3, 0.3e-3, 0.05e-3])
 _STATE: dict = {}
 
 
-def _init(map_path: str, scene_path: str) -> None:
+def _init(map_path: str, scene) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from jointsim.calibration import load_map
     from jointsim.instrument import Instrument
-    from jointsim.scene import load_scene
 
     _STATE["map"] = load_map(map_path)
-    _STATE["inst"] = Instrument.build(load_scene(scene_path), imaging=False)
+    _STATE["inst"] = Instrument.build(scene, imaging=False)
 
 
 def press(job: dict) -> dict:
@@ -176,15 +175,18 @@ def main() -> None:
     ap.add_argument("--presses", type=int, default=40)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0, help="the split seed the map was calibrated with (jointsim calibrate --seed)")
-    ap.add_argument("--scene", type=Path, default=ROOT / "jointsim" / "scenes" / "paper_sensor.toml")
+    ap.add_argument("--scene", type=Path, default=None, help="the simulator's scene (default: the one the dataset was made with)")
     ap.add_argument("--work", type=Path, default=ROOT / "out" / "simulator_refine")
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "calibration" / "simulator_refine")
     a = ap.parse_args()
+    from jointsim.calibration import scene_from_provenance
     from jointsim.calibration.data import split_groups
+    from jointsim.scene import load_scene
     from jointsim.io.records import open_records
 
     fields = ["group", "contact_centre", "depth", "radius", "voltages_clean", "reference_clean", "membrane_scale"]
     rec = open_records(a.dataset, fields=fields)
+    scene = load_scene(a.scene) if a.scene else scene_from_provenance(rec.provenance)
     g = np.asarray(rec["group"])
     test_ids = np.unique(g[split_groups(g, 0.2, a.seed)[1]])[: a.presses]
     r_frames = int((rec.provenance.get("params", {}).get("scene", {}).get("dataset", {}) or {}).get("reference_frames", 50))
@@ -209,7 +211,7 @@ def main() -> None:
         for v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):  # one core per worker process
             os.environ[v] = "1"
 
-        with mp.get_context("spawn").Pool(a.workers, _init, (str(a.map), str(a.scene))) as pool, done_path.open("a") as fh:
+        with mp.get_context("spawn").Pool(a.workers, _init, (str(a.map), scene)) as pool, done_path.open("a") as fh:
             for row in pool.imap_unordered(press, jobs):
                 fh.write(json.dumps(row) + "\n")
                 fh.flush()  # a press is kept as soon as it is done: a killed run resumes after it

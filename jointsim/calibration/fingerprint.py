@@ -143,7 +143,8 @@ def check_fingerprint(built: Mapping[str, Any], given: Mapping[str, Any], what: 
 
 def scene_from_provenance(provenance: Mapping[str, Any]) -> Scene:
     """The scene a record store was computed for: its scene TOML with the run's recorded
-    overrides applied (``params["mesh"]``: the chamber mesh spec, or ``params["mesh_preset"]``;
+    overrides applied (``params["mesh"]``: the chamber mesh spec, else the mesh spec (and the
+    membrane's rim vertices) of the resolved ``params["scene"]``, else ``params["mesh_preset"]``;
     ``params["reconstruction"]``, or before it ``params["palpation"]["cells"]`` /
     ``["lambda_method"]``, as palpation and dataset runs record them)."""
     text = provenance.get("scene_toml")
@@ -152,6 +153,13 @@ def scene_from_provenance(provenance: Mapping[str, Any]) -> Scene:
     scene = scene_from_dict(tomllib.loads(text))
     params = provenance.get("params") or {}
     mesh = params.get("mesh")
+    ran = params.get("scene") if isinstance(params.get("scene"), Mapping) else {}
+    if not isinstance(mesh, Mapping) and isinstance(ran.get("mesh"), Mapping):
+        # the scene as a dataset run resolved it: its fidelity even where the TOML names none
+        # and the default has changed since
+        mesh = ran["mesh"]
+        if isinstance(rim := (ran.get("membrane") or {}).get("rim_vertices"), int):
+            scene = replace(scene, membrane=replace(scene.membrane, rim_vertices=rim))
     if isinstance(mesh, Mapping):
         known = {f.name for f in fields(MeshSpec)}
         scene = replace(scene, mesh=replace(scene.mesh, **{k: v for k, v in mesh.items() if k in known}))
