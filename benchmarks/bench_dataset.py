@@ -4,6 +4,7 @@ mesh, its 64-rim membrane, its [dataset] sampling), and the parallel efficiency
 rate(2) / (2 · rate(1)). Goals (issue 6): ≥ 3000 samples/h, ≥ 80 % efficiency.
 
     python benchmarks/bench_dataset.py              # writes results/dataset_benchmark.{md,json}
+    python benchmarks/bench_dataset.py --mesh dataset_p2 --n 120   # results/dataset_benchmark_dataset_p2.*
     python benchmarks/bench_dataset.py --quick      # a smoke run: test mesh, coarse membrane, tiny N; writes nothing
 
 Each run is a whole ``generate_dataset`` call with the same seed, so both give the same data
@@ -38,16 +39,16 @@ sys.path.insert(0, str(ROOT))
 
 from jointsim.dataset import STAGES, generate_dataset  # noqa: E402
 from jointsim.io.store import open_records  # noqa: E402
-from jointsim.scene import load_scene  # noqa: E402
+from jointsim.scene import MESH_PRESETS, load_scene  # noqa: E402
 
 GOAL_RATE = 3000.0  # labelled samples per hour (issue 6)
 GOAL_EFFICIENCY = 0.80
 
 
-def _scene(quick: bool):
+def _scene(quick: bool, preset: str = "dataset"):
     scene = load_scene(ROOT / "scenes" / "paper_sensor.toml")
     if not quick:
-        return scene.with_mesh_preset("dataset")
+        return scene.with_mesh_preset(preset)
     scene = scene.with_mesh_preset("test")
     return replace(scene, membrane=replace(scene.membrane, rim_vertices=24, layers=1),
                    palpation=replace(scene.palpation, cells=1000),
@@ -84,7 +85,7 @@ def bench(scene, n: int, workers: int, seed: int, folder: Path) -> dict:
     }
 
 
-def write(summary: dict, res: Path) -> None:
+def write(summary: dict, res: Path, stem: str = "dataset_benchmark") -> None:
     rows = summary["runs"]
     lines = [
         "# Dataset generation benchmark",
@@ -120,7 +121,7 @@ def write(summary: dict, res: Path) -> None:
     ]
     for r in rows:
         lines.append(f"| {r['workers']} | " + " | ".join(f"{r['stage_mean_s'][s]:.3f}" for s in STAGES) + " |")
-    write_pair(res / "dataset_benchmark", summary, "\n".join(lines) + "\n")
+    write_pair(res / stem, summary, "\n".join(lines) + "\n")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -130,8 +131,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", default="1,2", help="worker counts to run, comma-separated (default 1,2)")
     p.add_argument("--quick", action="store_true", help="test mesh, coarse membrane, 12 samples; writes only with --results")
     p.add_argument("--results", type=Path, help="folder for dataset_benchmark.{md,json} (default results/; --quick writes only here)")
+    p.add_argument("--mesh", default="dataset", choices=sorted(MESH_PRESETS),
+                   help="the fidelity (default dataset, P1; another writes dataset_benchmark_MESH.{md,json})")
     args = p.parse_args(argv)
-    scene = _scene(args.quick)
+    scene = _scene(args.quick, args.mesh)
     n = 12 if args.quick and args.n == 48 else args.n
     counts = [int(w) for w in args.workers.split(",")]
     runs = []
@@ -162,8 +165,9 @@ def main(argv: list[str] | None = None) -> int:
           f"same data: {summary['same_data']}")
     res = args.results if args.results is not None else (None if args.quick else ROOT / "results")
     if res is not None:
-        write(summary, res)
-        print(f"wrote {res / 'dataset_benchmark.md'}")
+        stem = "dataset_benchmark" if args.mesh == "dataset" else f"dataset_benchmark_{args.mesh}"
+        write(summary, res, stem)
+        print(f"wrote {res / stem}.md")
     return 0
 
 
