@@ -334,14 +334,14 @@ class MeshSpec:
     deformed chamber, or "auto": morph, remesh when the morph inverts or degrades)."""
 
     preset: str = DEFAULT_MESH_PRESET
-    max_edge: float = 2.6 * MM
-    electrode_refinement: float = 2.0
+    max_edge: float = MESH_PRESETS[DEFAULT_MESH_PRESET]["max_edge_mm"] * MM
+    electrode_refinement: float = MESH_PRESETS[DEFAULT_MESH_PRESET]["electrode_refinement"]
     refinement_zone: float = 0.8 * MM
-    grading: float = 0.6
-    element_order: int = 2
+    grading: float = MESH_PRESETS[DEFAULT_MESH_PRESET].get("grading", GRADING)
+    element_order: int = int(MESH_PRESETS[DEFAULT_MESH_PRESET].get("element_order", 1))
     update: str = "auto"
-    rim_refinement: float = 10.0
-    dome_rim_vertices: int = 144
+    rim_refinement: float = MESH_PRESETS[DEFAULT_MESH_PRESET].get("rim_refinement", 1.0)
+    dome_rim_vertices: int = int(MESH_PRESETS[DEFAULT_MESH_PRESET].get("dome_rim_vertices", 0))
 
 
 @dataclass(frozen=True)
