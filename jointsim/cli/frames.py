@@ -4,7 +4,9 @@ untouched sensor, with the paper's image metrics per frame and, given a calibrat
 estimates (position, depth, size; flagged outside the map's trained region); --fit-reference
 fits the sensor's conductivity, contact impedances and electrode positions to the reference
 frames; --refine fits the frames, one press at several depths, through the simulator from the
-map's estimate (jointsim.calibration.refine: minutes, not milliseconds). The channel order
+map's estimate (jointsim.calibration.refine: minutes, not milliseconds); --known-presses fits
+the membrane's modulus scale to the forces a rig read on known presses
+(jointsim.calibration.membrane_fit). The channel order
 is voltages[s * n_meas_per_stim + m] (measurement m of injection s); patterns carried by the
 files are checked against the scene's protocol first. Writes OUT/frames.csv, OUT/images.vtu
 (the first frames' images) and OUT/summary.json."""
@@ -37,6 +39,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the frames are one press (a target held at several depths): fit them through the simulator, "
                         "from the calibration map's estimate, with the sensor's modulus scale, saline, contact "
                         "impedances and electrode positions (a few minutes; needs --calibration and 2+ reference frames)")
+    p.add_argument("--known-presses", type=Path, metavar="CSV",
+                   help="a rig's known presses of rigid spheres (x_mm, y_mm: the sphere's centre; diameter_mm, depth_mm past "
+                        "first contact, force_n read there; a line per depth): fit the membrane's modulus scale to the "
+                        "forces (summary.json; a load cell's sigma of 1 %% + 0.1 mN)")
     add_progress_argument(p)
 
 
@@ -61,6 +67,12 @@ def run(args: argparse.Namespace) -> int:
     if args.refine and len(reference) < 2:
         raise ValueError(f"--refine: weighs the frames by the noise the reference frames scatter with; {args.reference} "
                          f"holds {len(reference)} frame(s), give 2 or more")
+    known = None
+    if args.known_presses is not None:  # read and checked before any work
+        from ..calibration.membrane_fit import known_presses
+        from ..dataset.presses import read_presses
+
+        known = known_presses(read_presses(args.known_presses), f"--known-presses {args.known_presses}")
     snr = reference_snr_db(reference.voltages)  # the noise the emulator's fits weigh
     if args.refine and snr is None:
         raise ValueError(f"--refine: the reference frames in {args.reference} do not scatter (copies of one frame?): "
@@ -84,6 +96,7 @@ def run(args: argparse.Namespace) -> int:
             res = image_frames(scene, frames, reference, instrument=inst, progress=bar.update)
         grid = inst.grid
         fit = _fit(inst, res.reference, len(reference)) if args.fit_reference else None
+        membrane = None if known is None else _membrane(scene, inst, known)
         est = refined = None
         if cmap is not None:
             from ..calibration.apply import calibrate_measured
@@ -116,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
                "channel_order": "voltages[s * n_meas_per_stim + m] = measurement m of injection s",
                "reference_snr_db": snr,
                "fitted_sensor": fit,
+               "membrane_from_known_presses": membrane,
                "refined_through_the_simulator": refined}
     with atomic_path(out / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=2))
@@ -132,6 +146,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"  fitted to the reference: saline {fit['conductivity_s_per_m']:.4g} S/m, contact impedance "
               f"{min(fit['contact_impedance_ohm_m2']):.3g}-{max(fit['contact_impedance_ohm_m2']):.3g} ohm m^2, electrodes moved "
               f"up to {fit['largest_move_mm']:.3f} mm; misfit {fit['misfit_before']:.2e} -> {fit['misfit_after']:.2e} of the frame")
+    if membrane is not None:
+        print(f"  membrane modulus from {membrane['presses']} known press(es): x{membrane['scale']:.4f} +- "
+              f"{membrane['scale_sd']:.4f}; force misfit {membrane['misfit']:.2f} sigma")
     if refined is not None:
         print(f"  refined through the simulator ({refined['trials']} presses, {refined['seconds']:.0f} s): diameter "
               f"{refined['diameter_mm']:.2f} +- {refined['diameter_sd_mm']:.2f} mm, membrane modulus x{refined['modulus_scale']:.3f} "
@@ -153,6 +170,17 @@ def _fit(inst, v_ref, n_frames: int) -> dict:
     return {"conductivity_s_per_m": f.conductivity, "contact_impedance_ohm_m2": f.contact_impedance.tolist(),
             "centres_mm": np.round(f.centres * 1e3, 6).tolist(), "largest_move_mm": float(move.max() * 1e3),
             "misfit_before": f.before, "misfit_after": f.after, "iterations": f.iterations}
+
+
+def _membrane(scene, inst, known: list) -> dict:
+    """The membrane's modulus scale fitted to the known presses' forces, JSON-ready (mm, N)."""
+    from ..calibration.membrane_fit import fit_membrane_scale
+
+    f = fit_membrane_scale(scene, known, inflate_from=inst.inflated_u)
+    return {"scale": f.scale, "scale_sd": f.scale * f.sd_ln, "sd_ln": f.sd_ln, "misfit": f.misfit, "iterations": f.iterations,
+            "presses": len(known), "force_sd": "1 % + 0.1 mN per reading",
+            "forces_n": [{"diameter_mm": 2e3 * k.radius, "xy_mm": (k.xy * 1e3).tolist(), "depth_mm": (k.depths * 1e3).tolist(),
+                          "measured": k.forces.tolist(), "fitted": m.tolist()} for k, m in zip(known, f.forces)]}
 
 
 def _refine(inst, est: dict, res, snr_db: float, n_reference: int) -> dict:

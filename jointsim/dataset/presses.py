@@ -13,7 +13,9 @@ CSV (``read_presses``), one header line, comma-separated, ``#`` comments::
     contact_x_mm, contact_y_mm, diameter_mm[, modulus_kpa][, depth_mm]     or
     x_mm, y_mm, diameter_mm[, modulus_kpa][, depth_mm]                    (the target's centre)
 
-``modulus_kpa`` empty or ``inf``: a rigid target. Without ``depth_mm`` each row is one press,
+``modulus_kpa`` empty or ``inf``: a rigid target. ``force_n`` (with ``depth_mm``): the contact
+force a rig read at that depth, N; a dataset ignores it, the membrane's modulus is fitted to it
+(:mod:`jointsim.calibration.membrane_fit`, ``jointsim frames --known-presses``). Without ``depth_mm`` each row is one press,
 sampled at the centres of ``samples_per_press`` equal slices of [dataset] depth_mm (scaled
 into what the dome allows at the point, as drawn presses are). With it, each row is one sample
 and consecutive rows of the same press (same place, diameter, modulus) are its depths; every
@@ -34,20 +36,22 @@ import numpy as np
 __all__ = ["PressList", "read_presses", "press_grid"]
 
 PLACES = {"contact": ("contact_x_mm", "contact_y_mm"), "centre": ("x_mm", "y_mm")}
-OPTIONAL = ("modulus_kpa", "depth_mm")
+OPTIONAL = ("modulus_kpa", "depth_mm", "force_n")
 
 
 @dataclass(frozen=True)
 class PressList:
     """Presses (SI): ``place`` "contact" (``xy`` are contact points) or "centre" (the targets'
     centres), ``xy`` (n, 2) m, ``radius`` (n,) m, ``modulus`` (n,) Pa (inf: rigid), ``depths``
-    (n, K) m increasing, or None (the spec's depth slices)."""
+    (n, K) m increasing, or None (the spec's depth slices); ``forces`` (n, K) N read at those
+    depths, or None."""
 
     place: str
     xy: np.ndarray
     radius: np.ndarray
     modulus: np.ndarray
     depths: np.ndarray | None = None
+    forces: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.place not in PLACES:
@@ -62,6 +66,9 @@ class PressList:
             if self.depths.ndim != 2 or len(self.depths) != n or not (np.diff(self.depths, axis=1) > 0).all() \
                     or not (self.depths > 0).all():
                 raise ValueError("a press list's depths must be (n, K), > 0 and increasing along each press")
+        if self.forces is not None and (self.depths is None or self.forces.shape != self.depths.shape
+                                        or not (np.isfinite(self.forces) & (self.forces > 0)).all()):
+            raise ValueError("a press list's forces must be one per depth, finite and > 0 N")
 
     def __len__(self) -> int:
         return len(self.radius)
@@ -76,7 +83,9 @@ class PressList:
         return {"place": self.place, "xy_mm": np.round(self.xy * 1e3, 9).tolist(),
                 "diameter_mm": np.round(2e3 * self.radius, 9).tolist(),
                 "modulus_kpa": [None if math.isinf(e) else round(e / 1e3, 9) for e in self.modulus.tolist()],
-                "depths_mm": None if self.depths is None else np.round(self.depths * 1e3, 9).tolist()}
+                "depths_mm": None if self.depths is None else np.round(self.depths * 1e3, 9).tolist(),
+                # (only where given: lists without forces keep the identity they had)
+                **({} if self.forces is None else {"forces_n": self.forces.tolist()})}
 
     def check_within(self, r_max: float, height: float) -> None:
         """Refuse contact points farther than ``r_max`` m from the axis (the membrane's top) and
@@ -121,7 +130,9 @@ def read_presses(path: str | Path) -> PressList:
         raise ValueError(f"press list {path}: header {header}; must name contact_x_mm, contact_y_mm (or x_mm, y_mm for "
                          f"the targets' centres) and diameter_mm, optionally {', '.join(OPTIONAL)}")
     col = {h: i for i, h in enumerate(header)}
-    x, y, d, e, depth = [], [], [], [], []
+    x, y, d, e, depth, force = [], [], [], [], [], []
+    if "force_n" in col and "depth_mm" not in col:
+        raise ValueError(f"press list {path}: force_n is the force read at each depth; give depth_mm with it")
     for (lineno, _), row in zip(lines[1:], rows[1:]):
         where = f"press list {path}, line {lineno}"
         if len(row) != len(header):
@@ -141,6 +152,10 @@ def read_presses(path: str | Path) -> PressList:
             depth.append(_number(get["depth_mm"], where, "depth_mm"))
             if depth[-1] <= 0:
                 raise ValueError(f"{where}: depth_mm = {depth[-1]:g}: must be > 0 (past first contact)")
+        if "force_n" in col:
+            force.append(_number(get["force_n"], where, "force_n"))
+            if not (0 < force[-1] < math.inf):
+                raise ValueError(f"{where}: force_n = {force[-1]:g}: must be finite and > 0 N (a press past first contact)")
     if not d:
         raise ValueError(f"press list {path}: a header but no presses")
     keys = np.column_stack([x, y, d, e])
@@ -152,11 +167,14 @@ def read_presses(path: str | Path) -> PressList:
     if len(set(counts.tolist())) > 1:
         raise ValueError(f"press list {path}: presses with {sorted(set(counts.tolist()))} depths; every press must have as "
                          "many (a dataset stores the same number of samples per press)")
-    dep = np.sort(np.asarray(depth).reshape(len(start), counts[0]), axis=1)
+    dep = np.asarray(depth).reshape(len(start), counts[0])
+    order = np.argsort(dep, axis=1, kind="stable")
+    dep = np.take_along_axis(dep, order, axis=1)
     if (np.diff(dep, axis=1) <= 0).any():
         raise ValueError(f"press list {path}: a press repeats a depth")
+    forces = np.take_along_axis(np.asarray(force).reshape(dep.shape), order, axis=1) if force else None
     k = keys[start]
-    return PressList(place, k[:, :2] * 1e-3, k[:, 2] * 0.5e-3, k[:, 3] * 1e3, dep * 1e-3)
+    return PressList(place, k[:, :2] * 1e-3, k[:, 2] * 0.5e-3, k[:, 3] * 1e3, dep * 1e-3, forces)
 
 
 def press_grid(pitch: float, r_max: float, diameters: Sequence[float], depths: Sequence[float] | None = None,
