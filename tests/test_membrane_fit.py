@@ -70,3 +70,25 @@ def test_a_rigs_csv_of_known_presses(tmp_path):
         bad.write_text(text)
         with pytest.raises(ValueError, match=match):
             known_presses(read_presses(bad))
+
+
+def test_frames_known_presses_is_refused_in_one_line(tmp_path, capsys):
+    """`jointsim frames --known-presses CSV` reads the rig's CSV before any instrument is built:
+    a list the fit cannot use (contact points, no forces, a missing file) is one line naming the
+    flag or the file (exit 2)."""
+    from jointsim.cli.main import main
+    from jointsim.eit.protocol import scene_protocol
+    from jointsim.scene import SCENES_DIR, load_scene
+
+    n = scene_protocol(load_scene(SCENES_DIR / "paper_sensor.toml")).n_meas
+    rows = np.random.default_rng(0).normal(1.0, 1e-3, (3, n))
+    frames = tmp_path / "f.csv"
+    frames.write_text("\n".join(",".join(f"{v:.9g}" for v in r) for r in rows) + "\n")
+    contact, unforced = tmp_path / "contact.csv", tmp_path / "unforced.csv"
+    contact.write_text("contact_x_mm,contact_y_mm,diameter_mm,depth_mm,force_n\n1,1,12,1,0.01\n")
+    unforced.write_text("x_mm,y_mm,diameter_mm,depth_mm\n1,1,12,1\n")
+    for csv, why in ((contact, "--known-presses"), (unforced, "--known-presses"), (tmp_path / "missing.csv", "missing.csv")):
+        assert main(["frames", "--frames", str(frames), "--reference", str(frames), "--known-presses", str(csv),
+                     "--out", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and why in err[0], err
