@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 
 from jointsim.calibration.curves import default_levels  # noqa: E402
 from jointsim.calibration.data import load_samples, split_groups  # noqa: E402
-from jointsim.calibration.stiffness import decades, fit_stiffness, group_features  # noqa: E402
+from jointsim.calibration.stiffness import decades, fit_stiffness, press_moduli, stiffness_levels  # noqa: E402
 from jointsim.io.records import open_records  # noqa: E402
 
 
@@ -38,11 +38,8 @@ def errors(train, test, levels: np.ndarray, size: str) -> dict:
         return s.diameter if size == "image" else 2 * s.radius
 
     model = fit_stiffness(train.group, train.depth, train.force_mag, train.sum_sigma, diameter(train), train.modulus, levels)
-    ids, X = group_features(test.group, test.depth, test.force_mag, test.sum_sigma, diameter(test), levels)
-    E = model.predict_features(X)
-    _, first = np.unique(test.group, return_index=True)
-    true = dict(zip(test.group[first].tolist(), test.modulus[first].tolist()))
-    Et = np.array([true[i] for i in ids.tolist()])
+    ids, E = model.predict(test.group, test.depth, test.force_mag, test.sum_sigma, diameter(test))
+    Et = press_moduli(test.group, test.modulus, ids)
     rel = np.abs(E / Et - 1)
     return {"presses": len(ids), "median": float(np.median(rel)), "p95": float(np.percentile(rel, 95)),
             "by_decade": [{"from_kpa": lo / 1e3, "presses": int(m.sum()), "median": float(np.median(rel[m]))} for lo, m in decades(Et)]}
@@ -59,9 +56,7 @@ def main() -> int:
         train_m, test_m = split_groups(s.group, 0.2, 0)
         train, test = s.subset(train_m), s.subset(test_m)
         soft = np.isfinite(train.modulus)
-        depth_levels = default_levels("depth", train.group, train.depth)
-        # the three levels jointsim calibrate's stiffness model takes (calibration.build)
-        levels = depth_levels[np.unique(np.linspace(len(depth_levels) // 3, len(depth_levels) - 1, 3).astype(int))]
+        levels = stiffness_levels(default_levels("depth", train.group, train.depth))  # as jointsim calibrate's
         scale = np.asarray(open_records(path, fields=["membrane_scale"])["membrane_scale"])
         rows.append({"store": path.name, "data_sha256": s.source["data_sha256"],
                      "soft_train_samples": int(soft.sum()), "levels_mm": (levels * 1e3).round(3).tolist(),

@@ -32,6 +32,7 @@ __all__ = [
     "Drive",
     "Noise",
     "MeshSpec",
+    "preset_mesh",
     "Membrane",
     "Target",
     "ReconstructionSpec",
@@ -326,6 +327,18 @@ def warn_coarse_membrane(n: int, element: str, name: str = "membrane.rim_vertice
                       "give >= 48 for forces within a few per cent", UserWarning, stacklevel=3)
 
 
+def preset_mesh(preset: str) -> dict[str, float | int]:
+    """The chamber mesh fields (SI) a fidelity ``preset`` sets, its unnamed ones at their plain
+    values (no rim refinement, the dome from max_edge, GRADING, P1)."""
+    p = MESH_PRESETS[preset]
+    return {"max_edge": p["max_edge_mm"] * MM, "electrode_refinement": p["electrode_refinement"],
+            "rim_refinement": p.get("rim_refinement", 1.0), "dome_rim_vertices": int(p.get("dome_rim_vertices", 0)),
+            "grading": p.get("grading", GRADING), "element_order": int(p.get("element_order", 1))}
+
+
+_DEFAULT_MESH = preset_mesh(DEFAULT_MESH_PRESET)
+
+
 @dataclass(frozen=True)
 class MeshSpec:
     """Chamber mesh resolution: bulk edge length, refinement factor and zone around electrodes,
@@ -334,14 +347,14 @@ class MeshSpec:
     deformed chamber, or "auto": morph, remesh when the morph inverts or degrades)."""
 
     preset: str = DEFAULT_MESH_PRESET
-    max_edge: float = MESH_PRESETS[DEFAULT_MESH_PRESET]["max_edge_mm"] * MM
-    electrode_refinement: float = MESH_PRESETS[DEFAULT_MESH_PRESET]["electrode_refinement"]
+    max_edge: float = _DEFAULT_MESH["max_edge"]
+    electrode_refinement: float = _DEFAULT_MESH["electrode_refinement"]
     refinement_zone: float = 0.8 * MM
-    grading: float = MESH_PRESETS[DEFAULT_MESH_PRESET].get("grading", GRADING)
-    element_order: int = int(MESH_PRESETS[DEFAULT_MESH_PRESET].get("element_order", 1))
+    grading: float = _DEFAULT_MESH["grading"]
+    element_order: int = _DEFAULT_MESH["element_order"]
     update: str = "auto"
-    rim_refinement: float = MESH_PRESETS[DEFAULT_MESH_PRESET].get("rim_refinement", 1.0)
-    dome_rim_vertices: int = int(MESH_PRESETS[DEFAULT_MESH_PRESET].get("dome_rim_vertices", 0))
+    rim_refinement: float = _DEFAULT_MESH["rim_refinement"]
+    dome_rim_vertices: int = _DEFAULT_MESH["dome_rim_vertices"]
 
 
 @dataclass(frozen=True)
@@ -365,19 +378,9 @@ class Scene:
         vertices, replacing what the scene gave for them."""
         if preset not in MESH_PRESETS:
             raise SceneError(f"mesh.preset = {preset!r}: allowed values are {sorted(MESH_PRESETS)}")
-        p = MESH_PRESETS[preset]
         return replace(
             self,
-            mesh=replace(
-                self.mesh,
-                preset=preset,
-                max_edge=p["max_edge_mm"] * MM,
-                electrode_refinement=p["electrode_refinement"],
-                rim_refinement=p.get("rim_refinement", 1.0),
-                dome_rim_vertices=int(p.get("dome_rim_vertices", 0)),
-                grading=p.get("grading", GRADING),
-                element_order=int(p.get("element_order", 1)),
-            ),
+            mesh=replace(self.mesh, preset=preset, **preset_mesh(preset)),
             # a fidelity sets the membrane's mesh with the chamber's (MEMBRANE_RIM_VERTICES)
             membrane=replace(self.membrane, rim_vertices=MEMBRANE_RIM_VERTICES[preset]),
         )
@@ -909,13 +912,14 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     preset = t.raw("preset", DEFAULT_MESH_PRESET)
     if not isinstance(preset, str) or (preset not in MESH_PRESETS and preset != "custom"):
         raise SceneError(f"mesh.preset = {preset!r}: allowed values are {sorted(MESH_PRESETS) + ['custom']}")
-    p = MESH_PRESETS.get(preset, MESH_PRESETS["dataset"])
+    base = preset if preset in MESH_PRESETS else "dataset"  # "custom": what the scene leaves out, dataset's
+    p, d = MESH_PRESETS[base], preset_mesh(base)
     max_edge = t.number("max_edge_mm", p["max_edge_mm"], 0.05, base_r)
     refine = t.number("electrode_refinement", p["electrode_refinement"], 1.0, 50.0)
     zone = t.number("refinement_zone_mm", 0.8, 0.0, base_r)
-    grading = t.number("grading", p.get("grading", GRADING), 0.05, 2.0)
-    rim = t.number("rim_refinement", p.get("rim_refinement", 1.0), 1.0, RIM_REFINEMENT_MAX)
-    dome_rim = t.integer("dome_rim_vertices", int(p.get("dome_rim_vertices", 0)), 0, MEMBRANE_RIM_RANGE[1])
+    grading = t.number("grading", d["grading"], 0.05, 2.0)
+    rim = t.number("rim_refinement", d["rim_refinement"], 1.0, RIM_REFINEMENT_MAX)
+    dome_rim = t.integer("dome_rim_vertices", d["dome_rim_vertices"], 0, MEMBRANE_RIM_RANGE[1])
     if 0 < dome_rim < MEMBRANE_RIM_RANGE[0]:
         raise SceneError(f"mesh.dome_rim_vertices = {dome_rim}: must be 0 (from max_edge_mm) or in [{MEMBRANE_RIM_RANGE[0]}, {MEMBRANE_RIM_RANGE[1]}]")
     retired = [k for k in RETIRED_MESH_KEYS if k in t.data]
@@ -924,7 +928,7 @@ def scene_from_dict(data: dict[str, Any], name: str = "unnamed") -> Scene:
     if retired:
         warnings.warn(f"mesh.{', mesh.'.join(retired)}: settings of the fTetWild mesher, which jointsim no longer uses "
                       "(the chamber is meshed by gmsh): ignored; remove them from the scene", UserWarning, stacklevel=2)
-    element_order = t.integer("element_order", p.get("element_order", 1), 1, 2)
+    element_order = t.integer("element_order", d["element_order"], 1, 2)
     update = t.choice("update", "auto", MESH_UPDATES)
     t.finish()
     if preset != "custom" and any(k in data.get("mesh", {}) for k in ("max_edge_mm", "electrode_refinement", "rim_refinement", "dome_rim_vertices")):

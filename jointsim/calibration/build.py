@@ -24,7 +24,7 @@ from .data import Samples, split_groups, voltage_features
 from .emulator import Emulator, coverage, fit_emulator, fit_frames, fit_presses, held_out_presses, recalibrated
 from .maps import PRESS_MIN_DEPTH, VERSION_PACKAGES, CalibrationMap, outside_region, trained_region
 from .regression import KINDS, OUTPUTS, copy_groups, fit_regressor, moved_by_symmetry, noisy_features, regression_targets
-from .stiffness import decades, fit_stiffness, force_sensitivity, group_features
+from .stiffness import decades, fit_stiffness, force_sensitivity, press_moduli, stiffness_levels
 
 __all__ = ["Settings", "Calibration", "calibrate", "err_stats", "worse_than_uncalibrated", "METRICS", "GOALS"]
 
@@ -365,7 +365,7 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
 
     # stiffness
     progress("stiffness")
-    st_levels = levels["depth"][np.unique(np.linspace(len(levels["depth"]) // 3, len(levels["depth"]) - 1, 3).astype(int))]
+    st_levels = stiffness_levels(levels["depth"])
     stiff = fit_stiffness(train.group, train.depth, train.force_mag, train.sum_sigma, train.diameter, train.modulus,
                           st_levels)
     ev["stiffness"] = {"estimable": stiff.estimable, "reason": stiff.reason, "depth_levels_m": st_levels.tolist()}
@@ -379,11 +379,8 @@ def calibrate(samples: Samples, settings: Settings = Settings(), progress=print)
     if stiff.estimable:
         soft = np.isfinite(test.modulus)
         t = test.subset(soft)
-        ids, X = group_features(t.group, t.depth, t.force_mag, t.sum_sigma, t.diameter, st_levels)
-        E = stiff.predict_features(X)
-        _, first = np.unique(t.group, return_index=True)
-        true = dict(zip(t.group[first].tolist(), t.modulus[first].tolist()))
-        Et = np.array([true[i] for i in ids.tolist()])
+        ids, E = stiff.predict(t.group, t.depth, t.force_mag, t.sum_sigma, t.diameter)
+        Et = press_moduli(t.group, t.modulus, ids)
         ev["stiffness"]["relative"] = err_stats(E / Et - 1, 1.0)
         # how far the modulus can be told depends on how the target compares with the membrane
         # (a target much stiffer than it presses like a rigid one): the error per decade of E

@@ -10,10 +10,11 @@ simulator:
 
 by Gauss–Newton in ln s, the derivative a central difference in ln s at the start, then the
 secant through the last two evaluations (the force is smooth and nearly proportional to s),
-and a central difference again at the fit for its σ. Each evaluation builds the membrane at s, inflated by the reservoir,
-and presses the sphere down to every depth in steps of at most the scene's ``[dataset]
-step_mm``, as a dataset press does; the depths are past first contact on the membrane at s,
-as the rig's are past its own.
+and a central difference again at the fit for its σ. Each evaluation builds the membrane at s,
+inflated by the reservoir, and presses the sphere down to every depth in steps of at most the
+scene's ``[dataset] step_mm``, as a dataset press does
+(:func:`~jointsim.mechanics.touch.press_through`); the depths are past first contact on the
+membrane at s, as the rig's are past its own.
 
 Why the force and not the voltages: at a fixed depth the displaced saline, the EIT signal's
 source, barely moves with the membrane's modulus (log-sensitivity −0.02 to −0.50 against the
@@ -29,14 +30,20 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..mechanics.build import membrane_from_scene
+from ..mechanics.touch import press_through
 from ..dataset.presses import PressList
 from ..scene import Scene
 
-__all__ = ["KnownPress", "MembraneScaleFit", "press_forces", "fit_membrane_scale", "known_presses"]
+__all__ = ["KnownPress", "MembraneScaleFit", "press_forces", "fit_membrane_scale", "known_presses", "FORCE_REL_SD",
+           "FORCE_ABS_SD", "FORCE_SD_TEXT"]
 
 FD_STEP = 0.02  # in ln s: the central difference of the force's derivative (F is nearly linear in s)
 MAX_ITERATIONS = 8
 STEP_TOL = 1e-4  # in ln s: a Gauss–Newton step below this ends the fit (0.01 % of the modulus)
+# a load cell's σ of one reading, relative and in N: the fit's weights unless given
+FORCE_REL_SD = 0.01
+FORCE_ABS_SD = 1e-4
+FORCE_SD_TEXT = f"{FORCE_REL_SD:.0%} + {FORCE_ABS_SD * 1e3:g} mN per reading"
 
 
 @dataclass(frozen=True)
@@ -83,19 +90,11 @@ def press_forces(scene: Scene, press: KnownPress, scale: float, inflate_from: np
     scaled = replace(scene, membrane=scene.membrane.scaled(scale), target=replace(scene.target, kind="rigid"))
     model = membrane_from_scene(scaled, target_radius=press.radius, inflate_from=inflate_from)
     xy = np.asarray(press.xy, float)
-    top = model.first_contact_height(xy)
-    step = scene.dataset.step
-    forces, done = [], 0.0
-    for d in np.asarray(press.depths, float):
-        n = max(1, math.ceil((d - done) / step - 1e-9))
-        for s in range(1, n + 1):
-            st = model.press(np.array([xy[0], xy[1], top - (done + (d - done) * s / n)]))
-        done = d
-        forces.append(float(np.linalg.norm(st.force)))
-    return np.array(forces)
+    descent = press_through(model, xy, model.first_contact_height(xy), np.asarray(press.depths, float), scene.dataset.step)
+    return np.array([np.linalg.norm(st.force) for _, st in descent])
 
 
-def fit_membrane_scale(scene: Scene, presses: list[KnownPress], *, force_rel_sd: float = 0.01, force_abs_sd: float = 1e-4,
+def fit_membrane_scale(scene: Scene, presses: list[KnownPress], *, force_rel_sd: float = FORCE_REL_SD, force_abs_sd: float = FORCE_ABS_SD,
                        start: float = 1.0, inflate_from: np.ndarray | None = None) -> MembraneScaleFit:
     """The membrane's modulus scale s fitted to the forces of ``presses`` (module docstring).
     ``force_rel_sd``, ``force_abs_sd``: the load cell's σ of a reading, relative and in N;

@@ -16,7 +16,8 @@ import numpy as np
 
 from .curves import value_at
 
-__all__ = ["StiffnessModel", "group_features", "fit_stiffness", "force_sensitivity", "decades", "MIN_SOFT_GROUPS"]
+__all__ = ["StiffnessModel", "group_features", "fit_stiffness", "force_sensitivity", "decades", "stiffness_levels",
+           "press_moduli", "MIN_SOFT_GROUPS"]
 
 MIN_SOFT_GROUPS = 8
 MIN_DECADES = 0.1  # soft moduli spanning less than this (log10) carry no modulus information
@@ -137,3 +138,17 @@ def fit_stiffness(group: np.ndarray, depth: np.ndarray, force_mag: np.ndarray, s
     reason = f"fitted on {len(gids)} soft presses ({n_rigid} rigid left out), ridge alpha {r.alpha_:g}"
     return StiffnessModel(True, reason, np.asarray(levels, float), x_mean, x_scale, poly.powers_.astype(int),
                           np.asarray(r.coef_, float), float(r.intercept_))
+
+
+def stiffness_levels(depth_levels: np.ndarray) -> np.ndarray:
+    """The three depth levels (m) the stiffness model reads, out of the size curves' (increasing):
+    spread over their deeper two thirds, where every soft press has a sample."""
+    d = np.asarray(depth_levels, float)
+    return d[np.unique(np.linspace(len(d) // 3, len(d) - 1, 3).astype(int))]
+
+
+def press_moduli(group: np.ndarray, modulus: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """The target modulus (G,) Pa of each press ``ids`` from per-sample ``group`` and ``modulus``."""
+    _, first = np.unique(group, return_index=True)
+    true = dict(zip(group[first].tolist(), modulus[first].tolist()))
+    return np.array([true[i] for i in np.asarray(ids).tolist()])

@@ -174,11 +174,11 @@ def _fit(inst, v_ref, n_frames: int) -> dict:
 
 def _membrane(scene, inst, known: list) -> dict:
     """The membrane's modulus scale fitted to the known presses' forces, JSON-ready (mm, N)."""
-    from ..calibration.membrane_fit import fit_membrane_scale
+    from ..calibration.membrane_fit import FORCE_SD_TEXT, fit_membrane_scale
 
     f = fit_membrane_scale(scene, known, inflate_from=inst.inflated_u)
     return {"scale": f.scale, "scale_sd": f.scale * f.sd_ln, "sd_ln": f.sd_ln, "misfit": f.misfit, "iterations": f.iterations,
-            "presses": len(known), "force_sd": "1 % + 0.1 mN per reading",
+            "presses": len(known), "force_sd": FORCE_SD_TEXT,
             "forces_n": [{"diameter_mm": 2e3 * k.radius, "xy_mm": (k.xy * 1e3).tolist(), "depth_mm": (k.depths * 1e3).tolist(),
                           "measured": k.forces.tolist(), "fitted": m.tolist()} for k, m in zip(known, f.forces)]}
 

@@ -67,7 +67,7 @@ from ..linalg import preferred_backend
 from ..mechanics.build import membrane_from_scene
 from ..mechanics.dome import MembraneModel, UnreachablePose
 from ..mechanics.newton import NewtonError
-from ..mechanics.touch import centre_touching, depth_reach, point_touched
+from ..mechanics.touch import centre_touching, depth_reach, point_touched, press_through
 from ..mesh.chamber import ChamberMesh
 from ..mesh.morph import MeshInversionError
 from ..metrics import metric_fields
@@ -303,7 +303,8 @@ class DatasetSetup:
                                  conductivity=draw.conductivity, contact_impedance=draw.contact_impedance,
                                  offsets=draw.jitter, snr_db=draw.snr_db)
         share = t["group_setup"] / n_samples
-        records, depth_done = [], 0.0
+        records = []
+        descent = press_through(model, draw.xy, contact_z, levels[:n_samples], self.spec.step)
         for level in levels[:n_samples]:
             t = {s: 0.0 for s in STAGES}
             t["group_setup"] = share
@@ -313,12 +314,7 @@ class DatasetSetup:
                     d = contact_z - float(model.contact.centre[2])
                 else:
                     # steps of at most spec.step, equal, ending on the sample's depth
-                    d = level
-                    n_steps = max(1, math.ceil((d - depth_done) / self.spec.step - 1e-9))
-                    for s in range(1, n_steps + 1):
-                        dz = depth_done + (d - depth_done) * s / n_steps
-                        st = model.press(np.array([draw.xy[0], draw.xy[1], contact_z - dz]))
-                depth_done = d
+                    d, st = next(descent)
             r = inst.measure(inst.dome(st.u), rng, readout=readout, reference=ref_dome)
             t.update(r.timings)
             rec = {

@@ -21,10 +21,12 @@ membrane's thickness above the base.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import numpy as np
 
-__all__ = ["FIT_RADIUS", "FIT_NODES", "surface_fit", "outer_points", "touch", "centre_touching", "point_touched", "depth_reach"]
+__all__ = ["FIT_RADIUS", "FIT_NODES", "surface_fit", "outer_points", "touch", "centre_touching", "point_touched", "depth_reach",
+           "press_through"]
 
 # the outer surface's nodes fitted by a cubic about a point: within this radius (m) of it, at
 # least FIT_NODES of them (a 64-rim membrane's P2 surface has nodes ~1 mm apart: ~30 within
@@ -86,6 +88,20 @@ def depth_reach(model, touch_height: float) -> float:
     come down before its lowest point is the membrane's thickness above the base, where
     :meth:`~jointsim.mechanics.dome.MembraneModel.press` refuses it."""
     return touch_height - model.contact.radius - model.thickness
+
+
+def press_through(model, xy: np.ndarray, touch_height: float, depths: np.ndarray, step: float) -> Iterator[tuple[float, object]]:
+    """Press ``model``'s sphere, its centre over ``xy`` (2,) m, to each of ``depths`` (increasing,
+    m past ``touch_height``, the height of its centre at first contact), each reached from the
+    last in equal steps of at most ``step`` m; yields (depth, the model's state there). A press
+    as a dataset takes it, and as a rig's known presses are simulated."""
+    done = 0.0
+    for d in depths:
+        n = max(1, math.ceil((d - done) / step - 1e-9))
+        for s in range(1, n + 1):
+            state = model.press(np.array([xy[0], xy[1], touch_height - (done + (d - done) * s / n)]))
+        done = d
+        yield d, state
 
 
 def point_touched(model, xy: np.ndarray, radius: float | None = None, tol: float = 1e-9) -> np.ndarray:
