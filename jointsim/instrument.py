@@ -113,7 +113,7 @@ class Readout:
     def on(cls, reference: ChamberMesh, scene: Scene, protocol: Protocol, *, rng: np.random.Generator | None,
            reference_frames: int, conductivity: float | None = None, contact_impedance: float | np.ndarray | None = None,
            offsets: np.ndarray | None = None, snr_db: float | None = None, fdm: bool = False,
-           backend: str = "auto") -> "Readout":
+           backend: str = "auto", reach: float = 0.0, like: ForwardModel | None = None) -> "Readout":
         """The readout of ``scene``'s electrodes on the chamber ``reference`` (the untouched
         sensor), with the scene's saline, contact impedances and SNR unless given
         (``contact_impedance``: one value for every electrode, the ground included, or one per
@@ -121,7 +121,12 @@ class Readout:
         ``offsets`` (k, 2) m: the first k electrodes moved in the base plane, the driven ones and
         a floating reference; a passive reference stays). The measured
         reference is drawn from ``rng`` (None: noise-free). ``fdm``: per-carrier contact
-        impedances ([electrodes] contact_impedance_by_freq_ohm_m2)."""
+        impedances ([electrodes] contact_impedance_by_freq_ohm_m2). ``reach`` m: the moved base
+        discs keep every face they could cover moved up to it from the layout's places
+        (:func:`~jointsim.mesh.electrodes.disc_patches`), so that readouts with other offsets
+        within it have one CEM pattern; ``like``: an earlier readout's forward model of a
+        chamber of this topology, whose pattern and solver analysis this one keeps where its
+        patches have that model's faces (:meth:`~jointsim.eit.forward.ForwardModel.on`)."""
         e = scene.electrodes
         order = scene.mesh.element_order
         centres = radii = None
@@ -131,15 +136,20 @@ class Readout:
             centres[: len(offsets), :2] += offsets
             radii = layout.radii
             # (electrodes on the membrane placed where the reference dome is now: at rest there)
+            around = layout.centres if reach > 0 else None
             patches = [p.follow(reference.mesh.nodes)
-                       for p in layout_patches(reference.mesh, replace(layout, centres=centres), quadratic=order == 2)]
+                       for p in layout_patches(reference.mesh, replace(layout, centres=centres), quadratic=order == 2,
+                                               around=around, reach=reach)]
         else:
             patches = reference.patches(order)
         if contact_impedance is None:
             z = e.contact_impedances
         else:
             z = np.broadcast_to(np.asarray(contact_impedance, float), (len(patches),)).copy()
-        forward = ForwardModel(reference.mesh, patches, reference.ground, z, backend, order).shared()
+        if like is not None and like.order == order and like.backend == backend and like.assembler.ground == reference.ground:
+            forward = like.on(reference.mesh, patches, z).shared()
+        else:
+            forward = ForwardModel(reference.mesh, patches, reference.ground, z, backend, order).shared()
         z_by_freq = carrier = None
         if fdm:
             if e.contact_impedance_by_freq is None:
@@ -369,8 +379,9 @@ class Instrument:
     """The sensor of ``scene`` as an instrument, ready to measure (build it with :meth:`build`).
 
     ``surface`` maps the membrane's displacement to its inner surface (None for an instrument
-    built on a geometric dome; ``inflated_u``: the inflated displacement where it was moulded
-    flat, which later membranes start from; else None); ``chamber`` is the chamber as meshed, ``morpher`` prepared on the membrane's reference
+    built on a geometric dome; ``inflated_u``: the membrane's displacement at rest, inflated to
+    the dome (moulded flat) or by the reservoir head (a cap), which later membranes of the
+    scene start from; None on a geometric dome); ``chamber`` is the chamber as meshed, ``morpher`` prepared on the membrane's reference
     surface, ``reference_dome`` the inflated untouched inner surface and ``reference`` the
     chamber under it; ``readout`` the nominal electrodes; ``imager`` the reconstruction (None
     when built without); ``lambda_press`` the representative press λ was chosen on;
@@ -414,7 +425,7 @@ class Instrument:
         else:
             with timed(t, "membrane"):
                 model = _resting_membrane(scene, device) if membrane is None else membrane
-                inflated_u = model.u[: model.mesh.n_nodes].copy() if flat else None
+                inflated_u = model.u[: model.mesh.n_nodes].copy()
                 surface = InnerSurface.of(model, scene.chamber, inflated=flat)
                 membrane_dome = surface.dome(None)  # the inner surface the morpher maps from
                 reference_dome = surface.dome(model.u)

@@ -37,8 +37,9 @@ def membrane_from_scene(
     :class:`~jointsim.mechanics.soft_target.SoftTargetModel` with that Young's modulus and
     ``target_poisson`` (default the scene's), and ``contact_slave`` passed on to it (None:
     its rule, the softer body's nodes). ``device``: the Warp device of the element kernels.
-    ``inflate_from``: for a flat moulding, the membrane's displacement in an earlier model of
-    this scene (or of it with its moduli scaled), which the inflation starts from.
+    ``inflate_from``: the membrane's displacement at rest in an earlier model of this scene (or
+    of it with its moduli scaled), which this one's rest state is solved from: the inflation of
+    a flat moulding, the reservoir head's of a cap (ignored without a head).
     ``target_turn`` (rad): a soft target's mesh turned about its axis
     (:data:`~jointsim.mechanics.soft_target.GENERIC_TURN` where derivatives are taken)."""
     m = scene.membrane
@@ -61,9 +62,7 @@ def membrane_from_scene(
         dome = flat_disc(c.base_radius, m.rim_vertices) if flat else chamber_cap(c, m.rim_vertices)
     if flat:
         kw["inflate_to"] = c.dome_height
-        kw["inflate_from"] = inflate_from
-    elif inflate_from is not None:
-        raise ValueError("inflate_from: only for a membrane moulded flat ([membrane] moulding = \"flat\")")
+    kw["inflate_from"] = inflate_from
     try:
         return _model(cls, dome, scene, target_radius, device, kw)
     except NewtonError as e:

@@ -165,13 +165,20 @@ def plane_face_patch(mesh: TetMesh, axis: int, value: float, tol: float | None =
 
 
 def disc_patches(
-    mesh: TetMesh, centres: np.ndarray, radii: np.ndarray, plane_tol: float = 1e-9, quadratic: bool = False
+    mesh: TetMesh, centres: np.ndarray, radii: np.ndarray, plane_tol: float = 1e-9, quadratic: bool = False,
+    around: np.ndarray | None = None, reach: float = 0.0,
 ) -> list[ElectrodePatch]:
     """Disc electrodes on the plane z = 0 (the chamber base), clipped exactly.
 
     centres (n_el, 3), radii (n_el,). Boundary faces whose three nodes lie within
     ``plane_tol`` of z = 0 are candidates. ``quadratic``: the P2 moments too. Raises ValueError if an electrode is not fully
     covered by base triangles (its disc crosses the base outline).
+
+    ``around`` (n_el, 2 or 3) with ``reach`` m: each patch keeps every base face its disc could
+    cover when moved up to ``reach`` from its ``around`` point, those it does not cover with zero
+    moments. Discs moved within that reach (a dataset's jittered electrodes) then have patches
+    on the same faces, and their CEM systems one pattern and one solver analysis
+    (:meth:`~jointsim.eit.forward.ForwardModel.on`). ValueError where a disc is moved further.
     """
     f = mesh.boundary_faces
     on = np.all(np.abs(mesh.nodes[f][..., 2]) <= plane_tol, axis=1)
@@ -180,12 +187,18 @@ def disc_patches(
     unit_poly, scale = UNIT_POLY, _POLY_SCALE
     patches = []
     lo, hi = xy.min(axis=1), xy.max(axis=1)
-    for k, (c, r) in enumerate(zip(np.asarray(centres)[:, :2], radii)):
-        reach = r * scale
-        cand = np.all((hi >= c - reach) & (lo <= c + reach), axis=1)
+    centres = np.asarray(centres, float)[:, :2]
+    fixed = around is not None
+    where = np.asarray(around, float)[:, :2] if fixed else centres
+    for k, (c, r) in enumerate(zip(centres, radii)):
+        if fixed and np.hypot(*(c - where[k])) > reach * (1 + 1e-12):
+            raise ValueError(f"electrode {k}: moved {np.hypot(*(c - where[k])) * 1e3:.4g} mm from its place, more than "
+                             f"the reach {reach * 1e3:.4g} mm its faces were kept for")
+        box = r * scale + (reach if fixed else 0.0)  # half-width of the box the (moved) polygon lies in
+        cand = np.all((hi >= where[k] - box) & (lo <= where[k] + box), axis=1)
         tri = (xy[cand] - c) / r  # unit-disc frame
         moments = _clip_moments(tri, unit_poly, quadratic)
-        keep = moments[0] > 1e-14
+        keep = np.ones(len(tri), bool) if fixed else moments[0] > 1e-14
         patch = ElectrodePatch(base[cand][keep], *(m[keep] * r * r for m in moments))
         if abs(patch.total_area / (np.pi * r * r) - 1) > 1e-9:
             raise ValueError(
@@ -218,14 +231,16 @@ def surface_disc_patch(mesh: TetMesh, centre_xy: np.ndarray, radius: float, *, r
 
 
 def layout_patches(mesh: TetMesh, layout: ElectrodeLayout, quadratic: bool = False,
-                   only: np.ndarray | None = None) -> list[ElectrodePatch]:
+                   only: np.ndarray | None = None, around: np.ndarray | None = None, reach: float = 0.0) -> list[ElectrodePatch]:
     """The patches of the electrodes of ``layout`` on ``mesh``, in its order: its discs
     (:func:`place_discs`) and its full faces (:func:`plane_face_patch`); with ``only`` (n_el,)
-    bool, those it marks (None for the others)."""
+    bool, those it marks (None for the others). ``around`` (n_el, 3), ``reach``: the base
+    discs' faces kept for moves up to ``reach`` from there (:func:`disc_patches`)."""
     want = np.ones(layout.n_electrodes, bool) if only is None else np.asarray(only, bool)
     patches: list[ElectrodePatch | None] = [None] * layout.n_electrodes
     disc = np.flatnonzero(want & ~layout.face)
-    placed = place_discs(mesh, layout.centres[disc], layout.radii[disc], layout.membrane[disc], layout.membrane_patch, quadratic)
+    placed = place_discs(mesh, layout.centres[disc], layout.radii[disc], layout.membrane[disc], layout.membrane_patch, quadratic,
+                         None if around is None else np.asarray(around)[disc], reach)
     for i, patch in zip(disc, placed):
         patches[i] = patch
     for i in np.flatnonzero(want & layout.face):
@@ -234,18 +249,20 @@ def layout_patches(mesh: TetMesh, layout: ElectrodeLayout, quadratic: bool = Fal
 
 
 def place_discs(mesh: TetMesh, centres: np.ndarray, radii: np.ndarray, membrane: np.ndarray | None = None,
-                membrane_patch: str = "stretch", quadratic: bool = False) -> list[ElectrodePatch]:
+                membrane_patch: str = "stretch", quadratic: bool = False, around: np.ndarray | None = None,
+                reach: float = 0.0) -> list[ElectrodePatch]:
     """Disc electrodes (``centres`` (n, 3), ``radii`` (n,) m) on ``mesh``: on the base clipped
-    (:func:`disc_patches`), where ``membrane`` (n,) bool is set on the dome above (x, y)
-    (:func:`surface_disc_patch`, which has P2 moments always; ``membrane_patch`` one of
-    :data:`MEMBRANE_PATCHES`)."""
+    (:func:`disc_patches`, with its ``around`` (n, 3) and ``reach``), where ``membrane`` (n,)
+    bool is set on the dome above (x, y) (:func:`surface_disc_patch`, which has P2 moments
+    always; ``membrane_patch`` one of :data:`MEMBRANE_PATCHES`)."""
     if membrane_patch not in MEMBRANE_PATCHES:
         raise ValueError(f"membrane_patch = {membrane_patch!r}: allowed values are {list(MEMBRANE_PATCHES)}")
     centres, radii = np.asarray(centres, float), np.asarray(radii, float)
     on = np.zeros(len(radii), bool) if membrane is None else np.asarray(membrane, bool)
     patches: list[ElectrodePatch | None] = [None] * len(radii)
     base = np.flatnonzero(~on)
-    for i, patch in zip(base, disc_patches(mesh, centres[base], radii[base], quadratic=quadratic)):
+    fixed = None if around is None else np.asarray(around, float)[base]
+    for i, patch in zip(base, disc_patches(mesh, centres[base], radii[base], quadratic=quadratic, around=fixed, reach=reach)):
         patches[i] = patch
     for i in np.flatnonzero(on):
         patches[i] = surface_disc_patch(mesh, centres[i, :2], float(radii[i]), rigid=membrane_patch == "rigid")
