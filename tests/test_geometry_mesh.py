@@ -155,6 +155,29 @@ def test_disc_patches_cover_exactly_the_disc_on_any_mesh():
             assert p.total_area == pytest.approx(np.pi * r * r, rel=1e-12)
 
 
+def test_discs_moved_within_their_reach_keep_one_set_of_faces_and_their_exact_moments():
+    """A dataset's jittered electrodes: moved up to ``reach`` from their places they keep the
+    same faces (one CEM pattern), with the same moments as clipped alone (the faces they miss
+    at zero); moved further, refused."""
+    m = box_mesh((2.0, 2.0, 0.5), (9, 9, 2), origin=(-1.0, -1.0, 0.0))
+    home = np.array([[0.3, 0.1, 0.0], [-0.45, -0.2, 0.0]])
+    radii = np.array([0.21, 0.13])
+    reach = 0.05
+    moved = home + np.array([[0.03, -0.04, 0.0], [-0.05, 0.0, 0.0]])
+    kept = [disc_patches(m, c, radii, quadratic=True, around=home, reach=reach) for c in (home, moved)]
+    for a, b in zip(*kept):
+        np.testing.assert_array_equal(a.faces, b.faces)
+    for patch, alone, r in zip(kept[1], disc_patches(m, moved, radii, quadratic=True), radii):
+        assert patch.total_area == pytest.approx(np.pi * r * r, rel=1e-12)
+        key = {tuple(f): i for i, f in enumerate(patch.faces.tolist())}
+        at = np.array([key[tuple(f)] for f in alone.faces.tolist()])  # every covered face is kept
+        np.testing.assert_allclose(patch.q2[at], alone.q2, rtol=0, atol=1e-15 * r * r)
+        missed = np.setdiff1d(np.arange(len(patch.faces)), at)
+        assert len(missed) > 0 and np.abs(patch.area[missed]).max() < 1e-14 * r * r
+    with pytest.raises(ValueError, match="electrode 1: moved 60 mm from its place, more than the reach 50 mm"):  # (mm: ×1e3 of the box's units)
+        disc_patches(m, home + np.array([[0.0, 0.0, 0.0], [0.06, 0.0, 0.0]]), radii, around=home, reach=reach)
+
+
 def test_disc_off_the_base_is_rejected():
     m = box_mesh((1.0, 1.0, 0.5), (4, 4, 2))
     with pytest.raises(ValueError, match="electrode 0"):

@@ -116,6 +116,38 @@ def test_membrane_from_the_paper_scene(paper_scene):
     assert model.V0 > model.pressure.volume(np.zeros_like(model.u))
 
 
+@pytest.mark.parametrize("scale", [0.5, 2.0])
+def test_a_rest_state_started_from_another_models_is_the_same_state(paper_scene, scale):
+    """A dataset's group scales the membrane's moduli and starts its rest state under the head
+    from the nominal one's: the same equilibrium as solved from the moulded cap, within what
+    force_tol resolves (~1e-7 of the displacement), in fewer iterations."""
+    from dataclasses import replace
+
+    dome = spherical_cap(0.02, 0.01, 24)
+    nominal = membrane_from_scene(paper_scene, dome=dome)
+    scaled = replace(paper_scene, membrane=paper_scene.membrane.scaled(scale))
+    counts = []
+    real = dome_module.minimize_energy
+
+    def counted(*a, **k):
+        res = real(*a, **k)
+        counts.append(res.iterations)
+        return res
+
+    dome_module.minimize_energy = counted
+    try:
+        cold = membrane_from_scene(scaled, dome=dome)
+        warm = membrane_from_scene(scaled, dome=dome, inflate_from=nominal.u)
+    finally:
+        dome_module.minimize_energy = real
+    assert np.abs(warm.u - cold.u).max() <= 1e-6 * np.abs(cold.u).max()
+    # the head lifts a membrane of ×s the moduli ~1/s as far
+    assert np.abs(cold.u).max() == pytest.approx(np.abs(nominal.u).max() / scale, rel=0.2)
+    assert counts[1] < counts[0]
+    with pytest.raises(ValueError, match="inflate_from: must be a finite displacement"):
+        membrane_from_scene(scaled, dome=dome, inflate_from=nominal.u[:-1])
+
+
 def test_fem_dome_drives_the_eit_chamber(test_chamber, pressed):
     """The interface the coupled pipeline uses: FEM dome → morphed chamber mesh → voltages."""
     from jointsim.eit.forward import ForwardModel
