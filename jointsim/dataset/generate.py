@@ -266,7 +266,8 @@ class DatasetSetup:
         # the groups' forward model: their electrodes, jittered within the spec's bound, keep
         # the faces they could cover, so every group's CEM system has one pattern and the
         # solver's ordering and symbolic analysis are done once per worker, not per group
-        # (~0.25 s of a group's ~1 s set-up at dataset_p2)
+        # (with the rest state's warm start, a group's set-up at dataset_p2 went from ~1.0 to
+        # ~0.55 s: docs/datasets.md)
         self._forward: ForwardModel | None = None
 
     def free(self) -> None:
@@ -306,7 +307,7 @@ class DatasetSetup:
             ref_chamber = inst.deform(ref_dome).chamber
             rng = _rng(self.seed, draw.group, draw.attempt, 1)
             # the group's sensor: its electrodes, saline, contact impedance and noise; its
-            # morphed chambers share the reference's pattern and PARDISO analysis
+            # morphed chambers, and every other group's, share one pattern and PARDISO analysis
             readout = Readout.on(ref_chamber, self.scene, inst.protocol, rng=rng, reference_frames=self.spec.reference_frames,
                                  conductivity=draw.conductivity, contact_impedance=draw.contact_impedance,
                                  offsets=draw.jitter, snr_db=draw.snr_db, reach=self.spec.electrode_jitter, like=self._forward)

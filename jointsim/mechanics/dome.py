@@ -195,8 +195,8 @@ class MembraneModel:
         this model's loads, α = argmin ‖α·g_elastic(u) − f‖ (f the head's load), which is the
         ratio of the loads over the moduli where the response is linear (a head lifts the cap
         by ~0.1 mm of its 2 mm thickness: an earlier model at ×1/s the moduli gives α ≈ 1/s). A
-        dataset draws the membrane's moduli per group: started there, the rest state takes 2
-        Newton iterations instead of 5–8 from the moulded shape."""
+        dataset draws the membrane's moduli per group: started there, the rest state takes 2–3
+        Newton iterations instead of 3–4 from the moulded shape (5–8 to the old 1e-9 tolerance)."""
         earlier = np.asarray(earlier, float)
         if earlier.shape != self.u.shape or not np.isfinite(earlier).all():
             raise ValueError(f"inflate_from: must be a finite displacement of shape {self.u.shape}, got {earlier.shape}")
