@@ -493,10 +493,12 @@ def test_a_study_of_soft_targets_bounds_their_modulus(tmp_path):
     names = tuple(rec.provenance["params"]["parameters"])
     e, p, mu = (names.index(n) for n in ("ln_target_modulus", "ln_pressure", "ln_modulus"))
     assert info[e, e] == pytest.approx(J[:, 4] @ J[:, 4], rel=1e-12) and info[e, e] > 0
-    # the three columns sum to zero: their information matrix is singular along (1, 1, 1)
+    # the three columns sum to zero: their information matrix is singular along (1, 1, 1). Exactly
+    # at equilibrium; the rest state stands within force_tol (1e-6·μt²: on the paper's cap 8.8e-8 N
+    # against the head's 1.9e-3 N, 5e-5), which leaves ~5e-5 of a column along (1, 1, 1), ~3e-9 in the information
     one = np.zeros(len(names))
     one[[e, p, mu]] = 1.0
-    assert abs(one @ info @ one) <= 1e-12 * info[e, e]
+    assert abs(one @ info @ one) <= 1e-8 * info[e, e]
     # so as the SNR rises the bound falls to what the priors leave along that direction,
     # (1/s_p² + 1/s_μ²)^(-1/2), and never below it (on the axis, where E barely moves this
     # press: measured 81 at 74.2 dB, 2.7× the floor at 120 dB, 3 % above it at 140 dB)
