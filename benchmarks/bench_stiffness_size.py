@@ -56,13 +56,14 @@ def main() -> int:
         train_m, test_m = split_groups(s.group, 0.2, 0)
         train, test = s.subset(train_m), s.subset(test_m)
         soft = np.isfinite(train.modulus)
+        soft_test = test.subset(np.isfinite(test.modulus))
         levels = stiffness_levels(default_levels("depth", train.group, train.depth))  # as jointsim calibrate's
         scale = np.asarray(open_records(path, fields=["membrane_scale"])["membrane_scale"])
         rows.append({"store": path.name, "data_sha256": s.source["data_sha256"],
                      "soft_train_samples": int(soft.sum()), "levels_mm": (levels * 1e3).round(3).tolist(),
                      "membrane_scale_range": [float(np.min(scale)), float(np.max(scale))],
-                     "image_size": errors(train, test.subset(np.isfinite(test.modulus)), levels, "image"),
-                     "true_size": errors(train, test.subset(np.isfinite(test.modulus)), levels, "true")})
+                     "image_size": errors(train, soft_test, levels, "image"),
+                     "true_size": errors(train, soft_test, levels, "true")})
         print(rows[-1], flush=True)
     L = ["# The stiffness calibration: what the size and the membrane each cost", "",
          f"`python benchmarks/bench_stiffness_size.py {' '.join(p.name for p in a.stores)}` on {platform.machine()}, {cpu_name()}. "

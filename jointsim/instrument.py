@@ -146,10 +146,7 @@ class Readout:
             z = e.contact_impedances
         else:
             z = np.broadcast_to(np.asarray(contact_impedance, float), (len(patches),)).copy()
-        if like is not None and like.order == order and like.backend == backend and like.assembler.ground == reference.ground:
-            forward = like.on(reference.mesh, patches, z).shared()
-        else:
-            forward = ForwardModel(reference.mesh, patches, reference.ground, z, backend, order).shared()
+        forward = ForwardModel.like_or_new(like, reference.mesh, patches, reference.ground, z, backend, order).shared()
         z_by_freq = carrier = None
         if fdm:
             if e.contact_impedance_by_freq is None:

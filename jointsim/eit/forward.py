@@ -103,10 +103,17 @@ class ForwardModel:
         e = scene.electrodes
         z = e.contact_impedances
         order = scene.mesh.element_order if order is None else order
-        electrodes = chamber.patches(order)
-        if like is None or like.order != order or like.backend != backend:
-            return cls(chamber.mesh, electrodes, chamber.ground, z, backend, order)
-        return like.on(chamber.mesh, electrodes, z)
+        return cls.like_or_new(like, chamber.mesh, chamber.patches(order), chamber.ground, z, backend, order)
+
+    @classmethod
+    def like_or_new(cls, like: "ForwardModel | None", mesh: TetMesh, electrodes: list[ElectrodePatch], ground: int,
+                    contact_impedance: np.ndarray | float, backend: str, order: int) -> "ForwardModel":
+        """The model of ``mesh`` and ``electrodes``: made :meth:`on` ``like``, an earlier model of
+        the run, where that has this ``order``, ``backend`` and ``ground`` (its pattern and shared
+        solver kept where the topology is its); else a new one."""
+        if like is not None and like.order == order and like.backend == backend and like.assembler.ground == ground:
+            return like.on(mesh, electrodes, contact_impedance)
+        return cls(mesh, electrodes, ground, contact_impedance, backend, order)
 
     def on(self, mesh: TetMesh, electrodes: list[ElectrodePatch], contact_impedance: np.ndarray | float | None = None) -> "ForwardModel":
         """This model (ground, backend, order; contact impedances unless given) on ``mesh`` and
