@@ -53,7 +53,7 @@ def test_the_fit_simulates_what_the_dataset_recorded(pressed):
     inst, records, jitter = pressed
     sim = _Press(inst, 2)
     p = _truth(sim, records, jitter)
-    v0, V, J, contact, _, depths, _ = sim(p)
+    v0, V, J, contact, _, depths, _, _ = sim(p)
     clean = np.array([r["voltages_clean"] for r in records])
     scale = np.abs(clean).max()
     assert np.abs(v0 - records[0]["reference_clean"]).max() <= 1e-6 * scale

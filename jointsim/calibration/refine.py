@@ -28,22 +28,23 @@ wherever the node touched first changes. The misfit
 σ_n the noise of one frame, P the prior's precision, is minimised by Levenberg–Marquardt, each
 trial point one press through the simulator (a few seconds at the dataset fidelity).
 
-The electrodes' centres are held during a descent and refitted between descents
-(:data:`ELECTRODE_CYCLES`), to the reference frame on the chamber of the scale found so far
-(:func:`~jointsim.eit.fit.fit_reference`, which re-clips the discs at each iterate). A tenth of
-a millimetre of electrode placement moves the frames by tens of noise σ, so they cannot be left
-out; but the voltages follow a disc's centre only piecewise smoothly (it is clipped against the
-base's triangles), and inside the descent they made it crawl. The first descent starts from
-:func:`fit_electrical`, the reference frame fitted at the scene's scale. The alternation has a
-price: centres fitted at a scale not yet right take up part of the scale's effect on the
-reference frame, and the scale the fit reports is biased by it (7.5–10 % median on held-out
-dataset presses, results/calibration/simulator_refine_split*.md; its σ does not cover that),
-while the target's estimates are not (their errors within about twice their σ there).
+The electrodes' centres are fitted too. A tenth of a millimetre of electrode placement moves
+the frames by tens of noise σ, so they cannot be left out. The fit starts from
+:func:`fit_electrical` (the reference frame alone, at the scene's modulus scale), descends with
+the centres held there, then descends again with them free (:func:`_joint_descent`). Held to the
+end, as an earlier version did (refitted to the reference between descents), they left the fit
+off its optimum along a curved valley in which the modulus scale trades against the electrode
+ring's radius: on the test chamber a fit 16 % high in the scale had every electrode ~13 µm
+inside its true place, its Φ within 3 of the truth's while the linearised model put the two
+45σ apart. The scale came out biased by 7.5–10 % median on held-out dataset presses, and the
+target's centre with it by 3–5 of its σ. The joint descent follows the valley at about 1σ a
+step (:data:`MAX_TRIALS`).
 
-The estimate's covariance is (JᵀJ/σ_n² + P)⁻¹ at the fit; the contact's (its centre of
-pressure, what the calibration labels as position) and the depths' through their own
-derivatives. A press the emulator already fits within the goals gains nothing; one it fits
-poorly gains most (:func:`worth_refining`).
+The estimate's covariance is the p-block of (JᵀJ/σ_n² + P)⁻¹ at the fit, the electrodes'
+centres included (:func:`marginal_covariance`); the contact's (its centre of pressure, what the
+calibration labels as position) and the depths' through their own derivatives. A press the
+emulator already fits within the goals gains nothing; one it fits poorly gains most
+(:func:`worth_refining`).
 """
 
 from __future__ import annotations
@@ -67,7 +68,7 @@ from ..mechanics.newton import NewtonError
 from ..mechanics.touch import centre_touching, depth_reach
 from ..mesh.morph import MeshInversionError
 
-__all__ = ["PressRefit", "fit_electrical", "refine_press", "worth_refining"]
+__all__ = ["PressRefit", "fit_electrical", "marginal_covariance", "refine_press", "worth_refining"]
 
 try:  # a factorisation that breaks down at a trial point far off (a zero pivot) rejects the trial
     from pypardiso.pardiso_wrapper import PyPardisoError as _FactorisationError
@@ -76,23 +77,25 @@ except ImportError:  # pragma: no cover - PARDISO absent: SuperLU raises Runtime
 # what a trial point can cause: it is rejected and the damping raised
 _TRIAL_FAILURES = (UnreachablePose, NewtonError, MeshInversionError, ValueError, _FactorisationError)
 
-def _step_limits(K: int, n_p: int) -> np.ndarray:
+def _step_limits(K: int, n_p: int, n_centres: int = 0) -> np.ndarray:
     """The largest step of each of the ``n_p`` parameters of a ``K``-frame press: 0.5 mm of
-    centre, 1 mm of radius, 0.2 mm of depth, 0.5 in a log (×1.65)."""
-    return np.concatenate([[0.5e-3, 0.5e-3, 1e-3], np.full(K, 0.2e-3), np.full(n_p - 3 - K, 0.5)])
+    centre, 1 mm of radius, 0.2 mm of depth, 0.5 in a log (×1.65); then 20 µm for each of
+    ``n_centres`` electrode coordinates (twice the spread a reference fit leaves them)."""
+    return np.concatenate([[0.5e-3, 0.5e-3, 1e-3], np.full(K, 0.2e-3), np.full(n_p - 3 - K, 0.5), np.full(n_centres, 20e-6)])
 
 
 MIN_DEPTH = 20e-6  # m: a frame's depth is kept past first contact by at least this
-MAX_TRIALS = 20  # presses through the simulator per fit, at most
-ELECTRODE_CYCLES = 3  # the press fitted with the electrodes held, their centres refitted between
+# presses through the simulator per fit, at most: the joint descent follows a curved valley
+# (the modulus scale against the electrode ring's radius and the contact impedances) at about
+# 1σ a step; on the test chamber it settled in 24–30 (tests/test_refine.py's press)
+MAX_TRIALS = 30
 
 
 @dataclass(frozen=True, eq=False)
 class PressRefit:
     """One press fitted through the simulator: per frame the contact's centre of pressure
     ``contact`` (K, 2) m and ``depth`` (K,) m; the target's ``diameter`` m and centre ``centre``
-    (2,) m; the membrane's modulus ``scale`` (biased: the electrode centres held in each descent
-    take up part of it, module docstring); their standard deviations ``contact_sd`` (K, 2),
+    (2,) m; the membrane's modulus ``scale``; their standard deviations ``contact_sd`` (K, 2),
     ``depth_sd`` (K,), ``diameter_sd``, ``scale_sd``; the misfit per channel in noise σ
     ``misfit`` (before, after: √(Φ_data / n)); ``trials`` presses through the simulator,
     ``iterations`` accepted steps, ``seconds``."""
@@ -143,8 +146,8 @@ class _Press:
         self.scene = inst.scene
         self.names = parameter_names(len(inst.reference.layout.radii))
         self.n_el = len(inst.reference.layout.radii)
-        # the electrodes' centres, held in a descent (module docstring), and their discs moved
-        # either way (press_electrical's position columns, which a descent does not use)
+        # the electrodes' centres (module docstring), and their discs moved either way for
+        # press_electrical's position columns
         self.offsets = np.zeros((self.n_el, 2)) if offsets is None else np.asarray(offsets, float).reshape(-1, 2)
         self.moves = self.moves_at(self.offsets)
         self.model: MembraneModel | None = None
@@ -183,7 +186,9 @@ class _Press:
     def __call__(self, p: np.ndarray) -> tuple[np.ndarray, ...]:
         """At ``p`` (module docstring): V₀ (M,), V (K, M), ∂[V₀; V]/∂p ((K+1)·M, n_p), the
         contacts (K, 2) and ∂contact_k/∂p (K, 2, n_p), the depths (K,) past first contact and
-        ∂depth_k/∂p (K, n_p). A ValueError where a frame's sphere would be above the membrane."""
+        ∂depth_k/∂p (K, n_p), and ∂[V₀; V]/∂(x0, y0, x1, …) ((K+1)·M, 2 n_el) along the electrodes'
+        centres, which a descent holds but the estimate's covariance must not (:func:`refine_press`).
+        A ValueError where a frame's sphere would be above the membrane."""
         K = self.K
         centre, radius, depths_node, ln_s = p[:2], float(p[2]), p[3:3 + K], float(p[3 + K])
         self.trials += 1
@@ -214,10 +219,13 @@ class _Press:
         n = self.names
         ix, iy, idep, irad, imod = (n.index(k) for k in ("x", "y", "depth", "radius", "ln_modulus"))
         electrical = slice(n.index("ln_conductivity"), n.index("ln_conductivity") + 1 + self.n_el)
+        centres = slice(n.index("x0"), n.index("x0") + 2 * self.n_el)
         M, n_p = len(v0), len(p)
         J = np.zeros(((K + 1) * M, n_p))
         J[:M, 3 + K] = ps.jacobian_ref[:, imod]
         J[:M, 4 + K:] = ps.jacobian_ref[:, electrical]
+        Jc = np.zeros(((K + 1) * M, 2 * self.n_el))
+        Jc[:M] = ps.jacobian_ref[:, centres]
         V = np.zeros((K, M))
         contact = np.zeros((K, 2))
         cj = np.zeros((K, 2, n_p))
@@ -230,13 +238,14 @@ class _Press:
             J[rows, 3 + k] = Jk[:, idep]
             J[rows, 3 + K] = Jk[:, imod]
             J[rows, 4 + K:] = Jk[:, electrical]
+            Jc[rows] = Jk[:, centres]
             contact[k] = ps.contact[j, :2]
             c = ps.contact_jacobian[j]  # (2, 4) the same way
             cj[k, :, 0], cj[k, :, 1], cj[k, :, 2], cj[k, :, 3 + k] = c[:, 0], c[:, 1], c[:, 3], c[:, 2]
             # depth = z_first − z_node + the fit's depth; the modulus scale acts as the head's inverse
             dd[k, :3] = (first["x"] - along["x"], first["y"] - along["y"], first["radius"] - along["radius"])
             dd[k, 3 + k], dd[k, 3 + K] = 1.0, -(first["ln_pressure"] - along["ln_pressure"])
-        return v0, V, J, contact, cj, depths, dd
+        return v0, V, J, contact, cj, depths, dd, Jc
 
 
 def _node_touch(model: MembraneModel, xy: np.ndarray, u: np.ndarray, du: np.ndarray | None,
@@ -259,7 +268,7 @@ def _node_touch(model: MembraneModel, xy: np.ndarray, u: np.ndarray, du: np.ndar
 
 
 def _levenberg_marquardt(evaluate, objective, p: np.ndarray, state: tuple, precision: np.ndarray, mean: np.ndarray,
-                         budget: int, sim: "_Press", tol: float, K: int, r_lo: float) -> tuple[np.ndarray, tuple, int]:
+                         budget: int, sim: "_Press", tol: float, limits: np.ndarray, r_lo: float) -> tuple[np.ndarray, tuple, int]:
     """Levenberg–Marquardt on Φ from ``p`` (its ``evaluate`` ``state``) until the steps fall
     below ``tol`` σ or the simulator has been called ``budget`` times: (p, its state, accepted
     steps). The damping follows the gain ratio ρ, Φ's actual fall over the quadratic model's
@@ -277,7 +286,7 @@ def _levenberg_marquardt(evaluate, objective, p: np.ndarray, state: tuple, preci
         step = -np.linalg.solve(A + mu * np.diag(D), g)
         # a trust region: no step past what one linearisation can hold (far from the fit, the
         # first steps asked contact impedances to change ×e^10 and the scale ×100)
-        step *= min(1.0, float(np.min(_step_limits(K, len(p)) / np.maximum(np.abs(step), 1e-300))))
+        step *= min(1.0, float(np.min(limits / np.maximum(np.abs(step), 1e-300))))
         trial = p + step
         trial[2] = max(trial[2], 0.5 * r_lo)
         step = trial - p
@@ -345,9 +354,9 @@ def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, refere
     y = np.concatenate([v_ref, frames.ravel()])
 
     def evaluate(p):
-        v0, V, J, c, cj, d, dd = sim(p)
+        v0, V, J, c, cj, d, dd, Jc = sim(p)
         r = w * (np.concatenate([v0, V.ravel()]) - y)
-        return r, w[:, None] * J, c, cj, d, dd
+        return r, w[:, None] * J, c, cj, d, dd, w[:, None] * Jc
 
     def objective(p, r):
         dp = p - mean
@@ -369,22 +378,17 @@ def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, refere
     state = evaluate(p)
     before = math.sqrt(float(state[0] @ state[0]) / len(state[0]))
     iterations = 0
-    for cycle in range(ELECTRODE_CYCLES):
-        if cycle:
-            # the electrodes' centres again, now on the reference chamber of the fitted scale: a
-            # reference frame read at the scene's scale puts the dome's rise into them
-            model = sim.membrane(math.exp(p[3 + K]), float(p[2]))
-            chamber, _ = inst.morpher.morph(inst.dome(model.u))
-            el = fit_electrical(inst, v_ref, reference_frames, sigma, chamber=chamber, conductivity=math.exp(p[4 + K]),
-                                contact_impedance=np.exp(p[5 + K:]), max_iterations=10)
-            sim.offsets = el.centres[:, :2] - layout.centres[:, :2]
-            sim.moves = sim.moves_at(sim.offsets)
-            state = evaluate(p)
-        budget = sim.trials + (max_trials - sim.trials) // (ELECTRODE_CYCLES - cycle)
-        p, state, done = _levenberg_marquardt(evaluate, objective, p, state, precision, mean, budget, sim, tol, K, r_lo)
-        iterations += done
-    r, J, c, cj, d, dd = state
-    C = np.linalg.inv(J.T @ J + np.diag(precision))
+    # first with the electrodes' centres held where the reference frame alone puts them (a
+    # quick descent: the target and the nuisances' large moves), then with them free too
+    p, state, iterations = _levenberg_marquardt(evaluate, objective, p, state, precision, mean, max_trials // 2, sim, tol,
+                                                _step_limits(K, len(p)), r_lo)
+    centre_sd = nuisance_prior(scene, ("x", "y", "depth", "radius") + sim.names[sim.names.index("x0"):])
+    free = centre_sd > 0
+    p, state, done = _joint_descent(sim, evaluate, objective, p, state, precision, mean, max_trials, tol, K, r_lo,
+                                    free, centre_sd[free])
+    iterations += done
+    r, J, c, cj, d, dd, Jc = state
+    C = marginal_covariance(J, precision, Jc, centre_sd)
     sd = np.sqrt(np.diag(C))
     contact_sd = np.sqrt(np.einsum("kip,pq,kiq->ki", cj, C, cj))
     depth_sd = np.sqrt(np.einsum("kp,pq,kq->k", dd, C, dd))
@@ -392,6 +396,60 @@ def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, refere
     return PressRefit(c, d, 2 * float(p[2]), p[:2].copy(), math.exp(ln_s), contact_sd, depth_sd,
                       2 * float(sd[2]), math.exp(ln_s) * float(sd[3 + K]), (before, math.sqrt(float(r @ r) / len(r))),
                       sim.trials, iterations, time.perf_counter() - t0)
+
+
+def _joint_descent(sim: _Press, evaluate, objective, p: np.ndarray, state: tuple, precision: np.ndarray, mean: np.ndarray,
+                   budget: int, tol: float, K: int, r_lo: float, free: np.ndarray, centre_sd: np.ndarray) -> tuple[np.ndarray, tuple, int]:
+    """Levenberg–Marquardt on (p, the ``free`` electrode coordinates' offsets) from ``p`` and the
+    electrodes where :attr:`_Press.offsets` holds them, their prior N(0, ``centre_sd``²) about the
+    layout (the scene's jitter): (p, its state in :func:`refine_press`'s form, accepted steps),
+    the electrodes left at the accepted offsets."""
+    n_p = len(p)
+    start = sim.offsets.ravel().copy()
+
+    def at(q: np.ndarray) -> np.ndarray:
+        o = start.copy()
+        o[free] = q[n_p:]
+        return o.reshape(-1, 2)
+
+    def joint(q: np.ndarray) -> tuple:
+        sim.offsets = at(q)
+        sim.moves = sim.moves_at(sim.offsets)
+        return widen(evaluate(q[:n_p]))
+
+    def widen(st: tuple) -> tuple:
+        r, J, c, cj, d, dd, Jc = st
+        q = int(free.sum())
+        return (r, np.hstack([J, Jc[:, free]]), c, np.concatenate([cj, np.zeros(cj.shape[:2] + (q,))], axis=2), d,
+                np.hstack([dd, np.zeros((len(dd), q))]), Jc)
+
+    q0 = np.concatenate([p, start[free]])
+    P = np.concatenate([precision, 1.0 / centre_sd**2])
+    m = np.concatenate([mean, np.zeros(len(centre_sd))])
+    q, st, done = _levenberg_marquardt(joint, lambda q, r: objective(q[:n_p], r) + float(q[n_p:] @ (q[n_p:] / centre_sd**2)),
+                                       q0, widen(state), P, m, budget, sim, tol,
+                                       _step_limits(K, n_p, len(centre_sd)), r_lo)
+    sim.offsets = at(q)
+    sim.moves = sim.moves_at(sim.offsets)
+    r, J, c, cj, d, dd, Jc = st
+    return q[:n_p], (r, J[:, :n_p], c, cj[..., :n_p], d, dd[:, :n_p], Jc), done
+
+
+def marginal_covariance(J: np.ndarray, precision: np.ndarray, J_held: np.ndarray, held_sd: np.ndarray) -> np.ndarray:
+    """The covariance (n_p, n_p) of the fitted p, from the weighted Jacobian ``J`` (m, n_p) and
+    the prior's ``precision`` (n_p,), with the parameters a descent held (``J_held`` (m, q), their
+    prior std ``held_sd`` (q,), 0 for one known exactly) marginalised: the p-block of the joint
+    (JᵀJ + P)⁻¹. The electrodes' centres are fitted to the same frames as the target and the
+    nuisances, so what the data leave of them in doubt is the estimate's doubt too (on the
+    test chamber it widens the modulus scale's σ 2.7× and the contact impedances' 4–6×, the
+    target's by 0–2 %)."""
+    free = np.asarray(held_sd) > 0
+    Jh = np.asarray(J_held)[:, free]
+    A = np.block([[J.T @ J + np.diag(precision), J.T @ Jh],
+                  [Jh.T @ J, Jh.T @ Jh + np.diag(1.0 / np.asarray(held_sd)[free] ** 2)]])
+    s = 1.0 / np.sqrt(np.diag(A))  # the columns' units differ by 1e4 (m against ln): scaled
+    n_p = J.shape[1]
+    return (s[:, None] * np.linalg.inv(s[:, None] * A * s[None, :]) * s[None, :])[:n_p, :n_p]
 
 
 def worth_refining(sd: np.ndarray, goals: np.ndarray) -> np.ndarray:
