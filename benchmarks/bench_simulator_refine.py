@@ -12,7 +12,7 @@ group); the direct regression and the emulator's press fit (the map's) read them
 simulator's fit starts from the emulator's estimate: the sensor's saline, contact impedances and
 electrode centres fitted to the reference frame, then the target, every frame's depth, the
 membrane's modulus scale, the saline and the contact impedances by Levenberg–Marquardt through
-the coupled model, the electrode centres refitted between its three descents.
+the coupled model, first with the electrode centres held there, then with them free too.
 Errors: the contact's centre of pressure in the plane, depth, diameter (median, P95), the
 reported σ's coverage (within 1σ, 2σ; RMS error in σ), seconds per press. "Where it pays":
 the emulator's estimate kept for a press whose σ meets the position and depth goals
@@ -128,7 +128,10 @@ def summarise(rows: list[dict]) -> dict:
             "trials_median": float(np.median([r["trials"] for r in rows])),
             "misfit_after_median": float(np.median([r["misfit"][1] for r in rows])),
             "misfit_after_max": float(np.max([r["misfit"][1] for r in rows])),
-            "scale_error_median": float(np.median([abs(math.log(r["scale"][0] / r["scale"][2])) for r in rows]))}
+            "scale_error_median": float(np.median([abs(math.log(r["scale"][0] / r["scale"][2])) for r in rows])),
+            # the scale's error in its own σ (sd of s; of ln s, sd/s)
+            "scale_rms_z": float(np.sqrt(np.mean([(math.log(r["scale"][0] / r["scale"][2]) * r["scale"][0] / r["scale"][1]) ** 2
+                                                  for r in rows])))}
 
 
 def markdown(s: dict, a: argparse.Namespace, head: dict) -> str:
@@ -164,7 +167,7 @@ def markdown(s: dict, a: argparse.Namespace, head: dict) -> str:
           f"nuisances' fit to the reference {t['electrical_fit_median']:.0f} s of it), {s['trials_median']:.0f} presses "
           f"through the simulator (median); the misfit after, per channel in noise σ: median {s['misfit_after_median']:.3f}, "
           f"largest {s['misfit_after_max']:.3f} (1 where the model fits to the noise); the membrane's modulus scale to "
-          f"{100 * s['scale_error_median']:.1f} % (median |ln error|). {a.workers} worker processes, {t['sum'] / 3600:.2f} CPU-hours in all."]
+          f"{100 * s['scale_error_median']:.1f} % (median |ln error|; RMS error / σ {s['scale_rms_z']:.2g}). {a.workers} worker processes, {t['sum'] / 3600:.2f} CPU-hours in all."]
     return "\n".join(L) + "\n"
 
 

