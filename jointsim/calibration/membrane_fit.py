@@ -20,7 +20,7 @@ Why the force and not the voltages: at a fixed depth the displaced saline, the E
 source, barely moves with the membrane's modulus (log-sensitivity −0.02 to −0.50 against the
 force's +0.52 to +1.0, results/stiffness_sensitivity), so δV alone pins the scale poorly: a
 press refitted through the simulator (jointsim.calibration.refine) reads it with a σ of
-1.4–4.6 % in minutes, where a rig's forces give 0.4–0.6 % (results/membrane_fit.md).
+1.0–4.9 % in minutes, where a rig's forces give 0.4–0.6 % (results/membrane_fit.md).
 """
 
 from __future__ import annotations
