@@ -87,9 +87,9 @@ def _step_limits(K: int, n_p: int, n_centres: int = 0) -> np.ndarray:
 MIN_DEPTH = 20e-6  # m: a frame's depth is kept past first contact by at least this
 # presses through the simulator per fit, at most: the joint descent follows a curved valley
 # (the modulus scale against the electrode ring's radius and the contact impedances) at about
-# 1σ a step. On the test chamber it settled in 24–30; on dataset presses (P1 `dataset`
-# preset, 64-rim membrane) in 44 and ~60, where 30 left the scale 16 % off and the contact
-# 96 µm (15σ)
+# 1σ a step. On 24 held-out dataset presses (P1 `dataset` preset, 64-rim membrane) it took
+# 22–60, half of them 35 or fewer (results/calibration/simulator_refine_split*.md); stopped at 30, one was
+# left with its scale 16 % off and its contact 96 µm (15σ)
 MAX_TRIALS = 60
 
 
@@ -189,7 +189,7 @@ class _Press:
         """At ``p`` (module docstring): V₀ (M,), V (K, M), ∂[V₀; V]/∂p ((K+1)·M, n_p), the
         contacts (K, 2) and ∂contact_k/∂p (K, 2, n_p), the depths (K,) past first contact and
         ∂depth_k/∂p (K, n_p), and ∂[V₀; V]/∂(x0, y0, x1, …) ((K+1)·M, 2 n_el) along the electrodes'
-        centres, which a descent holds but the estimate's covariance must not (:func:`refine_press`).
+        centres (the joint descent's and the covariance's, :func:`refine_press`).
         A ValueError where a frame's sphere would be above the membrane."""
         K = self.K
         centre, radius, depths_node, ln_s = p[:2], float(p[2]), p[3:3 + K], float(p[3 + K])
@@ -439,9 +439,9 @@ def _joint_descent(sim: _Press, evaluate, objective, p: np.ndarray, state: tuple
 
 def marginal_covariance(J: np.ndarray, precision: np.ndarray, J_held: np.ndarray, held_sd: np.ndarray) -> np.ndarray:
     """The covariance (n_p, n_p) of the fitted p, from the weighted Jacobian ``J`` (m, n_p) and
-    the prior's ``precision`` (n_p,), with the parameters a descent held (``J_held`` (m, q), their
-    prior std ``held_sd`` (q,), 0 for one known exactly) marginalised: the p-block of the joint
-    (JᵀJ + P)⁻¹. The electrodes' centres are fitted to the same frames as the target and the
+    the prior's ``precision`` (n_p,), with other parameters fitted beside it (``J_held`` (m, q),
+    their prior std ``held_sd`` (q,), 0 for one known exactly) marginalised: the p-block of the
+    joint (JᵀJ + P)⁻¹. The electrodes' centres are fitted to the same frames as the target and the
     nuisances, so what the data leave of them in doubt is the estimate's doubt too (on the
     test chamber it widens the modulus scale's σ 2.7× and the contact impedances' 4–6×, the
     target's by 0–2 %)."""
