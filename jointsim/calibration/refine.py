@@ -88,8 +88,8 @@ MIN_DEPTH = 20e-6  # m: a frame's depth is kept past first contact by at least t
 # presses through the simulator per fit, at most: the joint descent follows a curved valley
 # (the modulus scale against the electrode ring's radius and the contact impedances) at about
 # 1σ a step. On 24 held-out dataset presses (P1 `dataset` preset, 64-rim membrane) it took
-# 22–60, half of them 35 or fewer (results/calibration/simulator_refine_split*.md); stopped at 30, one was
-# left with its scale 16 % off and its contact 96 µm (15σ)
+# 22–60, half of them 35 or fewer (results/calibration/simulator_refine_split*.md); stopped
+# at 30, one was left with its scale 16 % off and its contact 96 µm (15σ)
 MAX_TRIALS = 60
 
 
