@@ -57,10 +57,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..design.bounds import nuisance_prior
-from ..design.sensitivity import ELECTRODE_STEP, head_moves, parameter_names, press_electrical, press_mechanics
+from ..design.sensitivity import ELECTRODE_STEP, electrode_moves, head_moves, parameter_names, press_electrical, press_mechanics
 from ..eit.fit import ElectricalFit, fit_reference
-from ..mesh.chamber import ChamberMesh
-from ..eit.parameters import moved_discs
 from ..instrument import Instrument, Readout
 from ..mechanics.build import membrane_from_scene
 from ..mechanics.dome import MembraneModel, UnreachablePose
@@ -117,23 +115,19 @@ class PressRefit:
     seconds: float
 
 
-def fit_electrical(inst: Instrument, v_ref: np.ndarray, reference_frames: int, noise_std: float, *,
-                   chamber: ChamberMesh | None = None, conductivity: float | None = None,
-                   contact_impedance: np.ndarray | None = None, max_iterations: int = 30) -> ElectricalFit:
+def fit_electrical(inst: Instrument, v_ref: np.ndarray, reference_frames: int, noise_std: float) -> ElectricalFit:
     """The saline, contact impedances and electrode centres of ``inst``'s sensor fitted to the
     measured reference ``v_ref`` (n_meas,) V, the mean of ``reference_frames`` frames of noise
-    ``noise_std`` V each (:func:`~jointsim.eit.fit.fit_reference`), on ``chamber`` (default the
-    instrument's reference chamber; a morph of it) from ``conductivity`` and
-    ``contact_impedance`` (n_el,) (default the scene's). The start of :func:`refine_press` (a
-    start 10 % off in the contact impedances left the first descents to chase them, and the
-    modulus scale with them, by tens of thousands of σ), and ``jointsim frames --fit-reference``."""
-    scene, layout = inst.scene, inst.reference.layout
-    ch = inst.reference if chamber is None else chamber
+    ``noise_std`` V each (:func:`~jointsim.eit.fit.fit_reference`), on the instrument's
+    reference chamber from the scene's conductivity and contact impedances. The start of
+    :func:`refine_press` (a start 10 % off in the contact impedances left the first descents to
+    chase them, and the modulus scale with them, by tens of thousands of σ), and ``jointsim
+    frames --fit-reference``."""
+    scene, layout, ch = inst.scene, inst.reference.layout, inst.reference
     return fit_reference(ch.mesh, layout.centres, layout.radii, ch.ground, inst.protocol, v_ref,
-                         scene.saline.conductivity if conductivity is None else conductivity,
-                         scene.electrodes.contact_impedances if contact_impedance is None else contact_impedance,
+                         scene.saline.conductivity, scene.electrodes.contact_impedances,
                          noise_std / math.sqrt(reference_frames), order=scene.mesh.element_order,
-                         membrane=layout.membrane, membrane_patch=layout.membrane_patch, max_iterations=max_iterations)
+                         membrane=layout.membrane, membrane_patch=layout.membrane_patch)
 
 
 class _Press:
@@ -168,13 +162,8 @@ class _Press:
 
     def moves_at(self, offsets: np.ndarray) -> list:
         """The electrode discs at ``offsets`` (2 n_el,) m from the layout's centres, each moved
-        either way for the position derivatives (:func:`~jointsim.design.sensitivity.electrode_moves`
-        moves them about the layout's own centres)."""
-        layout = self.inst.reference.layout
-        centres = layout.centres.copy()
-        centres[:, :2] += np.asarray(offsets).reshape(-1, 2)
-        return moved_discs(self.inst.reference.mesh, centres, layout.radii, ELECTRODE_STEP,
-                           self.inst.readout.forward.order == 2, layout.membrane, layout.membrane_patch)
+        either way for the position derivatives."""
+        return electrode_moves(self.inst, ELECTRODE_STEP, offsets)
 
     def readout(self, eta: np.ndarray) -> Readout:
         """The readout of the electrical nuisances ``eta`` = (ln σ, ln z_l…) with the electrodes

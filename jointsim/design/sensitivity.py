@@ -172,11 +172,16 @@ class PressSensitivity:
     names: tuple[str, ...]
 
 
-def electrode_moves(inst: Instrument, step: float) -> list:
-    """The instrument's electrode discs moved by ±``step`` (:func:`~jointsim.eit.parameters.moved_discs`),
+def electrode_moves(inst: Instrument, step: float, offsets: np.ndarray | None = None) -> list:
+    """The instrument's electrode discs, at ``offsets`` (n_el, 2) m in the base plane from the
+    layout's centres where given, moved by ±``step`` (:func:`~jointsim.eit.parameters.moved_discs`),
     clipped once on the reference chamber's base (which no morph moves)."""
     layout = inst.reference.layout
-    return moved_discs(inst.reference.mesh, layout.centres, layout.radii, step, inst.readout.forward.order == 2,
+    centres = layout.centres
+    if offsets is not None:
+        centres = centres.copy()
+        centres[:, :2] += np.asarray(offsets, float).reshape(-1, 2)
+    return moved_discs(inst.reference.mesh, centres, layout.radii, step, inst.readout.forward.order == 2,
                        layout.membrane, layout.membrane_patch)
 
 
