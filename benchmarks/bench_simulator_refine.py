@@ -16,7 +16,9 @@ the coupled model, first with the electrode centres held there, then with them f
 Errors: the contact's centre of pressure in the plane, depth, diameter (median, P95), the
 reported σ's coverage (within 1σ, 2σ; RMS error in σ), seconds per press. "Where it pays":
 the emulator's estimate kept for a press whose σ meets the position and depth goals
-(jointsim.calibration.refine.worth_refining), the simulator's elsewhere.
+(jointsim.calibration.refine.worth_refining), the simulator's elsewhere. A store of soft
+targets: each press's Young's modulus fitted too, from the geometric mean of the scene's
+[dataset] range (the map's stiffness model needs the force, which the frames do not carry).
 """
 
 from __future__ import annotations
@@ -68,12 +70,14 @@ def press(job: dict) -> dict:
     K = len(frames)
     direct = cmap.regressor(F)[:, :4]
     emu, cov = fit_presses(cmap.emulator, F, direct, np.zeros(K, int), snr_db=GOAL_SNR_DB)
+    soft = math.isfinite(job.get("modulus", math.inf))
+    start_modulus = float(np.exp(np.mean(np.log(inst.scene.dataset.target_modulus)))) if soft else None
     t0 = time.perf_counter()
     electrical = fit_electrical(inst, v_ref, r, sigma)
     t_el = time.perf_counter() - t0
     try:
         fit = refine_press(inst, frames, v_ref, r, emu[0, :2], emu[:, 2], float(emu[0, 3]), electrical=electrical,
-                           noise_std=sigma)
+                           noise_std=sigma, modulus=start_modulus)
     except Exception as e:  # a press the fit cannot take is a result too: counted, not a stopped run
         return {"group": job["group"], "error": f"{type(e).__name__}: {e}", "seconds": time.perf_counter() - t0}
     refined = np.column_stack([fit.contact, fit.depth, np.full(K, fit.diameter)])
@@ -81,7 +85,8 @@ def press(job: dict) -> dict:
     return {"group": job["group"], "truth": job["truth"], "direct": direct.tolist(), "emulator": emu.tolist(),
             "emulator_sd": sigmas(cov).tolist(), "refined": refined.tolist(), "refined_sd": refined_sd.tolist(),
             "scale": [fit.scale, fit.scale_sd, job["scale"]], "misfit": list(fit.misfit), "trials": fit.trials,
-            "iterations": fit.iterations, "seconds": t_el + fit.seconds, "seconds_electrical": t_el}
+            "iterations": fit.iterations, "seconds": t_el + fit.seconds, "seconds_electrical": t_el,
+            **({"modulus": [fit.modulus, fit.ln_modulus_sd, job["modulus"], start_modulus]} if soft else {})}
 
 
 def _stats(e: np.ndarray) -> dict:
@@ -131,7 +136,20 @@ def summarise(rows: list[dict]) -> dict:
             "scale_error_median": float(np.median([abs(math.log(r["scale"][0] / r["scale"][2])) for r in rows])),
             # the scale's error in its own σ (sd of s; of ln s, sd/s)
             "scale_rms_z": float(np.sqrt(np.mean([(math.log(r["scale"][0] / r["scale"][2]) * r["scale"][0] / r["scale"][1]) ** 2
-                                                  for r in rows])))}
+                                                  for r in rows]))),
+            **({"modulus": _modulus_scores(rows)} if any("modulus" in r for r in rows) else {})}
+
+
+def _modulus_scores(rows: list[dict]) -> list[dict]:
+    """A soft target's fitted modulus per press (E, its ln σ, the truth, the start), sorted by
+    the true modulus: its relative error, its error in its own σ (of ln E) and the σ as a
+    relative error (the press's bound, with the nuisances fitted)."""
+    out = []
+    for r in sorted((r for r in rows if "modulus" in r), key=lambda r: r["modulus"][2]):
+        E, sd, true, start = r["modulus"]
+        out.append({"group": r["group"], "true_kpa": true / 1e3, "fit_kpa": E / 1e3, "start_kpa": start / 1e3,
+                    "relative_error": E / true - 1.0, "sd_relative": math.expm1(sd), "z": math.log(E / true) / sd})
+    return out
 
 
 def markdown(s: dict, a: argparse.Namespace, head: dict) -> str:
@@ -168,6 +186,16 @@ def markdown(s: dict, a: argparse.Namespace, head: dict) -> str:
           f"through the simulator (median); the misfit after, per channel in noise σ: median {s['misfit_after_median']:.3f}, "
           f"largest {s['misfit_after_max']:.3f} (1 where the model fits to the noise); the membrane's modulus scale to "
           f"{100 * s['scale_error_median']:.1f} % (median |ln error|; RMS error / σ {s['scale_rms_z']:.2g}). {a.workers} worker processes, {t['sum'] / 3600:.2f} CPU-hours in all."]
+    if "modulus" in s:
+        m = s["modulus"]
+        rel = np.abs([x["relative_error"] for x in m])
+        z = np.array([x["z"] for x in m])
+        L += ["", "A soft target's Young's modulus, fitted with the rest from the geometric mean of the scene's range "
+              f"(the goal: within 20 %): median relative error {100 * np.median(rel):.0f} %, RMS error / σ "
+              f"{np.sqrt(np.mean(z ** 2)):.2g} (σ of ln E, the press's own bound with the nuisances fitted).", "",
+              "| group | true E kPa | fitted E kPa | relative error | σ (relative) | error / σ |", "|---|---:|---:|---:|---:|---:|"]
+        L += [f"| {x['group']} | {x['true_kpa']:.4g} | {x['fit_kpa']:.4g} | {100 * x['relative_error']:+.1f} % | "
+              f"{100 * x['sd_relative']:.1f} % | {x['z']:+.2f} |" for x in m]
     return "\n".join(L) + "\n"
 
 
@@ -188,7 +216,10 @@ def main() -> None:
     from jointsim.io.records import open_records
 
     fields = ["group", "contact_centre", "depth", "radius", "voltages_clean", "reference_clean", "membrane_scale"]
-    rec = open_records(a.dataset, fields=fields)
+    try:  # a soft target's modulus (inf for a rigid one); not in a store older than the schema's field
+        rec = open_records(a.dataset, fields=fields + ["target_modulus"])
+    except KeyError:
+        rec = open_records(a.dataset, fields=fields)
     scene = load_scene(a.scene) if a.scene else scene_from_provenance(rec.provenance)
     g = np.asarray(rec["group"])
     test_ids = np.unique(g[split_groups(g, 0.2, a.seed)[1]])[: a.presses]
@@ -206,7 +237,9 @@ def main() -> None:
         jobs.append({"group": int(G), "clean": np.asarray(rec["voltages_clean"])[i].tolist(),
                      "ref_clean": np.asarray(rec["reference_clean"])[i[0]].tolist(), "reference_frames": r_frames,
                      "truth": np.column_stack([cc[:, :2], d, 2 * rad]).tolist(),
-                     "scale": float(np.asarray(rec["membrane_scale"])[i[0]])})
+                     "scale": float(np.asarray(rec["membrane_scale"])[i[0]]),
+                     **({"modulus": float(rec["target_modulus"][i[0]])} if "target_modulus" in rec.fields
+                        and math.isfinite(rec["target_modulus"][i[0]]) else {})})
     print(f"{len(done)} presses done, {len(jobs)} to go", flush=True)
     if jobs:
         import multiprocessing as mp

@@ -12,13 +12,16 @@ estimator whose error the Cramér–Rao bounds of :mod:`jointsim.design` describ
 The data of one press: the measured reference frame y₀ (the mean of r untouched frames) and
 the press's K frames y_k. The unknowns
 
-    p = (x_c, y_c, R, d̃_1 … d̃_K, ln s, ln σ, ln z_1 … ln z_n),
+    p = (x_c, y_c, R, d̃_1 … d̃_K, [ln E,] ln s, ln σ, ln z_1 … ln z_n),
 
-the target's centre in the base plane, its radius, each frame's depth, the membrane's modulus
-scale s, the saline's conductivity and every electrode's contact impedance; a prior over the
-scene's [dataset] randomisation about the scene's values holds the nuisances (the radius
-weakly, over its range; the head at the scene's, since a cap's press sees only its ratio to
-the modulus). The depths d̃_k are past the height where the sphere touches one membrane node,
+the target's centre in the base plane, its radius, each frame's depth, a soft target's Young's
+modulus E (a neo-Hookean sphere solved with the membrane,
+:class:`~jointsim.mechanics.soft_target.SoftTargetModel`; absent for a rigid one), the
+membrane's modulus scale s, the saline's conductivity and every electrode's contact impedance;
+a prior over the scene's [dataset] randomisation about the scene's values holds the nuisances
+(the radius and E weakly, over their ranges; the head at the scene's, since a cap's press sees
+only its ratio to the modulus). A soft target's press costs ~6× a rigid one's (two bodies
+in one Newton system, ~40 s at the P1 dataset fidelity for six frames). The depths d̃_k are past the height where the sphere touches one membrane node,
 the same node at every trial (the one touched first at the start): the height of first contact
 itself, what a dataset's depths are measured from and what the estimates report, has a kink
 wherever the node touched first changes. The misfit
@@ -57,7 +60,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..design.bounds import nuisance_prior
-from ..design.sensitivity import ELECTRODE_STEP, electrode_moves, head_moves, parameter_names, press_electrical, press_mechanics
+from ..design.sensitivity import ELECTRODE_STEP, TARGET_MODULUS, electrode_moves, head_moves, parameter_names, press_electrical, press_mechanics
 from ..eit.fit import ElectricalFit, fit_reference
 from ..instrument import Instrument, Readout
 from ..mechanics.build import membrane_from_scene
@@ -98,7 +101,8 @@ class PressRefit:
     (2,) m; the membrane's modulus ``scale``; their standard deviations ``contact_sd`` (K, 2),
     ``depth_sd`` (K,), ``diameter_sd``, ``scale_sd``; the misfit per channel in noise σ
     ``misfit`` (before, after: √(Φ_data / n)); ``trials`` presses through the simulator,
-    ``iterations`` accepted steps, ``seconds``."""
+    ``iterations`` accepted steps, ``seconds``; a soft target's Young's ``modulus`` Pa and the
+    σ of its logarithm ``ln_modulus_sd`` (its relative error; NaN for a rigid target)."""
 
     contact: np.ndarray
     depth: np.ndarray
@@ -113,6 +117,8 @@ class PressRefit:
     trials: int
     iterations: int
     seconds: float
+    modulus: float = math.nan
+    ln_modulus_sd: float = math.nan
 
 
 def fit_electrical(inst: Instrument, v_ref: np.ndarray, reference_frames: int, noise_std: float) -> ElectricalFit:
@@ -136,22 +142,37 @@ class _Press:
     readout rebuilt for the saline and contact impedances of p (a few tenths of a second beside
     the press's seconds)."""
 
-    def __init__(self, inst: Instrument, K: int, offsets: np.ndarray | None = None):
+    def __init__(self, inst: Instrument, K: int, offsets: np.ndarray | None = None, soft: bool = False):
         self.inst = inst
         self.K = K
+        self.soft = bool(soft)
+        self.i_scale = 3 + K + self.soft  # p's membrane modulus scale (after a soft target's ln E)
         self.scene = inst.scene
-        self.names = parameter_names(len(inst.reference.layout.radii))
+        self.names = parameter_names(len(inst.reference.layout.radii), self.soft)
         self.n_el = len(inst.reference.layout.radii)
         # the electrodes' centres (module docstring), and their discs moved either way for
         # press_electrical's position columns
         self.offsets = np.zeros((self.n_el, 2)) if offsets is None else np.asarray(offsets, float).reshape(-1, 2)
         self.moves = self.moves_at(self.offsets)
         self.model: MembraneModel | None = None
+        self.built = (math.nan, math.nan, math.nan)  # (scale, radius, E) of a soft target's model
         self.scale = math.nan
         self.trials = 0
         self.node: int | None = None  # the node whose touch the depths are past (module docstring)
 
-    def membrane(self, scale: float, radius: float) -> MembraneModel:
+    def membrane(self, scale: float, radius: float, modulus: float | None = None) -> MembraneModel:
+        """The untouched membrane at the modulus ``scale`` with a rigid sphere of ``radius`` m, or
+        a soft one of Young's modulus ``modulus`` Pa (its mesh rebuilt whenever R or E moves,
+        as the dataset builds each press's: the same target mesh, turn and slaves)."""
+        if modulus is not None:
+            key = (scale, float(radius), float(modulus))
+            if self.model is None or self.built != key:
+                sc = self.scene
+                scaled = replace(sc, membrane=sc.membrane.scaled(scale), target=replace(sc.target, kind="rigid"))
+                self.model = membrane_from_scene(scaled, target_radius=float(radius), target_modulus=float(modulus),
+                                                 inflate_from=self.inst.inflated_u)
+                self.built = key
+            return self.model
         if self.model is None or abs(math.log(scale / self.scale)) > 1e-9:
             sc = self.scene
             scaled = replace(sc, membrane=sc.membrane.scaled(scale), target=replace(sc.target, kind="rigid"))
@@ -180,10 +201,10 @@ class _Press:
         ∂depth_k/∂p (K, n_p), and ∂[V₀; V]/∂(x0, y0, x1, …) ((K+1)·M, 2 n_el) along the electrodes'
         centres (the joint descent's and the covariance's, :func:`refine_press`).
         A ValueError where a frame's sphere would be above the membrane."""
-        K = self.K
-        centre, radius, depths_node, ln_s = p[:2], float(p[2]), p[3:3 + K], float(p[3 + K])
+        K, i_s = self.K, self.i_scale
+        centre, radius, depths_node, ln_s = p[:2], float(p[2]), p[3:3 + K], float(p[i_s])
         self.trials += 1
-        model = self.membrane(math.exp(ln_s), radius)
+        model = self.membrane(math.exp(ln_s), radius, math.exp(p[3 + K]) if self.soft else None)
         if self.node is None:
             self.node = model.first_contact(centre)[1]
         z_node, _ = _node_touch(model, centre, model.u, None, self.node)
@@ -199,7 +220,7 @@ class _Press:
         _, along = _node_touch(model, centre, mech.u_ref, mech.du_ref, self.node)
         _, first = _node_touch(model, centre, mech.u_ref, mech.du_ref)
         mech = replace(mech, dzc=along)
-        readout = self.readout(p[4 + K:])
+        readout = self.readout(p[i_s + 1:])
         try:
             inst = replace(self.inst, readout=readout)
             ps = press_electrical(inst, mech, moves=self.moves)
@@ -213,8 +234,8 @@ class _Press:
         centres = slice(n.index("x0"), n.index("x0") + 2 * self.n_el)
         M, n_p = len(v0), len(p)
         J = np.zeros(((K + 1) * M, n_p))
-        J[:M, 3 + K] = ps.jacobian_ref[:, imod]
-        J[:M, 4 + K:] = ps.jacobian_ref[:, electrical]
+        J[:M, i_s] = ps.jacobian_ref[:, imod]
+        J[:M, i_s + 1:] = ps.jacobian_ref[:, electrical]
         Jc = np.zeros(((K + 1) * M, 2 * self.n_el))
         Jc[:M] = ps.jacobian_ref[:, centres]
         V = np.zeros((K, M))
@@ -227,15 +248,18 @@ class _Press:
             Jk = ps.jacobian[j]  # at a fixed depth past the node's touch
             J[rows, 0], J[rows, 1], J[rows, 2] = Jk[:, ix], Jk[:, iy], Jk[:, irad]
             J[rows, 3 + k] = Jk[:, idep]
-            J[rows, 3 + K] = Jk[:, imod]
-            J[rows, 4 + K:] = Jk[:, electrical]
+            J[rows, i_s] = Jk[:, imod]  # the membrane's alone: a soft target's E held
+            J[rows, i_s + 1:] = Jk[:, electrical]
             Jc[rows] = Jk[:, centres]
             contact[k] = ps.contact[j, :2]
-            c = ps.contact_jacobian[j]  # (2, 4) the same way
+            c = ps.contact_jacobian[j]  # (2, 4; a soft target 5) the same way
             cj[k, :, 0], cj[k, :, 1], cj[k, :, 2], cj[k, :, 3 + k] = c[:, 0], c[:, 1], c[:, 3], c[:, 2]
+            if self.soft:  # a soft target's modulus (it does not move the first contact: dd's 0)
+                J[rows, 3 + K] = Jk[:, n.index(TARGET_MODULUS)]
+                cj[k, :, 3 + K] = c[:, 4]
             # depth = z_first − z_node + the fit's depth; the modulus scale acts as the head's inverse
             dd[k, :3] = (first["x"] - along["x"], first["y"] - along["y"], first["radius"] - along["radius"])
-            dd[k, 3 + k], dd[k, 3 + K] = 1.0, -(first["ln_pressure"] - along["ln_pressure"])
+            dd[k, 3 + k], dd[k, i_s] = 1.0, -(first["ln_pressure"] - along["ln_pressure"])
         return v0, V, J, contact, cj, depths, dd, Jc
 
 
@@ -311,13 +335,15 @@ def _levenberg_marquardt(evaluate, objective, p: np.ndarray, state: tuple, preci
 
 def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, reference_frames: int,
                  contact: np.ndarray, depths: np.ndarray, diameter: float, *, electrical: ElectricalFit | None = None,
-                 noise_std: float | None = None, max_trials: int = MAX_TRIALS, tol: float = 0.1) -> PressRefit:
+                 noise_std: float | None = None, modulus: float | None = None, max_trials: int = MAX_TRIALS,
+                 tol: float = 0.1) -> PressRefit:
     """The press of measured ``frames`` (K, n_meas) V against the measured reference ``v_ref``
     (n_meas,) V (the mean of ``reference_frames`` frames), fitted through the simulator of
     ``inst``'s scene, from a start: the contact (2,) m (the first frame's centre of pressure, or
     where the target first touched), the frames' ``depths`` (K,) m, the target's ``diameter`` m
     and the sensor's ``electrical`` nuisances (:func:`fit_electrical`; default the scene's), the
-    modulus scale at 1 (module docstring). ``noise_std`` V of one frame (default the
+    modulus scale at 1 (module docstring). ``modulus``: a soft target's Young's modulus Pa to
+    start from, fitted too (None: a rigid target). ``noise_std`` V of one frame (default the
     instrument's, at its SNR). Stops when every step is below ``tol`` of its parameter's σ, or
     after ``max_trials`` presses through the simulator."""
     t0 = time.perf_counter()
@@ -325,22 +351,28 @@ def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, refere
     K, M = frames.shape
     sigma = inst.readout.noise_std if noise_std is None else float(noise_std)
     layout = inst.reference.layout
-    sim = _Press(inst, K, None if electrical is None else electrical.centres[:, :2] - layout.centres[:, :2])
-    scene, n = inst.scene, sim.n_el
+    soft = modulus is not None
+    if soft and not (math.isfinite(modulus) and modulus > 0):
+        raise ValueError(f"refine_press: modulus = {modulus}: a soft target's Young's modulus must be > 0 Pa")
+    sim = _Press(inst, K, None if electrical is None else electrical.centres[:, :2] - layout.centres[:, :2], soft)
+    scene, n, i_s = inst.scene, sim.n_el, sim.i_scale
     # the prior: the modulus scale and the electrical nuisances over the scene's randomisation
-    # about its values, the radius weakly over its range
+    # about its values, the radius (and a soft target's ln E) weakly over its range
     names = sim.names[sim.names.index("ln_modulus"):sim.names.index("ln_conductivity") + 1 + n]
     nuisance_sd = nuisance_prior(scene, ("x", "y", "depth", "radius") + names)
     z_scene = scene.electrodes.contact_impedances
     eta_scene = np.concatenate([[math.log(scene.saline.conductivity)], np.log(z_scene)])
     r_lo, r_hi = scene.dataset.radius
-    n_p = 3 + K + len(nuisance_sd)
+    n_p = i_s + len(nuisance_sd)
     mean = np.zeros(n_p)
     mean[2] = 0.5 * (r_lo + r_hi)
-    mean[4 + K:] = eta_scene
+    mean[i_s + 1:] = eta_scene
     precision = np.zeros(n_p)
     precision[2] = 1.0 / (r_hi - r_lo) ** 2
-    precision[3 + K:] = 1.0 / np.maximum(nuisance_sd, 1e-12) ** 2
+    precision[i_s:] = 1.0 / np.maximum(nuisance_sd, 1e-12) ** 2
+    if soft:
+        e_lo, e_hi = np.log(scene.dataset.target_modulus)
+        mean[3 + K], precision[3 + K] = 0.5 * (e_lo + e_hi), 1.0 / max(e_hi - e_lo, 1.0) ** 2
     w = np.concatenate([np.full(M, math.sqrt(reference_frames)), np.ones(K * M)]) / sigma
     y = np.concatenate([v_ref, frames.ravel()])
 
@@ -357,7 +389,7 @@ def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, refere
     if electrical is not None:
         eta = np.concatenate([[math.log(electrical.conductivity)], np.log(electrical.contact_impedance)])
     radius = 0.5 * float(diameter)
-    start_model = sim.membrane(1.0, radius)
+    start_model = sim.membrane(1.0, radius, modulus)
     centre = centre_touching(start_model, np.asarray(contact, float))[:2]
     # a start past what the dome allows there (a large sphere near the ring, deep) held short of it
     reach = depth_reach(start_model, start_model.first_contact_height(centre))
@@ -365,7 +397,7 @@ def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, refere
         raise ValueError(f"refine_press: a {2e3 * radius:.3g} mm sphere touching at {np.round(np.asarray(contact) * 1e3, 2).tolist()} "
                          "mm cannot press the dome there; start from another diameter")
     start_depths = np.clip(np.asarray(depths, float), MIN_DEPTH, 0.95 * reach)
-    p = np.concatenate([centre, [radius], start_depths, [0.0], eta])
+    p = np.concatenate([centre, [radius], start_depths, [math.log(modulus)] if soft else [], [0.0], eta])
     state = evaluate(p)
     before = math.sqrt(float(state[0] @ state[0]) / len(state[0]))
     iterations = 0
@@ -383,10 +415,11 @@ def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, refere
     sd = np.sqrt(np.diag(C))
     contact_sd = np.sqrt(np.einsum("kip,pq,kiq->ki", cj, C, cj))
     depth_sd = np.sqrt(np.einsum("kp,pq,kq->k", dd, C, dd))
-    ln_s = float(p[3 + K])
+    ln_s = float(p[i_s])
     return PressRefit(c, d, 2 * float(p[2]), p[:2].copy(), math.exp(ln_s), contact_sd, depth_sd,
-                      2 * float(sd[2]), math.exp(ln_s) * float(sd[3 + K]), (before, math.sqrt(float(r @ r) / len(r))),
-                      sim.trials, iterations, time.perf_counter() - t0)
+                      2 * float(sd[2]), math.exp(ln_s) * float(sd[i_s]), (before, math.sqrt(float(r @ r) / len(r))),
+                      sim.trials, iterations, time.perf_counter() - t0,
+                      math.exp(p[3 + K]) if soft else math.nan, float(sd[3 + K]) if soft else math.nan)
 
 
 def _joint_descent(sim: _Press, evaluate, objective, p: np.ndarray, state: tuple, precision: np.ndarray, mean: np.ndarray,
