@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import math
 from pathlib import Path
 
 from .common import add_progress_argument, add_scene_arguments, progress_off, scene_from_args
@@ -39,6 +40,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the frames are one press (a target held at several depths): fit them through the simulator, "
                         "from the calibration map's estimate, with the sensor's modulus scale, saline, contact "
                         "impedances and electrode positions (a few minutes; needs --calibration and 2+ reference frames)")
+    p.add_argument("--soft-target", type=float, metavar="KPA",
+                   help="with --refine: the target is soft (a neo-Hookean sphere): fit its Young's modulus too, from KPA "
+                        "kPa (~6x the time of a rigid target's fit)")
     p.add_argument("--known-presses", type=Path, metavar="CSV",
                    help="a rig's known presses of rigid spheres (x_mm, y_mm: the sphere's centre; diameter_mm, depth_mm past "
                         "first contact, force_n read there; a line per depth): fit the membrane's modulus scale to the "
@@ -67,6 +71,10 @@ def run(args: argparse.Namespace) -> int:
     if args.refine and len(reference) < 2:
         raise ValueError(f"--refine: weighs the frames by the noise the reference frames scatter with; {args.reference} "
                          f"holds {len(reference)} frame(s), give 2 or more")
+    if args.soft_target is not None and not args.refine:
+        raise ValueError("--soft-target: the modulus is fitted by --refine; give --refine too")
+    if args.soft_target is not None and not (math.isfinite(args.soft_target) and args.soft_target > 0):
+        raise ValueError(f"--soft-target = {args.soft_target}: a Young's modulus to start from, kPa > 0")
     known = None
     if args.known_presses is not None:  # read and checked before any work
         from ..calibration.membrane_fit import known_presses
@@ -104,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
             est = calibrate_measured(cmap, res.voltages, res.dv, res.com, res.sum_sigma, res.diameter, snr,
                                      one_press=args.refine)
             if args.refine:
-                refined = _refine(inst, est, res, snr, len(reference))
+                refined = _refine(inst, est, res, snr, len(reference), args.soft_target)
     finally:
         inst.free()
     out: Path = args.out
@@ -153,6 +161,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"  refined through the simulator ({refined['trials']} presses, {refined['seconds']:.0f} s): diameter "
               f"{refined['diameter_mm']:.2f} +- {refined['diameter_sd_mm']:.2f} mm, membrane modulus x{refined['modulus_scale']:.3f} "
               f"+- {refined['modulus_scale_sd']:.3f}; "
+              + (f"target modulus {refined['target_modulus_kpa']:.3g} kPa +- {100 * refined['target_modulus_sd_relative']:.0f} %; "
+                 if "target_modulus_kpa" in refined else "") +
               f"misfit {refined['misfit_before']:.3g} -> {refined['misfit_after']:.3g} noise sd per channel")
     print(f"  wrote {', '.join(p.name for p in written)} to {out}")
     return 0
@@ -183,9 +193,10 @@ def _membrane(scene, inst, known: list) -> dict:
                           "measured": k.forces.tolist(), "fitted": m.tolist()} for k, m in zip(known, f.forces)]}
 
 
-def _refine(inst, est: dict, res, snr_db: float, n_reference: int) -> dict:
+def _refine(inst, est: dict, res, snr_db: float, n_reference: int, soft_kpa: float | None = None) -> dict:
     """The frames of ``res`` fitted as one press through the simulator (jointsim.calibration.refine)
-    from the map's press fit ``est``; per-frame columns (SI) and the fit's summary, JSON-ready (mm)."""
+    from the map's press fit ``est`` (a soft target's modulus from ``soft_kpa`` kPa); per-frame
+    columns (SI) and the fit's summary, JSON-ready (mm, kPa)."""
     import numpy as np
 
     from ..calibration.refine import fit_electrical, refine_press
@@ -199,7 +210,7 @@ def _refine(inst, est: dict, res, snr_db: float, n_reference: int) -> dict:
     electrical = fit_electrical(inst, res.reference, n_reference, sigma)
     start = np.array([np.mean(joint("x")), np.mean(joint("y"))])
     f = refine_press(inst, res.voltages, res.reference, n_reference, start, depth, float(np.mean(joint("diameter"))),
-                     electrical=electrical, noise_std=sigma)
+                     electrical=electrical, noise_std=sigma, modulus=None if soft_kpa is None else 1e3 * soft_kpa)
     n = len(res.voltages)
     columns = {"refined_x": f.contact[:, 0], "refined_y": f.contact[:, 1], "refined_depth": f.depth,
                "refined_diameter": np.full(n, f.diameter), "refined_sd_x": f.contact_sd[:, 0], "refined_sd_y": f.contact_sd[:, 1],
@@ -207,4 +218,6 @@ def _refine(inst, est: dict, res, snr_db: float, n_reference: int) -> dict:
     return {"columns": columns, "diameter_mm": f.diameter * 1e3, "diameter_sd_mm": f.diameter_sd * 1e3,
             "centre_mm": (f.centre * 1e3).tolist(), "modulus_scale": f.scale, "modulus_scale_sd": f.scale_sd,
             "misfit_before": f.misfit[0], "misfit_after": f.misfit[1], "trials": f.trials, "seconds": f.seconds,
-            "noise_sd_v": sigma, "snr_db": snr_db}
+            "noise_sd_v": sigma, "snr_db": snr_db,
+            **({"target_modulus_kpa": f.modulus / 1e3, "target_modulus_sd_relative": math.expm1(f.ln_modulus_sd),
+                "target_modulus_start_kpa": soft_kpa} if soft_kpa is not None else {})}
