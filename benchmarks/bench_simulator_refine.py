@@ -18,7 +18,9 @@ reported σ's coverage (within 1σ, 2σ; RMS error in σ), seconds per press. "W
 the emulator's estimate kept for a press whose σ meets the position and depth goals
 (jointsim.calibration.refine.worth_refining), the simulator's elsewhere. A store of soft
 targets: each press's Young's modulus fitted too, from the geometric mean of the scene's
-[dataset] range (the map's stiffness model needs the force, which the frames do not carry).
+[dataset] range among its starts (the map's stiffness model needs the force, which the frames
+do not carry). Each fit's misfit beside the misfit of the simulator at the press's true
+parameters on the same frames: a fit above it stopped short of its optimum.
 """
 
 from __future__ import annotations
@@ -53,19 +55,52 @@ def _init(map_path: str, scene) -> None:
     _STATE["inst"] = Instrument.build(scene, imaging=False)
 
 
-def press(job: dict) -> dict:
-    """One held-out press: its three estimates (mm-free SI lists)."""
-    from jointsim.calibration.data import voltage_features
-    from jointsim.calibration.emulator import fit_presses, sigmas
-    from jointsim.calibration.refine import fit_electrical, refine_press
+def _noised(job: dict) -> tuple[np.ndarray, np.ndarray, float]:
+    """The press's frames and reference re-noised at the goal SNR (seeded by its group)."""
     from jointsim.eit.noise import noise_std
 
-    cmap, inst = _STATE["map"], _STATE["inst"]
     clean, ref_clean, r = np.asarray(job["clean"]), np.asarray(job["ref_clean"]), int(job["reference_frames"])
     rng = np.random.default_rng([2026, job["group"]])
     sigma = noise_std(ref_clean, GOAL_SNR_DB)
     frames = clean + rng.normal(0.0, sigma, clean.shape)
     v_ref = ref_clean + rng.normal(0.0, sigma / math.sqrt(r), ref_clean.shape)
+    return frames, v_ref, sigma
+
+
+def truth_misfit(job: dict) -> dict:
+    """The misfit per channel in noise σ (the fit's measure, √(Φ_data / n)) of the simulator at
+    the press's true parameters (its sphere, depths, modulus, membrane scale, saline, contact
+    impedance, electrode jitter) on the same noised frames: a fit whose misfit lies above this
+    stopped short of its optimum (over ~60 parameters the optimum lies ~1/60 of a channel's
+    misfit² below the truth's)."""
+    from jointsim.calibration.refine import _Press
+
+    inst = _STATE["inst"]
+    frames, v_ref, sigma = _noised(job)
+    K, r = len(frames), int(job["reference_frames"])
+    soft = math.isfinite(job.get("modulus", math.inf))
+    sim = _Press(inst, K, soft=soft)
+    offsets = np.zeros((sim.n_el, 2))
+    jitter = np.asarray(job["jitter"])
+    offsets[: len(jitter)] = jitter
+    sim.offsets, sim.moves = offsets, sim.moves_at(offsets)
+    p = np.concatenate([job["xy"], [job["radius"]], np.asarray(job["truth"])[:, 2], [math.log(job["modulus"])] if soft else [],
+                        [math.log(job["scale"]), math.log(job["conductivity"])], np.full(sim.n_el, math.log(job["contact_impedance"]))])
+    v0, V = sim(p)[:2]
+    w = np.concatenate([np.full(len(v0), math.sqrt(r)), np.ones(V.size)]) / sigma
+    res = w * (np.concatenate([v0, V.ravel()]) - np.concatenate([v_ref, frames.ravel()]))
+    return {"group": job["group"], "truth_misfit": math.sqrt(float(res @ res) / len(res))}
+
+
+def press(job: dict) -> dict:
+    """One held-out press: its three estimates (mm-free SI lists)."""
+    from jointsim.calibration.data import voltage_features
+    from jointsim.calibration.emulator import fit_presses, sigmas
+    from jointsim.calibration.refine import fit_electrical, refine_press
+
+    cmap, inst = _STATE["map"], _STATE["inst"]
+    frames, v_ref, sigma = _noised(job)
+    r = int(job["reference_frames"])
     F = voltage_features(frames, frames - v_ref)
     K = len(frames)
     direct = cmap.regressor(F)[:, :4]
@@ -80,12 +115,13 @@ def press(job: dict) -> dict:
                            noise_std=sigma, modulus=start_modulus)
     except Exception as e:  # a press the fit cannot take is a result too: counted, not a stopped run
         return {"group": job["group"], "error": f"{type(e).__name__}: {e}", "seconds": time.perf_counter() - t0}
+    truth = truth_misfit(job)["truth_misfit"]
     refined = np.column_stack([fit.contact, fit.depth, np.full(K, fit.diameter)])
     refined_sd = np.column_stack([fit.contact_sd, fit.depth_sd, np.full(K, fit.diameter_sd)])
     return {"group": job["group"], "truth": job["truth"], "direct": direct.tolist(), "emulator": emu.tolist(),
             "emulator_sd": sigmas(cov).tolist(), "refined": refined.tolist(), "refined_sd": refined_sd.tolist(),
             "scale": [fit.scale, fit.scale_sd, job["scale"]], "misfit": list(fit.misfit), "trials": fit.trials,
-            "iterations": fit.iterations, "seconds": t_el + fit.seconds, "seconds_electrical": t_el,
+            "iterations": fit.iterations, "seconds": t_el + fit.seconds, "seconds_electrical": t_el, "truth_misfit": truth,
             **({"modulus": [fit.modulus, fit.ln_modulus_sd, job["modulus"], start_modulus]} if soft else {})}
 
 
@@ -137,6 +173,9 @@ def summarise(rows: list[dict]) -> dict:
             # the scale's error in its own σ (sd of s; of ln s, sd/s)
             "scale_rms_z": float(np.sqrt(np.mean([(math.log(r["scale"][0] / r["scale"][2]) * r["scale"][0] / r["scale"][1]) ** 2
                                                   for r in rows]))),
+            # a fit whose misfit lies above the truth's stopped short of its optimum (truth_misfit)
+            "short_of_optimum": [r["group"] for r in rows if "truth_misfit" in r and r["misfit"][1] > r["truth_misfit"]],
+            "truth_misfit_presses": sum("truth_misfit" in r for r in rows),
             **({"modulus": _modulus_scores(rows)} if any("modulus" in r for r in rows) else {})}
 
 
@@ -148,7 +187,8 @@ def _modulus_scores(rows: list[dict]) -> list[dict]:
     for r in sorted((r for r in rows if "modulus" in r), key=lambda r: r["modulus"][2]):
         E, sd, true, start = r["modulus"]
         out.append({"group": r["group"], "true_kpa": true / 1e3, "fit_kpa": E / 1e3, "start_kpa": start / 1e3,
-                    "relative_error": E / true - 1.0, "sd_relative": math.expm1(sd), "z": math.log(E / true) / sd})
+                    "relative_error": E / true - 1.0, "sd_relative": math.expm1(sd), "z": math.log(E / true) / sd,
+                    "misfit": r["misfit"][1], "truth_misfit": r.get("truth_misfit", math.nan)})
     return out
 
 
@@ -186,16 +226,23 @@ def markdown(s: dict, a: argparse.Namespace, head: dict) -> str:
           f"through the simulator (median); the misfit after, per channel in noise σ: median {s['misfit_after_median']:.3f}, "
           f"largest {s['misfit_after_max']:.3f} (1 where the model fits to the noise); the membrane's modulus scale to "
           f"{100 * s['scale_error_median']:.1f} % (median |ln error|; RMS error / σ {s['scale_rms_z']:.2g}). {a.workers} worker processes, {t['sum'] / 3600:.2f} CPU-hours in all."]
+    if s["truth_misfit_presses"]:
+        L += ["", f"Did each fit find its optimum? The simulator at each press's true parameters (its sphere, depths, "
+              "membrane scale, saline, contact impedance, electrode jitter) on the same noised frames: a fit whose misfit lies "
+              f"above the truth's stopped short of its optimum. {len(s['short_of_optimum'])} of {s['truth_misfit_presses']}"
+              + (f" (groups {', '.join(map(str, s['short_of_optimum']))})." if s["short_of_optimum"] else ".")]
     if "modulus" in s:
         m = s["modulus"]
         rel = np.abs([x["relative_error"] for x in m])
         z = np.array([x["z"] for x in m])
-        L += ["", "A soft target's Young's modulus, fitted with the rest from the geometric mean of the scene's range "
+        L += ["", "A soft target's Young's modulus, fitted with the rest after the press's rigid fit, from the best of the "
+              "geometric mean of the scene's range and 4 values over it (jointsim.calibration.refine.refine_press) "
               f"(the goal: within 20 %): median relative error {100 * np.median(rel):.0f} %, RMS error / σ "
               f"{np.sqrt(np.mean(z ** 2)):.2g} (σ of ln E, the press's own bound with the nuisances fitted).", "",
-              "| group | true E kPa | fitted E kPa | relative error | σ (relative) | error / σ |", "|---|---:|---:|---:|---:|---:|"]
+              "| group | true E kPa | fitted E kPa | relative error | σ (relative) | error / σ | misfit: the fit's / the truth's |",
+              "|---|---:|---:|---:|---:|---:|---|"]
         L += [f"| {x['group']} | {x['true_kpa']:.4g} | {x['fit_kpa']:.4g} | {100 * x['relative_error']:+.1f} % | "
-              f"{100 * x['sd_relative']:.1f} % | {x['z']:+.2f} |" for x in m]
+              f"{100 * x['sd_relative']:.1f} % | {x['z']:+.2f} | {x['misfit']:.4f} / {x['truth_misfit']:.4f} |" for x in m]
     return "\n".join(L) + "\n"
 
 
@@ -215,7 +262,8 @@ def main() -> None:
     from jointsim.scene import load_scene
     from jointsim.io.records import open_records
 
-    fields = ["group", "contact_centre", "depth", "radius", "voltages_clean", "reference_clean", "membrane_scale"]
+    fields = ["group", "contact_centre", "depth", "radius", "voltages_clean", "reference_clean", "membrane_scale", "xy",
+              "electrode_jitter", "conductivity", "contact_impedance"]
     try:  # a soft target's modulus (inf for a rigid one); not in a store older than the schema's field
         rec = open_records(a.dataset, fields=fields + ["target_modulus"])
     except KeyError:
@@ -227,21 +275,25 @@ def main() -> None:
     a.work.mkdir(parents=True, exist_ok=True)
     done_path = a.work / f"presses_{rec.data_sha256[:16]}_split{a.seed}.jsonl"
     rows = [json.loads(line) for line in done_path.read_text().splitlines()] if done_path.is_file() else []
-    done = {r["group"] for r in rows}
-    jobs = []
+    done = {r["group"]: r for r in rows}
+    jobs, truth_jobs = [], []
     for G in test_ids:
-        if int(G) in done:
-            continue
         i = np.flatnonzero(g == G)
         cc, d, rad = np.asarray(rec["contact_centre"])[i], np.asarray(rec["depth"])[i], np.asarray(rec["radius"])[i]
         jobs.append({"group": int(G), "clean": np.asarray(rec["voltages_clean"])[i].tolist(),
                      "ref_clean": np.asarray(rec["reference_clean"])[i[0]].tolist(), "reference_frames": r_frames,
                      "truth": np.column_stack([cc[:, :2], d, 2 * rad]).tolist(),
-                     "scale": float(np.asarray(rec["membrane_scale"])[i[0]]),
+                     "scale": float(np.asarray(rec["membrane_scale"])[i[0]]), "xy": rec["xy"][i[0]].tolist(),
+                     "radius": float(rad[0]), "jitter": rec["electrode_jitter"][i[0]].tolist(),
+                     "conductivity": float(rec["conductivity"][i[0]]), "contact_impedance": float(rec["contact_impedance"][i[0]]),
                      **({"modulus": float(rec["target_modulus"][i[0]])} if "target_modulus" in rec.fields
                         and math.isfinite(rec["target_modulus"][i[0]]) else {})})
+        if int(G) in done:  # fitted already: the misfit at the truth only, where a run before this diagnostic left it out
+            job = jobs.pop()
+            if "error" not in done[int(G)] and "truth_misfit" not in done[int(G)]:
+                truth_jobs.append(job)
     print(f"{len(done)} presses done, {len(jobs)} to go", flush=True)
-    if jobs:
+    if jobs or truth_jobs:
         import multiprocessing as mp
 
         for v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):  # one core per worker process
@@ -254,6 +306,12 @@ def main() -> None:
                 rows.append(row)
                 print(f"group {row['group']}: {row['seconds']:.0f} s, " + (row["error"] if "error" in row else
                       f"{row['trials']} trials, misfit {row['misfit'][1]:.3f}"), flush=True)
+            extra = {t["group"]: t["truth_misfit"] for t in pool.imap_unordered(truth_misfit, truth_jobs)}
+        if extra:  # the rows done before, with the misfit at their truth added: the file rewritten whole
+            rows = [{**r, "truth_misfit": extra[r["group"]]} if r["group"] in extra else r for r in rows]
+            tmp = done_path.with_suffix(".tmp")
+            tmp.write_text("".join(json.dumps(r) + "\n" for r in rows))
+            os.replace(tmp, done_path)
     rows = [r for r in rows if r["group"] in set(int(x) for x in test_ids)]
     s = summarise(rows)
     head = {"machine": machine(), "n": int(len(g)), "data_sha256": rec.data_sha256, "map": str(a.map),
