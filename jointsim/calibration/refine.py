@@ -350,9 +350,10 @@ def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, refere
     values it starts from (None: a rigid target). The press is first fitted as a rigid
     target's (~6× cheaper a trial), then as the soft one's from there, its modulus started at
     whichever of ``modulus`` and :data:`SOFT_STARTS` values over the scene's [dataset] range
-    fits best. From the emulator's estimate directly, a 1.4 MPa sphere of 12 mm was fitted as a
-    48 kPa one of 24 mm, stalled 12σ per channel above the noise: a soft sphere's size and
-    modulus trade along a valley the descent does not follow from far off."""
+    fits best: a soft sphere's size and modulus trade along a valley the descent does not
+    follow from an estimate as far off as the emulator's. Not yet a reliable reading of the
+    modulus: along that valley the frames may not separate two spheres at all, and the σ at
+    the fit is then one point's curvature (docs/calibration.md, "Soft targets")."""
     t0 = time.perf_counter()
     frames = np.atleast_2d(np.asarray(frames, float))
     K = len(frames)
