@@ -21,8 +21,9 @@ membrane's modulus scale s, the saline's conductivity and every electrode's cont
 a prior over the scene's [dataset] randomisation about the scene's values holds the nuisances
 (the radius and E weakly, over their ranges; the head at the scene's, since a cap's press sees
 only its ratio to the modulus). A soft target's press costs ~6× a rigid one's (two bodies
-in one Newton system, ~40 s at the P1 dataset fidelity for six frames). The depths d̃_k are past the height where the sphere touches one membrane node,
-the same node at every trial (the one touched first at the start): the height of first contact
+in one Newton system, ~40 s at the P1 dataset fidelity for six frames), and its fit does not
+yet read the modulus (:func:`refine_press`). The depths d̃_k are past the height where the
+sphere touches one membrane node, the same node at every trial (the one touched first at the start): the height of first contact
 itself, what a dataset's depths are measured from and what the estimates report, has a kink
 wherever the node touched first changes. The misfit
 
@@ -138,7 +139,8 @@ def fit_electrical(inst: Instrument, v_ref: np.ndarray, reference_frames: int, n
 
 class _Press:
     """The simulator of one press for the fit: p ↦ (the reference's and the frames' voltages,
-    their derivatives, the contacts) on a membrane rebuilt when the modulus scale moves and a
+    their derivatives, the contacts) on a membrane rebuilt when the modulus scale moves (with a
+    soft target, whenever the scale, its radius or its modulus moves) and a
     readout rebuilt for the saline and contact impedances of p (a few tenths of a second beside
     the press's seconds)."""
 
