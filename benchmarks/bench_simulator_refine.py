@@ -79,11 +79,11 @@ def truth_misfit(job: dict) -> dict:
     frames, v_ref, sigma = _noised(job)
     K, r = len(frames), int(job["reference_frames"])
     soft = math.isfinite(job.get("modulus", math.inf))
-    sim = _Press(inst, K, soft=soft)
-    offsets = np.zeros((sim.n_el, 2))
+    n_el = len(inst.reference.layout.radii)
     jitter = np.asarray(job["jitter"])
-    offsets[: len(jitter)] = jitter
-    sim.offsets, sim.moves = offsets, sim.moves_at(offsets)
+    offsets = np.zeros((n_el, 2))
+    offsets[: len(jitter)] = jitter  # the ground electrode's is the layout's
+    sim = _Press(inst, K, offsets, soft)
     p = np.concatenate([job["xy"], [job["radius"]], np.asarray(job["truth"])[:, 2], [math.log(job["modulus"])] if soft else [],
                         [math.log(job["scale"]), math.log(job["conductivity"])], np.full(sim.n_el, math.log(job["contact_impedance"]))])
     v0, V = sim(p)[:2]
@@ -280,18 +280,18 @@ def main() -> None:
     for G in test_ids:
         i = np.flatnonzero(g == G)
         cc, d, rad = np.asarray(rec["contact_centre"])[i], np.asarray(rec["depth"])[i], np.asarray(rec["radius"])[i]
-        jobs.append({"group": int(G), "clean": np.asarray(rec["voltages_clean"])[i].tolist(),
-                     "ref_clean": np.asarray(rec["reference_clean"])[i[0]].tolist(), "reference_frames": r_frames,
-                     "truth": np.column_stack([cc[:, :2], d, 2 * rad]).tolist(),
-                     "scale": float(np.asarray(rec["membrane_scale"])[i[0]]), "xy": rec["xy"][i[0]].tolist(),
-                     "radius": float(rad[0]), "jitter": rec["electrode_jitter"][i[0]].tolist(),
-                     "conductivity": float(rec["conductivity"][i[0]]), "contact_impedance": float(rec["contact_impedance"][i[0]]),
-                     **({"modulus": float(rec["target_modulus"][i[0]])} if "target_modulus" in rec.fields
-                        and math.isfinite(rec["target_modulus"][i[0]]) else {})})
-        if int(G) in done:  # fitted already: the misfit at the truth only, where a run before this diagnostic left it out
-            job = jobs.pop()
-            if "error" not in done[int(G)] and "truth_misfit" not in done[int(G)]:
-                truth_jobs.append(job)
+        job = {"group": int(G), "clean": np.asarray(rec["voltages_clean"])[i].tolist(),
+                "ref_clean": np.asarray(rec["reference_clean"])[i[0]].tolist(), "reference_frames": r_frames,
+                "truth": np.column_stack([cc[:, :2], d, 2 * rad]).tolist(),
+                "scale": float(np.asarray(rec["membrane_scale"])[i[0]]), "xy": rec["xy"][i[0]].tolist(),
+                "radius": float(rad[0]), "jitter": rec["electrode_jitter"][i[0]].tolist(),
+                "conductivity": float(rec["conductivity"][i[0]]), "contact_impedance": float(rec["contact_impedance"][i[0]]),
+                **({"modulus": float(rec["target_modulus"][i[0]])} if "target_modulus" in rec.fields
+                   and math.isfinite(rec["target_modulus"][i[0]]) else {})}
+        if int(G) not in done:
+            jobs.append(job)
+        elif "error" not in done[int(G)] and "truth_misfit" not in done[int(G)]:
+            truth_jobs.append(job)  # fitted by a run before this diagnostic: the misfit at the truth only
     print(f"{len(done)} presses done, {len(jobs)} to go", flush=True)
     if jobs or truth_jobs:
         import multiprocessing as mp

@@ -365,12 +365,12 @@ def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, refere
     if soft and not (math.isfinite(modulus) and modulus > 0):
         raise ValueError(f"refine_press: modulus = {modulus}: a soft target's Young's modulus must be > 0 Pa")
     scene = inst.scene
-    offsets = None if electrical is None else electrical.centres[:, :2] - layout.centres[:, :2]
-    eta = np.concatenate([[math.log(scene.saline.conductivity)], np.log(scene.electrodes.contact_impedances)])
+    sim = _Press(inst, K, None if electrical is None else electrical.centres[:, :2] - layout.centres[:, :2])
+    eta = _scene_electrical(scene)
     if electrical is not None:
         eta = np.concatenate([[math.log(electrical.conductivity)], np.log(electrical.contact_impedance)])
     radius = 0.5 * float(diameter)
-    start_model = _Press(inst, K).membrane(1.0, radius)
+    start_model = sim.membrane(1.0, radius)  # the first trial's, too
     centre = centre_touching(start_model, np.asarray(contact, float))[:2]
     # a start past what the dome allows there (a large sphere near the ring, deep) held short of it
     reach = depth_reach(start_model, start_model.first_contact_height(centre))
@@ -379,7 +379,7 @@ def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, refere
                          "mm cannot press the dome there; start from another diameter")
     start_depths = np.clip(np.asarray(depths, float), MIN_DEPTH, 0.95 * reach)
     p = np.concatenate([centre, [radius], start_depths, [0.0], eta])
-    fit, p, sim = _fit(inst, frames, v_ref, reference_frames, sigma, p, offsets, (), max_trials, tol)
+    fit, p = _fit(sim, frames, v_ref, reference_frames, sigma, p, (), max_trials, tol)
     if not soft:
         return replace(fit, seconds=time.perf_counter() - t0)
     # the soft target from the rigid fit: its depths past first contact (the soft fit's node is
@@ -387,7 +387,8 @@ def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, refere
     e_lo, e_hi = scene.dataset.target_modulus
     starts = (float(modulus),) + tuple(np.exp(np.linspace(math.log(e_lo), math.log(e_hi), SOFT_STARTS)))
     q = np.concatenate([p[:3], fit.depth, [math.nan], p[3 + K:]])
-    soft_fit, _, soft_sim = _fit(inst, frames, v_ref, reference_frames, sigma, q, sim.offsets, starts, max_trials, tol)
+    soft_sim = _Press(inst, K, sim.offsets, soft=True)
+    soft_fit, _ = _fit(soft_sim, frames, v_ref, reference_frames, sigma, q, starts, max_trials, tol)
     return replace(soft_fit, misfit=(fit.misfit[0], soft_fit.misfit[1]), trials=sim.trials + soft_sim.trials,
                    iterations=fit.iterations + soft_fit.iterations, seconds=time.perf_counter() - t0)
 
@@ -397,20 +398,24 @@ def refine_press(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, refere
 SOFT_STARTS = 4
 
 
-def _fit(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, reference_frames: int, sigma: float, p: np.ndarray,
-         offsets: np.ndarray | None, moduli: tuple[float, ...], max_trials: int, tol: float) -> tuple[PressRefit, np.ndarray, _Press]:
-    """:func:`refine_press`'s descents from ``p`` with the electrodes at ``offsets``: a rigid
-    target, or with ``moduli`` a soft one, p's ln E (NaN) set to the best of them (one trial
-    each): (the fit, its p, its simulator)."""
+def _scene_electrical(scene) -> np.ndarray:
+    """The scene's electrical nuisances as p holds them: (ln σ, ln z_l…)."""
+    return np.concatenate([[math.log(scene.saline.conductivity)], np.log(scene.electrodes.contact_impedances)])
+
+
+def _fit(sim: _Press, frames: np.ndarray, v_ref: np.ndarray, reference_frames: int, sigma: float, p: np.ndarray,
+         moduli: tuple[float, ...], max_trials: int, tol: float) -> tuple[PressRefit, np.ndarray]:
+    """:func:`refine_press`'s descents from ``p`` through ``sim`` (its electrodes where it holds
+    them): a rigid target, or a soft one (``sim.soft``) with p's ln E (NaN) set to the best of
+    ``moduli`` (one trial each): (the fit, its p)."""
     K, M = frames.shape
-    soft = bool(moduli)
-    sim = _Press(inst, K, offsets, soft)
-    scene, n, i_s = inst.scene, sim.n_el, sim.i_scale
+    soft = sim.soft
+    scene, n, i_s = sim.scene, sim.n_el, sim.i_scale
     # the prior: the modulus scale and the electrical nuisances over the scene's randomisation
     # about its values, the radius (and a soft target's ln E) weakly over its range
     names = sim.names[sim.names.index("ln_modulus"):sim.names.index("ln_conductivity") + 1 + n]
     nuisance_sd = nuisance_prior(scene, ("x", "y", "depth", "radius") + names)
-    eta_scene = np.concatenate([[math.log(scene.saline.conductivity)], np.log(scene.electrodes.contact_impedances)])
+    eta_scene = _scene_electrical(scene)
     r_lo, r_hi = scene.dataset.radius
     n_p = i_s + len(nuisance_sd)
     mean = np.zeros(n_p)
@@ -470,7 +475,7 @@ def _fit(inst: Instrument, frames: np.ndarray, v_ref: np.ndarray, reference_fram
                      2 * float(sd[2]), math.exp(ln_s) * float(sd[i_s]), (before, math.sqrt(float(r @ r) / len(r))),
                      sim.trials, iterations, math.nan,
                      math.exp(p[3 + K]) if soft else math.nan, float(sd[3 + K]) if soft else math.nan)
-    return fit, p, sim
+    return fit, p
 
 
 def _joint_descent(sim: _Press, evaluate, objective, p: np.ndarray, state: tuple, precision: np.ndarray, mean: np.ndarray,
