@@ -114,21 +114,24 @@ def contact_zone(scene: Scene, radius: float, xy: np.ndarray, depth: float) -> t
 
 
 def contact_membrane(scene: Scene, radius: float, xy: np.ndarray, depth: float, levels: int,
-                     modulus: float | None = None, turn: np.ndarray | None = None) -> MembraneModel:
+                     modulus: float | None = None, turn: np.ndarray | None = None,
+                     target_mesh_size: float | None = None) -> MembraneModel:
     """The membrane of ``scene`` (inflated, untouched, pressed by a sphere of ``radius`` m:
     rigid, or soft of Young's modulus ``modulus`` Pa, its mesh turned off the membrane's rings:
     :data:`~jointsim.mechanics.soft_target.GENERIC_TURN`) meshed ``levels`` times finer about where
     that sphere coming down at ``xy`` touches, out to its contact at ``depth`` m
     (:func:`contact_zone`; :func:`~jointsim.geometry.refine_near` on the scene's cap at
     [membrane] rim_vertices); ``turn`` (2, 2): that mesh turned about the axis by this rotation,
-    the membrane a press at ``turn @ xy`` is read through when it is :meth:`PressMechanics.turned`."""
+    the membrane a press at ``turn @ xy`` is read through when it is :meth:`PressMechanics.turned`;
+    ``target_mesh_size`` (m): a soft sphere's cells where it touches (None: half the refined
+    membrane's median edge, :class:`~jointsim.mechanics.soft_target.SoftTargetModel`'s rule)."""
     about, zone = contact_zone(scene, radius, xy, depth)
     dome = refine_near(chamber_cap(scene.chamber, scene.membrane.rim_vertices), about, zone, levels)
     if turn is not None:
         dome = dome.turned(turn)
     rigid = replace(scene, target=replace(scene.target, kind="rigid"))
     return membrane_from_scene(rigid, target_radius=radius, dome=dome, target_modulus=modulus,
-                               target_turn=GENERIC_TURN)
+                               target_turn=GENERIC_TURN, target_mesh_size=target_mesh_size)
 
 
 def parameter_names(n_electrodes: int, soft: bool = False) -> tuple[str, ...]:

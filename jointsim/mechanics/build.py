@@ -26,6 +26,7 @@ def membrane_from_scene(
     device: str = "cpu",
     inflate_from: np.ndarray | None = None,
     target_turn: float = 0.0,
+    target_mesh_size: float | None = None,
 ) -> MembraneModel:
     """The membrane of ``scene`` (its [membrane] and [target] sections and chamber); the
     target's radius may be overridden by ``target_radius`` m; ``dome`` defaults to the
@@ -41,7 +42,9 @@ def membrane_from_scene(
     of it with its moduli scaled), which this one's rest state is solved from: the inflation of
     a flat moulding, the reservoir head's of a cap (ignored without a head).
     ``target_turn`` (rad): a soft target's mesh turned about its axis
-    (:data:`~jointsim.mechanics.soft_target.GENERIC_TURN` where derivatives are taken)."""
+    (:data:`~jointsim.mechanics.soft_target.GENERIC_TURN` where derivatives are taken);
+    ``target_mesh_size`` (m): a soft target's cell size where it touches (None: the model's
+    default, half the membrane's median edge)."""
     m = scene.membrane
     c = scene.chamber
     t = scene.target
@@ -55,8 +58,11 @@ def membrane_from_scene(
         )
         kw["contact_slave"] = contact_slave
         kw["target_turn"] = target_turn
+        kw["target_mesh_size"] = target_mesh_size
     elif contact_slave is not None:
         raise ValueError(f"contact_slave = {contact_slave!r}: only for a soft target (give target_modulus)")
+    elif target_mesh_size is not None:
+        raise ValueError(f"target_mesh_size = {target_mesh_size!r}: only for a soft target (give target_modulus)")
     flat = m.moulding == "flat"
     if dome is None:
         dome = flat_disc(c.base_radius, m.rim_vertices) if flat else chamber_cap(c, m.rim_vertices)

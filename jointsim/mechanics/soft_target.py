@@ -101,7 +101,8 @@ def hemisphere_mesh(radius: float, mesh_size: float, growth: float = 1.35, core:
 
 class SoftSphere:
     """The meshed lower half of a soft sphere, centred at the origin of its own frame
-    (:func:`hemisphere_mesh`): ``mesh`` (P2), ``elastic`` (its energy term), ``fixed`` (n, 3)
+    (:func:`hemisphere_mesh`, cells of ``mesh_size`` m where it touches): ``mesh`` (P2),
+    ``elastic`` (its energy term), ``fixed`` (n, 3)
     (bonded to the stage: the equatorial cut face and the rigid core of radius core·R, which
     the deformation at small depth hardly reaches) and its spherical surface: ``tris`` (k, 3)
     linear triangles (outward), ``nodes`` with area ``weights``."""
@@ -110,6 +111,7 @@ class SoftSphere:
                  device: str = "cpu", turn: float = 0.0):
         self.radius = float(radius)
         self.material = material
+        self.mesh_size = float(mesh_size)
         lin, n = hemisphere_mesh(radius, mesh_size, growth, core, turn)
         self.mesh = P2Mesh.from_linear(lin)
         self.elastic = ElasticTerm(self.mesh, material, device=device)
