@@ -115,7 +115,7 @@ def contact_zone(scene: Scene, radius: float, xy: np.ndarray, depth: float) -> t
 
 def contact_membrane(scene: Scene, radius: float, xy: np.ndarray, depth: float, levels: int,
                      modulus: float | None = None, turn: np.ndarray | None = None,
-                     target_mesh_size: float | None = None) -> MembraneModel:
+                     target_mesh_size: float | None = None, graded_target: bool = False) -> MembraneModel:
     """The membrane of ``scene`` (inflated, untouched, pressed by a sphere of ``radius`` m:
     rigid, or soft of Young's modulus ``modulus`` Pa, its mesh turned off the membrane's rings:
     :data:`~jointsim.mechanics.soft_target.GENERIC_TURN`) meshed ``levels`` times finer about where
@@ -124,14 +124,18 @@ def contact_membrane(scene: Scene, radius: float, xy: np.ndarray, depth: float, 
     [membrane] rim_vertices); ``turn`` (2, 2): that mesh turned about the axis by this rotation,
     the membrane a press at ``turn @ xy`` is read through when it is :meth:`PressMechanics.turned`;
     ``target_mesh_size`` (m): a soft sphere's cells where it touches (None: half the refined
-    membrane's median edge, :class:`~jointsim.mechanics.soft_target.SoftTargetModel`'s rule)."""
+    membrane's median edge, :class:`~jointsim.mechanics.soft_target.SoftTargetModel`'s rule);
+    ``graded_target``: that sphere meshed uniformly at that size over the same zone about its
+    lowest point and coarser into its body
+    (:func:`~jointsim.mechanics.soft_target.graded_hemisphere_mesh`), not in layers."""
     about, zone = contact_zone(scene, radius, xy, depth)
     dome = refine_near(chamber_cap(scene.chamber, scene.membrane.rim_vertices), about, zone, levels)
     if turn is not None:
         dome = dome.turned(turn)
     rigid = replace(scene, target=replace(scene.target, kind="rigid"))
     return membrane_from_scene(rigid, target_radius=radius, dome=dome, target_modulus=modulus,
-                               target_turn=GENERIC_TURN, target_mesh_size=target_mesh_size)
+                               target_turn=GENERIC_TURN, target_mesh_size=target_mesh_size,
+                               target_fine_radius=zone if graded_target and modulus is not None else None)
 
 
 def parameter_names(n_electrodes: int, soft: bool = False) -> tuple[str, ...]:

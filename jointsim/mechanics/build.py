@@ -27,6 +27,7 @@ def membrane_from_scene(
     inflate_from: np.ndarray | None = None,
     target_turn: float = 0.0,
     target_mesh_size: float | None = None,
+    target_fine_radius: float | None = None,
 ) -> MembraneModel:
     """The membrane of ``scene`` (its [membrane] and [target] sections and chamber); the
     target's radius may be overridden by ``target_radius`` m; ``dome`` defaults to the
@@ -44,7 +45,9 @@ def membrane_from_scene(
     ``target_turn`` (rad): a soft target's mesh turned about its axis
     (:data:`~jointsim.mechanics.soft_target.GENERIC_TURN` where derivatives are taken);
     ``target_mesh_size`` (m): a soft target's cell size where it touches (None: the model's
-    default, half the membrane's median edge)."""
+    default, half the membrane's median edge); ``target_fine_radius`` (m): a soft target graded
+    from that size out to this far from its lowest point
+    (:func:`~jointsim.mechanics.soft_target.graded_hemisphere_mesh`; None: layered)."""
     m = scene.membrane
     c = scene.chamber
     t = scene.target
@@ -59,10 +62,12 @@ def membrane_from_scene(
         kw["contact_slave"] = contact_slave
         kw["target_turn"] = target_turn
         kw["target_mesh_size"] = target_mesh_size
-    elif contact_slave is not None:
-        raise ValueError(f"contact_slave = {contact_slave!r}: only for a soft target (give target_modulus)")
-    elif target_mesh_size is not None:
-        raise ValueError(f"target_mesh_size = {target_mesh_size!r}: only for a soft target (give target_modulus)")
+        kw["target_fine_radius"] = target_fine_radius
+    else:
+        for name, value in (("contact_slave", contact_slave), ("target_mesh_size", target_mesh_size),
+                            ("target_fine_radius", target_fine_radius)):
+            if value is not None:
+                raise ValueError(f"{name} = {value!r}: only for a soft target (give target_modulus)")
     flat = m.moulding == "flat"
     if dome is None:
         dome = flat_disc(c.base_radius, m.rim_vertices) if flat else chamber_cap(c, m.rim_vertices)

@@ -1,11 +1,14 @@
 """Soft (hyperelastic) spherical targets: a neo-Hookean sphere of radius R and Young's modulus
 E pressed onto the dome membrane, both bodies solved together in one Newton system.
 
-Only the sphere's lower hemisphere is meshed: P2 tetrahedra from a graded grid of the half
-cube [−1, 1]² × [−1, 0] mapped radially onto the half ball (p ↦ R p ‖p‖∞/‖p‖₂), cells of
-``mesh_size`` at the lowest point (where it touches) growing by ``growth`` per cell. The cut
-face (the equatorial disc) is bonded to the stage: it moves rigidly with the prescribed
-centre. The target's unknowns are its displacements in a frame that moves with the centre,
+Only the sphere's lower hemisphere is meshed, as a shell about a rigid core, in P2 tetrahedra.
+Two meshes: layers (:func:`hemisphere_mesh`: an isotropic cap graded from ``mesh_size`` at the
+lowest point, where it touches, copied onto concentric spheres whose spacing grows by
+``growth``; the default, what every dataset presses with), or graded by gmsh
+(:func:`graded_hemisphere_mesh`: ``mesh_size`` uniform over a given patch about the lowest point,
+coarser along the surface and into the body; what a converged contact needs at a fraction of
+the layers' nodes). The cut face (the equatorial disc) is bonded to the stage: it moves rigidly
+with the prescribed centre. The target's unknowns are its displacements in a frame that moves with the centre,
 so the bonded face's are zero and a new pose only moves the frame.
 
 Material (small-strain Lamé parameters of the compressible neo-Hookean law in materials.py):
@@ -33,7 +36,7 @@ from .pressure import linear_subtriangles
 from .prisms import split_prisms
 from .surface_contact import SurfaceContact
 
-__all__ = ["GENERIC_TURN", "soft_material", "hemisphere_mesh", "SoftSphere", "CoupledTerms", "SoftTargetModel", "SYLGARD_184", "press_on_rigid_flat"]
+__all__ = ["GENERIC_TURN", "soft_material", "hemisphere_mesh", "graded_hemisphere_mesh", "SoftSphere", "CoupledTerms", "SoftTargetModel", "SYLGARD_184", "press_on_rigid_flat"]
 
 
 def soft_material(youngs_modulus: float, poisson_ratio: float = 0.49) -> Material:
@@ -99,20 +102,78 @@ def hemisphere_mesh(radius: float, mesh_size: float, growth: float = 1.35, core:
     return TetMesh(nodes, tets).oriented(), n
 
 
+# the graded hemisphere's cells grow by these per unit distance beyond its fine patch, along the
+# surface and into the body: a contact patch of radius a strains the body to a depth of about a,
+# which cells of a/5-a/3 there still resolve in P2 (h + 0.35 a/2 for a of 3-5 mm)
+GRADED_ALONG, GRADED_INTO = 0.25, 0.35
+
+
+def graded_hemisphere_mesh(radius: float, mesh_size: float, fine_radius: float, core: float = 0.1,
+                           turn: float = 0.0) -> tuple[TetMesh, np.ndarray]:
+    """Linear tetrahedra of the half shell core·R ≤ ‖x‖ ≤ R, z ≤ 0, centred at the origin,
+    meshed by gmsh (:mod:`jointsim.mesh.gmsh_session`: the same mesh on every machine) with
+    cells of ``mesh_size`` (m) on the sphere within ``fine_radius`` (m, along the surface) of
+    the lowest point (0, 0, −R), growing by :data:`GRADED_ALONG` per unit distance along the
+    surface beyond it and :data:`GRADED_INTO` into the body, to at most R/3. Unlike
+    :func:`hemisphere_mesh`, whose every layer repeats the surface's triangles, the cells
+    coarsen with depth: a contact patch resolved uniformly costs ~ (patch / mesh_size)² cells,
+    not that times the layers. Returns the mesh and which of its nodes lie on the outer sphere.
+    ``turn`` (rad): the mesh turned about the vertical axis."""
+    from ..mesh.gmsh_session import compact, gmsh_session, size_field
+
+    if radius <= 0:
+        raise ValueError(f"radius = {radius}: must be > 0 m")
+    if not 0 < mesh_size <= radius / 4:
+        raise ValueError(f"mesh_size = {mesh_size}: must be in (0, radius / 4 = {radius / 4:.3g}] m")
+    if not 0 <= fine_radius <= np.pi * radius / 2:
+        raise ValueError(f"fine_radius = {fine_radius}: must be in [0, πR/2 = {np.pi * radius / 2:.3g}] m")
+    if not 0 < core < 1:
+        raise ValueError(f"core = {core}: must be in (0, 1)")
+    R = float(radius)
+    r = "Sqrt(x^2+y^2+z^2)"
+    along = f"{R!r}*Acos(Min(1,Max(-1,-z/{r})))"  # geodesic distance from the lowest point, scaled to the surface
+    size = (f"Min({R / 3!r},{mesh_size!r}+{GRADED_ALONG!r}*Max(0,{along}-{fine_radius!r})"
+            f"+{GRADED_INTO!r}*Max(0,{R!r}-{r}))")
+    with gmsh_session("hemisphere") as gmsh:
+        occ = gmsh.model.occ
+        outer, inner = occ.addSphere(0, 0, 0, R), occ.addSphere(0, 0, 0, core * R)
+        # the spheres' parametric poles onto the cut plane, far from where the target touches
+        occ.rotate([(3, outer), (3, inner)], 0, 0, 0, 1, 0, 0, np.pi / 2)
+        shell, _ = occ.cut([(3, outer)], [(3, inner)])
+        occ.cut(shell, [(3, occ.addBox(-2 * R, -2 * R, 0, 4 * R, 4 * R, 2 * R))])
+        occ.synchronize()
+        size_field(gmsh, size)
+        gmsh.model.mesh.generate(3)
+        tags, xyz, _ = gmsh.model.mesh.getNodes()
+        _, tets = gmsh.model.mesh.getElementsByType(4)
+    nodes, tets, _ = compact(tags, xyz, tets, 4)
+    if turn:
+        c, s = math.cos(turn), math.sin(turn)
+        nodes = nodes @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    # gmsh puts the surface's nodes on the sphere to round-off; no other node comes near it
+    return TetMesh(nodes, tets).oriented(), np.linalg.norm(nodes, axis=1) > R * (1 - 1e-9)
+
+
 class SoftSphere:
-    """The meshed lower half of a soft sphere, centred at the origin of its own frame
-    (:func:`hemisphere_mesh`, cells of ``mesh_size`` m where it touches): ``mesh`` (P2),
+    """The meshed lower half of a soft sphere, centred at the origin of its own frame, with
+    cells of ``mesh_size`` m where it touches (:func:`hemisphere_mesh`; with ``fine_radius`` m
+    given, :func:`graded_hemisphere_mesh`, that fine out to it): ``mesh`` (P2),
     ``elastic`` (its energy term), ``fixed`` (n, 3)
     (bonded to the stage: the equatorial cut face and the rigid core of radius core·R, which
     the deformation at small depth hardly reaches) and its spherical surface: ``tris`` (k, 3)
     linear triangles (outward), ``nodes`` with area ``weights``."""
 
     def __init__(self, radius: float, material: Material, mesh_size: float, growth: float = 1.35, core: float = 0.1,
-                 device: str = "cpu", turn: float = 0.0):
+                 device: str = "cpu", turn: float = 0.0, fine_radius: float | None = None):
         self.radius = float(radius)
         self.material = material
         self.mesh_size = float(mesh_size)
-        lin, n = hemisphere_mesh(radius, mesh_size, growth, core, turn)
+        self.fine_radius = fine_radius
+        if fine_radius is None:
+            lin, n = hemisphere_mesh(radius, mesh_size, growth, core, turn)
+            outer = np.arange(lin.n_nodes) < n  # layer 0, the sphere
+        else:
+            lin, outer = graded_hemisphere_mesh(radius, mesh_size, fine_radius, core, turn)
         self.mesh = P2Mesh.from_linear(lin)
         self.elastic = ElasticTerm(self.mesh, material, device=device)
         X = self.mesh.nodes
@@ -120,7 +181,8 @@ class SoftSphere:
         self.fixed = np.zeros_like(X, bool)
         self.fixed[(np.abs(X[:, 2]) < 1e-9 * radius) | (rr < core * radius * (1 + 1e-9))] = True
         bf = self.mesh.boundary_faces
-        on_surface = np.all(bf[:, :3] < n, axis=1)  # every corner on layer 0, the sphere
+        # every corner on the sphere (a face of the cut plane may have its three on the rim)
+        on_surface = np.all(outer[bf[:, :3]], axis=1) & ~np.all(np.abs(X[bf[:, :3], 2]) < 1e-9 * radius, axis=1)
         self.tris = linear_subtriangles(bf[on_surface])
         self.nodes, self.weights = nodal_areas(X, self.tris)
 
@@ -379,7 +441,9 @@ class SoftTargetModel(MembraneModel):
     ``contact_margin`` (m): slave nodes within it of the other surface are contact candidates;
     ``contact_slave``: whose surface nodes are the contact's slaves, "target" or "membrane"
     (default: the target's unless it is 10× stiffer than the membrane); ``target_turn`` (rad):
-    the target's mesh turned about its axis (:func:`hemisphere_mesh`)."""
+    the target's mesh turned about its axis (:func:`hemisphere_mesh`); ``target_fine_radius``
+    (m): the target meshed by :func:`graded_hemisphere_mesh`, its cells ``target_mesh_size``
+    out to this far from its lowest point (None: :func:`hemisphere_mesh`'s layers)."""
 
     TANGENT_PREDICTOR = False  # the target's own unknowns are not in the rigid-contact tangent
     TARGET_PARAMETERS = MembraneModel.TARGET_PARAMETERS + ("ln_target_modulus",)
@@ -397,6 +461,7 @@ class SoftTargetModel(MembraneModel):
         target_growth: float = 1.35,
         target_core: float = 0.1,
         target_turn: float = 0.0,
+        target_fine_radius: float | None = None,
         penalty: float | None = None,
         force_tol: float | None = None,
         friction: float = 0.0,
@@ -416,7 +481,7 @@ class SoftTargetModel(MembraneModel):
         edge = float(np.median(np.linalg.norm(dome.vertices[dome.faces[:, 1]] - dome.vertices[dome.faces[:, 0]], axis=1)))
         h = target_mesh_size if target_mesh_size is not None else min(0.5 * edge, target_radius / 8)
         self.target = SoftSphere(target_radius, target_material if target_material is not None else SYLGARD_184, h, target_growth, target_core,
-                                 device, target_turn)
+                                 device, target_turn, target_fine_radius)
         nm = self.mesh.n_nodes
         self.n_membrane = nm
         rigid = self.contact

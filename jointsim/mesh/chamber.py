@@ -17,15 +17,12 @@ widened by ``refinement_zone``; h_min = h_max / electrode_refinement."""
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import importlib.metadata
 import os
 import tempfile
-import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import trimesh
@@ -33,27 +30,12 @@ import trimesh
 from ..geometry import DOME_RIM_VERTICES, ElectrodeLayout, chamber_cap, chamber_surface, electrode_layout, user_surface
 from ..scene import MeshSpec, Scene
 from .electrodes import ElectrodePatch, carry_patches, disc_patches, layout_patches
+from .gmsh_session import compact, gmsh_session, size_field
 from .tetmesh import MeshQuality, TetMesh, mesh_quality
 
 __all__ = ["ChamberMesh", "mesh_chamber", "chamber_mesh", "reference_surface", "cache_dir"]
 
 _MESHER_VERSION = "2-gmsh"  # bump when the meshing recipe changes, so cached meshes are rebuilt
-# gmsh's settings: one thread (the mesh then does not depend on the machine's core count),
-# sizes from the field alone, Frontal-Delaunay 2-D, Delaunay 3-D, then gmsh's and Netgen's
-# optimisers (on the default chamber at the three presets: smallest dihedral angle 12.6-14.8
-# deg, largest 149.1-149.2 deg; fTetWild's 14.7-17.2 / 142.0-151.5: results/mesher.md)
-_GMSH_OPTIONS = {
-    "General.Terminal": 0,
-    "General.NumThreads": 1,
-    "Mesh.MeshSizeExtendFromBoundary": 0,
-    "Mesh.MeshSizeFromPoints": 0,
-    "Mesh.MeshSizeFromCurvature": 0,
-    "Mesh.Algorithm": 6,
-    "Mesh.Algorithm3D": 1,
-    "Mesh.Optimize": 1,
-    "Mesh.OptimizeNetgen": 1,
-}
-_GMSH_LOCK = threading.Lock()  # gmsh is one global state per process
 
 
 @dataclass(frozen=True, eq=False)
@@ -223,31 +205,6 @@ def _tetrahedralise(surface: trimesh.Trimesh, layout: ElectrodeLayout, spec: Mes
     return mesh
 
 
-@contextlib.contextmanager
-def _gmsh(layout: ElectrodeLayout, spec: MeshSpec) -> Iterator:
-    """A fresh gmsh model with the settings of this module and the size field; gmsh reads no
-    configuration file and installs no signal handler."""
-    try:
-        import gmsh
-    except OSError as e:  # its wheel links the system's OpenGL and X11 client libraries
-        raise RuntimeError(f"gmsh, the chamber mesher, cannot load ({e}); on Debian or Ubuntu install its system "
-                           "libraries: apt-get install libglu1-mesa libxcursor1 libxft2 libxinerama1") from None
-
-    with _GMSH_LOCK:
-        gmsh.initialize(readConfigFiles=False, interruptible=False)
-        try:
-            for k, value in _GMSH_OPTIONS.items():
-                gmsh.option.setNumber(k, value)
-            gmsh.model.add("chamber")
-            yield gmsh
-        finally:
-            gmsh.finalize()
-
-
-def _size_field(gmsh, layout: ElectrodeLayout, spec: MeshSpec) -> None:
-    field = gmsh.model.mesh.field.add("MathEval")
-    gmsh.model.mesh.field.setString(field, "F", _size_expression(layout, spec))
-    gmsh.model.mesh.field.setAsBackgroundMesh(field)
 
 
 def _boundary_loop(faces: np.ndarray) -> np.ndarray:
@@ -273,7 +230,7 @@ def _mesh_base(rim: np.ndarray, layout: ElectrodeLayout, spec: MeshSpec) -> tupl
     """The base as a plane triangulated inside the polygon ``rim`` (n, 2) (its sides not split),
     with every electrode's circle embedded. Returns nodes (m, 2), triangles (k, 3) facing −z,
     and the node index of each rim vertex (n,)."""
-    with _gmsh(layout, spec) as gmsh:
+    with gmsh_session("chamber") as gmsh:
         geo = gmsh.model.geo
         corners = [geo.addPoint(x, y, 0.0) for x, y in rim]
         sides = [geo.addLine(corners[i], corners[(i + 1) % len(corners)]) for i in range(len(corners))]
@@ -288,13 +245,13 @@ def _mesh_base(rim: np.ndarray, layout: ElectrodeLayout, spec: MeshSpec) -> tupl
             gmsh.model.mesh.embed(1, arcs, 2, plane)
         for side in sides:
             gmsh.model.mesh.setTransfiniteCurve(side, 2)  # the rim stays the surface's rim
-        _size_field(gmsh, layout, spec)
+        size_field(gmsh, _size_expression(layout, spec))
         gmsh.model.mesh.generate(2)
         tags, xyz, _ = gmsh.model.mesh.getNodes()
         _, tri = gmsh.model.mesh.getElementsByType(2, plane)
         rim_tags = [int(gmsh.model.mesh.getNodes(0, c)[0][0]) for c in corners]
     # the circle centres are geometry only, on no triangle: dropped
-    nodes, tri, index_of_tag = _compact(tags, xyz, tri, 3)
+    nodes, tri, index_of_tag = compact(tags, xyz, tri, 3)
     xy = nodes[:, :2]
     a, b, c = xy[tri[:, 0]], xy[tri[:, 1]], xy[tri[:, 2]]
     up = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]) > 0
@@ -304,34 +261,20 @@ def _mesh_base(rim: np.ndarray, layout: ElectrodeLayout, spec: MeshSpec) -> tupl
 
 def _fill(vertices: np.ndarray, faces: np.ndarray, layout: ElectrodeLayout, spec: MeshSpec) -> TetMesh:
     """Tetrahedra filling the closed triangle surface (vertices, faces), its faces kept."""
-    with _gmsh(layout, spec) as gmsh:
+    with gmsh_session("chamber") as gmsh:
         shell = gmsh.model.addDiscreteEntity(2)
         gmsh.model.mesh.addNodes(2, shell, np.arange(1, len(vertices) + 1), vertices.ravel())
         gmsh.model.mesh.addElementsByType(shell, 2, [], (faces + 1).ravel())
         gmsh.model.geo.addVolume([gmsh.model.geo.addSurfaceLoop([shell])])
         gmsh.model.geo.synchronize()
-        _size_field(gmsh, layout, spec)
+        size_field(gmsh, _size_expression(layout, spec))
         gmsh.model.mesh.generate(3)
         tags, xyz, _ = gmsh.model.mesh.getNodes()
         _, tets = gmsh.model.mesh.getElementsByType(4)
     if len(tets) == 0:
         raise ValueError("surface: gmsh could not fill the chamber surface (self-intersecting or not closed?)")
-    nodes, tets, _ = _compact(tags, xyz, tets, 4)
+    nodes, tets, _ = compact(tags, xyz, tets, 4)
     return TetMesh(nodes, tets).oriented()
-
-
-def _compact(tags: np.ndarray, xyz: np.ndarray, elements: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """gmsh's nodes (tags (n,), coordinates flat (3n,)) and elements (flat node tags, ``width``
-    per element) as arrays numbered from 0 over the nodes the elements use, in gmsh's node
-    order: (nodes (k, 3), elements (m, width), and, indexed by a node tag, its new index (−1 for
-    a node no element uses; only meaningful for tags gmsh returned))."""
-    position = np.zeros(int(tags.max()) + 1, np.int64)
-    position[tags.astype(np.int64)] = np.arange(len(tags))
-    elements = position[elements.astype(np.int64).reshape(-1, width)]
-    used = np.unique(elements)
-    renumber = np.full(len(tags), -1)
-    renumber[used] = np.arange(len(used))
-    return xyz.reshape(-1, 3)[used], renumber[elements], renumber[position]
 
 
 def _hash(surface: trimesh.Trimesh, layout: ElectrodeLayout, spec: MeshSpec) -> str:
