@@ -129,11 +129,11 @@ def graded_hemisphere_mesh(radius: float, mesh_size: float, fine_radius: float, 
         raise ValueError(f"fine_radius = {fine_radius}: must be in [0, πR/2 = {np.pi * radius / 2:.3g}] m")
     if not 0 < core < 1:
         raise ValueError(f"core = {core}: must be in (0, 1)")
-    R = float(radius)
+    R, h, fine = float(radius), float(mesh_size), float(fine_radius)
     r = "Sqrt(x^2+y^2+z^2)"
-    along = f"{R!r}*Acos(Min(1,Max(-1,-z/{r})))"  # geodesic distance from the lowest point, scaled to the surface
-    size = (f"Min({R / 3!r},{mesh_size!r}+{GRADED_ALONG!r}*Max(0,{along}-{fine_radius!r})"
-            f"+{GRADED_INTO!r}*Max(0,{R!r}-{r}))")
+    along = f"{R:.17g}*Acos(Min(1,Max(-1,-z/{r})))"  # geodesic distance from the lowest point, scaled to the surface
+    size = (f"Min({R / 3:.17g},{h:.17g}+{GRADED_ALONG:.17g}*Max(0,{along}-{fine:.17g})"
+            f"+{GRADED_INTO:.17g}*Max(0,{R:.17g}-{r}))")
     with gmsh_session("hemisphere") as gmsh:
         occ = gmsh.model.occ
         outer, inner = occ.addSphere(0, 0, 0, R), occ.addSphere(0, 0, 0, core * R)
