@@ -228,6 +228,9 @@ def test_design_study_command_end_to_end(tmp_path, capsys):
     assert "--depths-mm = '2,1': increasing" in capsys.readouterr().err
     assert main(["design-study", "--contact-levels", "9", "--out", str(tmp_path / "x")]) == 2
     assert "--contact-levels = 9: must be in 0..4" in capsys.readouterr().err
+    for extra in ([], ["--target-moduli-kpa", "30", "--contact-levels", "0"]):  # a rigid sphere; no refined zone
+        assert main(["design-study", "--graded-target", *extra, "--out", str(tmp_path / "x")]) == 2
+        assert "--graded-target: only with --target-moduli-kpa" in capsys.readouterr().err
     # a pad's membrane is not refined about the contact: read as meshed, and said so
     assert main(["design-study", str(SCENES_DIR / "elongated_pad.toml"), *args[1:-2], "--out", str(tmp_path / "pad")]) == 0
     assert "elongated_pad: read at --contact-levels 0" in capsys.readouterr().out

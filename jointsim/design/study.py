@@ -62,7 +62,11 @@ class Plan:
     the axis to each (:meth:`~.sensitivity.PressMechanics.turned`: a round cap's mechanics know
     no direction, so each is read through the refined membrane turned with it), and only the
     measurement is computed per centre (only with ``contact_levels``; False: each centre's
-    membrane refined about it and solved)."""
+    membrane refined about it and solved); ``graded_target``: each soft sphere meshed graded,
+    its cells uniform over the refined contact zone
+    (:func:`~jointsim.mechanics.soft_target.graded_hemisphere_mesh`; only with ``target_moduli``
+    and ``contact_levels``; False: in layers, whose cells grow 3.4x from its lowest point to the
+    contact's edge, coarser there than the refined membrane)."""
 
     diameters: tuple[float, ...] = (8e-3, 15e-3, 30e-3)
     depths: tuple[float, ...] = (1e-3, 2e-3, 3e-3)
@@ -75,6 +79,7 @@ class Plan:
     ray: bool = False
     symmetric: bool = True
     ring_mechanics: bool = True
+    graded_target: bool = False
 
     def __post_init__(self) -> None:
         if not self.diameters or any(not d > 0 for d in self.diameters):
@@ -89,6 +94,9 @@ class Plan:
             raise ValueError(f"contact_levels = {self.contact_levels}: must be in 0..{MAX_CONTACT_LEVELS}")
         if any(not (math.isfinite(e) and e > 0) for e in self.target_moduli):
             raise ValueError(f"target_moduli = {self.target_moduli}: each > 0 Pa")
+        if self.graded_target and not (self.target_moduli and self.contact_levels):
+            raise ValueError("graded_target: only for soft targets (target_moduli) read through a refined membrane "
+                             "(contact_levels >= 1)")
         if self.ray:  # one centre per ring: no two are images of each other
             object.__setattr__(self, "symmetric", False)
         if self.ray or not self.contact_levels:  # one centre per ring; the scene's own membrane is not turned
@@ -306,7 +314,8 @@ def _run_group(path: str, scene: Scene, plan: Plan, indices: list[int], centres:
         out = []
         try:
             if plan.contact_levels:  # a membrane of its own; the chamber, morph factor and readout shared
-                model = contact_membrane(scene, diameter / 2, centres[0], max(plan.depths), plan.contact_levels, modulus)
+                model = contact_membrane(scene, diameter / 2, centres[0], max(plan.depths), plan.contact_levels, modulus,
+                                         graded_target=plan.graded_target)
                 on = inst.on_membrane(model)
             else:
                 model, on = _model(scene, inst, diameter / 2, modulus), inst
@@ -405,8 +414,9 @@ def run_design(scene: Scene, plan: Plan, out: str | Path, *, workers: int | None
 
 # what shapes the stored derivatives (not the frame counts, which the bounds take from the file);
 # the later keys are stored only where set
-_SHAPE = ("diameters", "depths", "spacing", "r_max", "contact_levels", "target_moduli", "ray", "symmetric", "ring_mechanics")
-_LATER = ("contact_levels", "target_moduli", "ray", "symmetric", "ring_mechanics")
+_SHAPE = ("diameters", "depths", "spacing", "r_max", "contact_levels", "target_moduli", "ray", "symmetric", "ring_mechanics",
+          "graded_target")
+_LATER = ("contact_levels", "target_moduli", "ray", "symmetric", "ring_mechanics", "graded_target")
 
 
 def stored_plan(rec: Records) -> Plan:
