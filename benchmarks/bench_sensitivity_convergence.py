@@ -60,7 +60,7 @@ FINER_PAIRS = (("dataset/64/3/10", "dataset/64/4/10", "three levels (the design 
 # edge, the model's default: 0.25 mm at two levels), and whether the sphere is graded
 # (graded_hemisphere_mesh: those cells uniform over the membrane's refined zone, coarser inside)
 # or layered (hemisphere_mesh: every layer repeats the surface, whose cells grow from the lowest
-# point on, 3.4x by the contact's edge). At three levels the default's 0.125 mm layered sphere is
+# point on, 3-4x by the contact's edge). At three levels the default's 0.125 mm layered sphere is
 # ~135 k P2 nodes, a ~16 GB factorisation that did not finish in 72 min here: the three-level
 # cases keep the sphere at 0.25 mm, and a coarser sphere at two levels says what that holds
 SOFT = (("dataset", 64, 1, 10e-6, None, False), ("dataset", 64, 2, 10e-6, None, False), ("paper", 64, 2, 10e-6, None, False),
@@ -69,8 +69,9 @@ SOFT = (("dataset", 64, 1, 10e-6, None, False), ("dataset", 64, 2, 10e-6, None, 
         ("dataset", 64, 3, 10e-6, 0.25e-3, True))
 SOFT_PRESS = (15e-3, (6e-3, 0.0), 3e5)  # diameter m, centre m, Young's modulus Pa
 SOFT_PAIRS = (("dataset/64/1/10", "dataset/64/2/10", "one level against two"),
-              ("dataset/64/2/10", "dataset/64/3/10/t0.25", "two levels (the soft study's) against three, the sphere's "
-               "cells 0.25 mm at the contact in both"),
+              ("dataset/64/2/10", "dataset/64/3/10/t0.25", "two levels (the soft study's) against three, the layered "
+               "sphere's cells 0.25 mm at its lowest point in both: at three levels coarser than the membrane over most "
+               "of the contact"),
               ("dataset/64/2/10/t0.5", "dataset/64/2/10", "the sphere's cells at the contact, 0.5 against 0.25 mm (two "
                "levels)"),
               ("dataset/64/2/10/g0.5", "dataset/64/2/10/g0.25", "a graded sphere's cells over the contact zone, 0.5 "
@@ -80,6 +81,12 @@ SOFT_PAIRS = (("dataset/64/1/10", "dataset/64/2/10", "one level against two"),
               ("dataset/64/2/10", "dataset/64/2/10/g0.25", "the sphere layered against graded, 0.25 mm at its lowest "
                "point (two levels)"),
               ("paper/64/2/10", "dataset/64/2/10", "the chamber mesh, paper against dataset preset"))
+# what a soft case's row says that its figures do not
+SOFT_NOTES = {"dataset/64/3/10/t0.25": "not a finer press: its x, depth and radius columns at 2 mm deep are 11-21x every other "
+                                       "case's. Here, and only here, the layered sphere's contact nodes (its cells 0.25 mm "
+                                       "at its lowest point, 0.8-1.0 mm by the contact's edge) are coarser than the "
+                                       "membrane's facets (0.25 mm), which a node-to-surface contact does not resolve (its "
+                                       "slave side must be the finer); not diagnosed further"}
 OUT = ROOT / "results" / "design_study"
 
 
@@ -256,6 +263,7 @@ def main() -> None:
         for c, r in soft.items():
             mb = r["presses"][0]["modulus_bound"]
             lines.append(f"| `{c}` | " + " | ".join(f"{100 * k:.3g} / {100 * m:.3g} %" for k, m in zip(mb["known"], mb["marginal"])) + " |")
+        lines += [""] + [f"`{c}`: {note}." for c, note in SOFT_NOTES.items() if c in soft]
         lines += ["", f"Ran on {_machine_of(soft)}: " + ", ".join(
             f"`{c}` {r['presses'][0]['seconds']:.0f} s, {r['presses'][0]['membrane_nodes']} nodes"
             + (f" (the sphere's {r['presses'][0]['target_nodes']} nodes, cells {r['presses'][0]['target_mesh_size'] * 1e3:g} mm)"

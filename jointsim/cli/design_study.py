@@ -47,7 +47,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "grid, e.g. --diameters-mm 15 --ray)")
     p.add_argument("--graded-target", action="store_true",
                    help="mesh each soft sphere graded (gmsh), its cells uniform over the refined contact zone, instead "
-                        "of in layers, whose cells grow 3.4x towards the contact's edge, coarser there than the refined "
+                        "of in layers, whose cells grow 3-4x towards the contact's edge, coarser there than the refined "
                         "membrane (results/design_study/convergence.md); with --target-moduli-kpa and --contact-levels >= 1")
     p.add_argument("--ray", action="store_true",
                    help="target centres along the +x axis, --spacing-mm apart, instead of the polar grid (a survey for "

@@ -65,7 +65,7 @@ class Plan:
     membrane refined about it and solved); ``graded_target``: each soft sphere meshed graded,
     its cells uniform over the refined contact zone
     (:func:`~jointsim.mechanics.soft_target.graded_hemisphere_mesh`; only with ``target_moduli``
-    and ``contact_levels``; False: in layers, whose cells grow 3.4x from its lowest point to the
+    and ``contact_levels``; False: in layers, whose cells grow 3-4x from its lowest point to the
     contact's edge, coarser there than the refined membrane)."""
 
     diameters: tuple[float, ...] = (8e-3, 15e-3, 30e-3)
