@@ -6,8 +6,8 @@ Two meshes: layers (:func:`hemisphere_mesh`: an isotropic cap graded from ``mesh
 lowest point, where it touches, copied onto concentric spheres whose spacing grows by
 ``growth``; the default, what every dataset presses with), or graded by gmsh
 (:func:`graded_hemisphere_mesh`: ``mesh_size`` uniform over a given patch about the lowest point,
-coarser along the surface and into the body; what a converged contact needs at a fraction of
-the layers' nodes). The cut face (the equatorial disc) is bonded to the stage: it moves rigidly
+coarser along the surface and into the body: a 15 mm sphere's 6 mm contact zone at 0.25 mm in
+29 k nodes, where layers fine enough at the zone's edge would need ~600 k). The cut face (the equatorial disc) is bonded to the stage: it moves rigidly
 with the prescribed centre. The target's unknowns are its displacements in a frame that moves with the centre,
 so the bonded face's are zero and a new pose only moves the frame.
 
@@ -115,9 +115,9 @@ def graded_hemisphere_mesh(radius: float, mesh_size: float, fine_radius: float, 
     cells of ``mesh_size`` (m) on the sphere within ``fine_radius`` (m, along the surface) of
     the lowest point (0, 0, −R), growing by :data:`GRADED_ALONG` per unit distance along the
     surface beyond it and :data:`GRADED_INTO` into the body, to at most R/3. Unlike
-    :func:`hemisphere_mesh`, whose every layer repeats the surface's triangles, the cells
-    coarsen with depth: a contact patch resolved uniformly costs ~ (patch / mesh_size)² cells,
-    not that times the layers. Returns the mesh and which of its nodes lie on the outer sphere.
+    :func:`hemisphere_mesh`, whose cells grow from the lowest point on and whose every layer
+    repeats the surface's triangles, the patch is uniform and the cells coarsen with depth, so a
+    patch resolved uniformly costs ~ (patch / mesh_size)² cells, not that times the layers. Returns the mesh and which of its nodes lie on the outer sphere.
     ``turn`` (rad): the mesh turned about the vertical axis."""
     from ..mesh.gmsh_session import compact, gmsh_session, size_field
 
