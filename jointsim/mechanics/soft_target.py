@@ -7,9 +7,10 @@ lowest point, where it touches, copied onto concentric spheres whose spacing gro
 ``growth``; the default, what every dataset presses with), or graded by gmsh
 (:func:`graded_hemisphere_mesh`: ``mesh_size`` uniform over a given patch about the lowest point,
 coarser along the surface and into the body: a 15 mm sphere's 6 mm contact zone at 0.25 mm in
-29 k nodes, where layers fine enough at the zone's edge would need ~600 k). The cut face (the equatorial disc) is bonded to the stage: it moves rigidly
-with the prescribed centre. The target's unknowns are its displacements in a frame that moves with the centre,
-so the bonded face's are zero and a new pose only moves the frame.
+29 k nodes, where layers fine enough at the zone's edge would need ~600 k). The cut face (the
+equatorial disc) is bonded to the stage: it moves rigidly with the prescribed centre. The
+target's unknowns are its displacements in a frame that moves with the centre, so the bonded
+face's are zero and a new pose only moves the frame.
 
 Material (small-strain Lamé parameters of the compressible neo-Hookean law in materials.py):
 μ = E / (2(1 + ν)), κ = E / (3(1 − 2ν)). Contact between the membrane's outer surface (slave
@@ -60,6 +61,22 @@ SYLGARD_184 = soft_material(1.5e6)  # DESIGN.md: E ~ 0.6-3 MPa
 GENERIC_TURN = 2 * math.pi * (math.sqrt(2) - 1) / 16
 
 
+def _check_shell(radius: float, mesh_size: float, core: float) -> None:
+    """The arguments both hemisphere meshes share, each refused in one line."""
+    if radius <= 0:
+        raise ValueError(f"radius = {radius}: must be > 0 m")
+    if not 0 < mesh_size <= radius / 4:
+        raise ValueError(f"mesh_size = {mesh_size}: must be in (0, radius / 4 = {radius / 4:.3g}] m")
+    if not 0 < core < 1:
+        raise ValueError(f"core = {core}: must be in (0, 1)")
+
+
+def _turned(v: np.ndarray, turn: float) -> np.ndarray:
+    """Points ``v`` (n, 3) turned by ``turn`` rad about the vertical axis."""
+    c, s = math.cos(turn), math.sin(turn)
+    return v @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 def hemisphere_mesh(radius: float, mesh_size: float, growth: float = 1.35, core: float = 0.1,
                     turn: float = 0.0) -> tuple[TetMesh, int]:
     """Linear tetrahedra of the half shell core·R ≤ ‖x‖ ≤ R, z ≤ 0, centred at the origin:
@@ -73,21 +90,15 @@ def hemisphere_mesh(radius: float, mesh_size: float, growth: float = 1.35, core:
     (:data:`GENERIC_TURN`: off every ring of an isotropic cap's)."""
     from ..geometry import isotropic_cap
 
-    if radius <= 0:
-        raise ValueError(f"radius = {radius}: must be > 0 m")
-    if not 0 < mesh_size <= radius / 4:
-        raise ValueError(f"mesh_size = {mesh_size}: must be in (0, radius / 4 = {radius / 4:.3g}] m")
+    _check_shell(radius, mesh_size, core)
     if not 1 <= growth <= 3:
         raise ValueError(f"growth = {growth}: must be in [1, 3]")
-    if not 0 < core < 1:
-        raise ValueError(f"core = {core}: must be in (0, 1)")
     rim_edge = min(8 * mesh_size, radius / 2)
     n_rim = max(16, 16 * int(round(2 * np.pi * radius / (16 * rim_edge))))
     cap = isotropic_cap(radius, radius, n_rim, apex_edge=mesh_size)
     v = np.asarray(cap.vertices, float) * np.array([1.0, 1.0, -1.0])  # apex down, centre at 0
     if turn:
-        c, s = math.cos(turn), math.sin(turn)
-        v = v @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        v = _turned(v, turn)
     v *= radius / np.linalg.norm(v, axis=1, keepdims=True)  # exactly on the sphere
     f = np.asarray(cap.faces)
     r, t = [radius], mesh_size
@@ -117,18 +128,14 @@ def graded_hemisphere_mesh(radius: float, mesh_size: float, fine_radius: float, 
     surface beyond it and :data:`GRADED_INTO` into the body, to at most R/3. Unlike
     :func:`hemisphere_mesh`, whose cells grow from the lowest point on and whose every layer
     repeats the surface's triangles, the patch is uniform and the cells coarsen with depth, so a
-    patch resolved uniformly costs ~ (patch / mesh_size)² cells, not that times the layers. Returns the mesh and which of its nodes lie on the outer sphere.
-    ``turn`` (rad): the mesh turned about the vertical axis."""
+    patch resolved uniformly costs ~ (patch / mesh_size)² cells, not that times the layers.
+    Returns the mesh and which of its nodes lie on the outer sphere. ``turn`` (rad): the mesh
+    turned about the vertical axis."""
     from ..mesh.gmsh_session import compact, gmsh_session, size_field
 
-    if radius <= 0:
-        raise ValueError(f"radius = {radius}: must be > 0 m")
-    if not 0 < mesh_size <= radius / 4:
-        raise ValueError(f"mesh_size = {mesh_size}: must be in (0, radius / 4 = {radius / 4:.3g}] m")
+    _check_shell(radius, mesh_size, core)
     if not 0 <= fine_radius <= np.pi * radius / 2:
         raise ValueError(f"fine_radius = {fine_radius}: must be in [0, πR/2 = {np.pi * radius / 2:.3g}] m")
-    if not 0 < core < 1:
-        raise ValueError(f"core = {core}: must be in (0, 1)")
     R, h, fine = float(radius), float(mesh_size), float(fine_radius)
     r = "Sqrt(x^2+y^2+z^2)"
     along = f"{R:.17g}*Acos(Min(1,Max(-1,-z/{r})))"  # geodesic distance from the lowest point, scaled to the surface
@@ -148,8 +155,7 @@ def graded_hemisphere_mesh(radius: float, mesh_size: float, fine_radius: float, 
         _, tets = gmsh.model.mesh.getElementsByType(4)
     nodes, tets, _ = compact(tags, xyz, tets, 4)
     if turn:
-        c, s = math.cos(turn), math.sin(turn)
-        nodes = nodes @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        nodes = _turned(nodes, turn)
     # gmsh puts the surface's nodes on the sphere to round-off; no other node comes near it
     return TetMesh(nodes, tets).oriented(), np.linalg.norm(nodes, axis=1) > R * (1 - 1e-9)
 
@@ -168,7 +174,6 @@ class SoftSphere:
         self.radius = float(radius)
         self.material = material
         self.mesh_size = float(mesh_size)
-        self.fine_radius = fine_radius
         if fine_radius is None:
             lin, n = hemisphere_mesh(radius, mesh_size, growth, core, turn)
             outer = np.arange(lin.n_nodes) < n  # layer 0, the sphere
