@@ -229,8 +229,9 @@ def test_design_study_command_end_to_end(tmp_path, capsys):
     assert main(["design-study", "--contact-levels", "9", "--out", str(tmp_path / "x")]) == 2
     assert "--contact-levels = 9: must be in 0..4" in capsys.readouterr().err
     for extra in ([], ["--target-moduli-kpa", "30", "--contact-levels", "0"]):  # a rigid sphere; no refined zone
-        assert main(["design-study", "--graded-target", *extra, "--out", str(tmp_path / "x")]) == 2
-        assert "--graded-target: only with --target-moduli-kpa" in capsys.readouterr().err
+        for mesh in ("graded", "layered"):
+            assert main(["design-study", f"--{mesh}-target", *extra, "--out", str(tmp_path / "x")]) == 2
+            assert f"--{mesh}-target: only with --target-moduli-kpa" in capsys.readouterr().err
     # a pad's membrane is not refined about the contact: read as meshed, and said so
     assert main(["design-study", str(SCENES_DIR / "elongated_pad.toml"), *args[1:-2], "--out", str(tmp_path / "pad")]) == 0
     assert "elongated_pad: read at --contact-levels 0" in capsys.readouterr().out
@@ -510,6 +511,24 @@ def test_a_study_of_soft_targets_bounds_their_modulus(tmp_path):
     floor = (prior["ln_pressure"] ** -2 + prior["ln_modulus"] ** -2) ** -0.5
     b = [design_bounds(rec, scene, snr_db=snr).columns["modulus_rms_marginal"][0] for snr in (74.2, 140.0)]
     assert b[0] > b[1] >= floor and b[1] <= 1.1 * floor
+
+
+def test_a_soft_study_meshes_its_spheres_graded_unless_told():
+    """Plan.graded_target: a soft sphere read through a refined membrane is meshed graded by
+    default; the flag means nothing (False) for rigid spheres or an unrefined membrane; a store
+    written before the default changed (no key: layered) reads back as layered, and a layered
+    plan stores no key, so such a store keeps its identity."""
+    from types import SimpleNamespace
+
+    from jointsim.design.study import Plan, stored_plan
+
+    assert Plan(target_moduli=(3e5,), contact_levels=2).graded_target
+    assert not Plan(target_moduli=(3e5,), contact_levels=2, graded_target=False).graded_target
+    assert not Plan(contact_levels=2).graded_target and not Plan(target_moduli=(3e5,)).graded_target
+    old = {"diameters": [15e-3], "depths": [1e-3], "spacing": 6e-3, "r_max": 12e-3, "contact_levels": 2,
+           "target_moduli": [3e5], "ray": True}
+    assert not stored_plan(SimpleNamespace(provenance={"params": {"plan": old}})).graded_target
+    assert stored_plan(SimpleNamespace(provenance={"params": {"plan": {**old, "graded_target": True}}})).graded_target
 
 
 def test_a_report_only_run_costs_what_the_store_s_run_did():

@@ -45,10 +45,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="press soft (neo-Hookean) spheres of these Young's moduli, comma-separated, instead of rigid "
                         "ones: their modulus is then bounded too (each soft press costs ~10x a rigid one: use a coarse "
                         "grid, e.g. --diameters-mm 15 --ray)")
-    p.add_argument("--graded-target", action="store_true",
-                   help="mesh each soft sphere graded (gmsh), its cells uniform over the refined contact zone, instead "
-                        "of in layers, whose cells grow 3-4x towards the contact's edge, coarser there than the refined "
-                        "membrane (results/design_study/convergence.md); with --target-moduli-kpa and --contact-levels >= 1")
+    mesh = p.add_mutually_exclusive_group()
+    mesh.add_argument("--graded-target", dest="target_mesh", action="store_const", const="graded",
+                      help="mesh each soft sphere graded (gmsh), its cells uniform over the refined contact zone (the "
+                           "default with --target-moduli-kpa and --contact-levels >= 1)")
+    mesh.add_argument("--layered-target", dest="target_mesh", action="store_const", const="layered",
+                      help="mesh each soft sphere in layers instead, whose cells grow 3-4x towards the contact's edge, "
+                           "coarser there than the refined membrane: its size and modulus bounds are optimistic "
+                           "(results/design_study/convergence.md); the soft study before graded spheres")
     p.add_argument("--ray", action="store_true",
                    help="target centres along the +x axis, --spacing-mm apart, instead of the polar grid (a survey for "
                         "costly presses: the soft ones)")
@@ -97,12 +101,12 @@ def run(args: argparse.Namespace) -> int:
     lo, hi = SNR_RANGE_DB
     snrs = float_list("--snr-db", args.snr_db, lo - 1e-9, hi) if args.snr_db.strip() else ()
     moduli = float_list("--target-moduli-kpa", args.target_moduli_kpa, 0.0, 1e6) if args.target_moduli_kpa.strip() else ()
-    if args.graded_target and not (moduli and args.contact_levels):
-        raise ValueError("--graded-target: only with --target-moduli-kpa (soft spheres) and --contact-levels >= 1")
+    if args.target_mesh and not (moduli and args.contact_levels):
+        raise ValueError(f"--{args.target_mesh}-target: only with --target-moduli-kpa (soft spheres) and --contact-levels >= 1")
     plan = Plan(tuple(d * 1e-3 for d in diameters), tuple(d * 1e-3 for d in depths), args.spacing_mm * 1e-3,
                 None if args.r_max_mm is None else args.r_max_mm * 1e-3, hold_frames=args.hold_frames,
                 contact_levels=args.contact_levels, target_moduli=tuple(e * 1e3 for e in moduli), ray=args.ray,
-                symmetric=args.symmetric, ring_mechanics=args.symmetric, graded_target=args.graded_target)
+                symmetric=args.symmetric, ring_mechanics=args.symmetric, graded_target=args.target_mesh != "layered")
     scenes = []
     for path in args.scenes:
         scene = load_scene(path)
@@ -114,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
         if plan.contact_levels and unrefinable(scene):
             print(f"jointsim design-study: {scene.name}: read at --contact-levels 0 ({unrefinable(scene)}); "
                   "its size bounds are optimistic")
-            scenes[-1] = (path, scene, replace(plan, contact_levels=0, graded_target=False))
+            scenes[-1] = (path, scene, replace(plan, contact_levels=0))
     names = [s.name for _, s, _ in scenes]
     if len(set(names)) != len(names):
         raise ValueError(f"scenes: two designs share a name ({names}); give each scene its own name")

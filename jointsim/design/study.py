@@ -64,9 +64,10 @@ class Plan:
     measurement is computed per centre (only with ``contact_levels``; False: each centre's
     membrane refined about it and solved); ``graded_target``: each soft sphere meshed graded,
     its cells uniform over the refined contact zone
-    (:func:`~jointsim.mechanics.soft_target.graded_hemisphere_mesh`; only with ``target_moduli``
-    and ``contact_levels``; False: in layers, whose cells grow 3-4x from its lowest point to the
-    contact's edge, coarser there than the refined membrane)."""
+    (:func:`~jointsim.mechanics.soft_target.graded_hemisphere_mesh`; it applies only with
+    ``target_moduli`` and ``contact_levels`` and is False otherwise; False: in layers, whose
+    cells grow 3-4x from its lowest point to the contact's edge, coarser there than the refined
+    membrane, which made the soft study's size and modulus bounds optimistic)."""
 
     diameters: tuple[float, ...] = (8e-3, 15e-3, 30e-3)
     depths: tuple[float, ...] = (1e-3, 2e-3, 3e-3)
@@ -79,7 +80,7 @@ class Plan:
     ray: bool = False
     symmetric: bool = True
     ring_mechanics: bool = True
-    graded_target: bool = False
+    graded_target: bool = True
 
     def __post_init__(self) -> None:
         if not self.diameters or any(not d > 0 for d in self.diameters):
@@ -94,9 +95,8 @@ class Plan:
             raise ValueError(f"contact_levels = {self.contact_levels}: must be in 0..{MAX_CONTACT_LEVELS}")
         if any(not (math.isfinite(e) and e > 0) for e in self.target_moduli):
             raise ValueError(f"target_moduli = {self.target_moduli}: each > 0 Pa")
-        if self.graded_target and not (self.target_moduli and self.contact_levels):
-            raise ValueError("graded_target: only for soft targets (target_moduli) read through a refined membrane "
-                             "(contact_levels >= 1)")
+        if not (self.target_moduli and self.contact_levels):  # no soft sphere, or none read at its contact
+            object.__setattr__(self, "graded_target", False)
         if self.ray:  # one centre per ring: no two are images of each other
             object.__setattr__(self, "symmetric", False)
         if self.ray or not self.contact_levels:  # one centre per ring; the scene's own membrane is not turned
@@ -422,7 +422,7 @@ _LATER = ("contact_levels", "target_moduli", "ray", "symmetric", "ring_mechanics
 def stored_plan(rec: Records) -> Plan:
     """The :class:`Plan` a finished study was computed with (its frame counts the defaults)."""
     p = {k: tuple(v) if isinstance(v, list) else v for k, v in rec.provenance["params"]["plan"].items() if k in _SHAPE}
-    return Plan(**{"symmetric": False, "ring_mechanics": False, **p})
+    return Plan(**{"symmetric": False, "ring_mechanics": False, "graded_target": False, **p})
 
 
 def _rows(rec: Records, scene: Scene) -> list[tuple[int, np.ndarray, np.ndarray]]:
