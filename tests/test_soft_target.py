@@ -43,6 +43,49 @@ def test_closest_points_on_a_triangle():
     np.testing.assert_allclose(lam.sum(axis=1), 1.0)
 
 
+def test_a_slaves_candidates_lie_about_its_closest_point_and_cover_it():
+    """Candidates: the triangles within ``reach`` (plus their size) of each slave's closest point
+    on the master, whatever the slave's height within the margin, so their number does not grow
+    with the margin; the closest triangle of every slave (searched over all of them) is among
+    them; a slide past the reach is what :meth:`covers` reports, a smaller one is not."""
+    n, h = 20, 0.2e-3  # a 4 mm square of 2 x 20 x 20 triangles, 0.2 mm cells, gently curved
+    g = (np.arange(n + 1) - n / 2) * h
+    gx, gy = np.meshgrid(g, g, indexing="ij")
+    master = np.column_stack([gx.ravel(), gy.ravel(), 20.0 * (gx.ravel() ** 2 + gy.ravel() ** 2)])
+    q = (np.arange(n)[:, None] * (n + 1) + np.arange(n)[None, :]).ravel()
+    tris = np.vstack([np.column_stack([q, q + n + 1, q + n + 2]), np.column_stack([q, q + n + 2, q + 1])])
+    rng = np.random.default_rng(1)
+    k = 30
+    slaves = np.column_stack([rng.uniform(-1e-3, 1e-3, (k, 2)), rng.uniform(-20e-6, 0.9e-3, k)])
+    X = np.vstack([master, slaves])
+    counts = {}
+    for margin in (1e-3, 2e-3):
+        c = SurfaceContact(X, len(master) + np.arange(k), np.full(k, 1e-8), tris, stiffness=1e9, margin=margin, reach=0.25e-3)
+        c.update_candidates(np.zeros_like(X))
+        counts[margin] = np.bincount(c.cand_s, minlength=k)
+        p = X[tris]
+        every = np.repeat(np.arange(k), len(tris))
+        _, y, _ = closest_points(X[c.slaves][every], *(np.tile(p[:, j], (k, 1)) for j in range(3)))
+        d = np.linalg.norm(X[c.slaves][every] - y, axis=1).reshape(k, len(tris))
+        best = d.argmin(axis=1)
+        for s in range(k):
+            mine = c.cand_t[c.cand_s == s]
+            assert best[s] in mine
+            foot = y.reshape(k, len(tris), 3)[s, best[s]]
+            cen = p[mine].mean(axis=1)
+            size = np.linalg.norm(p[mine] - cen[:, None], axis=2).max(axis=1)
+            assert np.all(np.linalg.norm(cen - foot, axis=1) <= 0.25e-3 + size + 1e-15)
+    np.testing.assert_array_equal(counts[1e-3], counts[2e-3])
+    assert counts[1e-3].max() <= 2 * np.pi * (0.25e-3 + 0.15e-3) ** 2 / (h * h / 2)  # the triangles about a disc of the reach
+    c = SurfaceContact(X, len(master) + np.arange(k), np.full(k, 1e-8), tris, stiffness=1e9, margin=1e-3, reach=0.25e-3)
+    c.update_candidates(np.zeros_like(X))
+    u = np.zeros_like(X)
+    u[len(master):, 0] = 0.1e-3  # every slave slides 0.1 mm: its closest triangle is still a candidate
+    assert c.covers(u)
+    u[len(master):, 0] = 0.6e-3  # 0.6 mm: past the reach and a cell
+    assert not c.covers(u)
+
+
 def test_contact_gradient_and_hessian_match_finite_differences():
     c, X, rng = _two_triangles_and_slaves()
     u = rng.normal(0, 2e-6, X.shape)

@@ -16,11 +16,19 @@ there: ∂λ moves the point in the face plane, ∂n ⟂ n), and the Hessian k w
 the normal's rotation, a term of relative size penetration / edge length (~1 %).
 
 The closest triangle is searched among *candidates*: for each slave node within ``margin``
-of the master surface, the master triangles whose centroid lies within ``margin`` plus the
-triangle's size (:meth:`SurfaceContact.update_candidates`). The candidates fix which slave
-and master nodes may couple, so a Newton solve runs on one sparsity pattern
-(:meth:`SurfaceContact.couplings`); callers refresh them between solves and check
-:meth:`SurfaceContact.covers` after one."""
+of the master surface, the master triangles whose centroid lies within ``reach`` plus the
+triangle's size of the slave's closest point on that surface
+(:meth:`SurfaceContact.update_candidates`). The candidates fix which slave and master nodes
+may couple, so a Newton solve runs on one sparsity pattern (:meth:`SurfaceContact.couplings`);
+callers refresh them between solves and check :meth:`SurfaceContact.covers` after one.
+
+Why about the closest point and not the slave: each candidate couples its slave with the
+triangle's nodes in the Hessian, which the factorisation fills in. A ball of ``margin`` (1 mm)
+about each slave held a median 138 triangles a slave on a sphere meshed at 0.25 mm, and its
+couplings added 69 % to the two bodies' own pattern; about the closest point, 22 and 16 %
+(a soft press twice as fast, half the memory). The closest triangle holds the closest point,
+so it is a candidate while that point slides less than ``reach`` within a solve; when it
+slides further, :meth:`SurfaceContact.covers` says so and the caller solves again."""
 
 from __future__ import annotations
 
@@ -77,13 +85,20 @@ class SurfaceContact:
     with area weights ``weights`` (k,) and the master surface's linear triangles ``tris``
     (t, 3), outward-oriented, all indexing one set of unknowns whose reference positions are
     ``X`` (n, 3) (assign ``X`` to move a body rigidly between solves). ``stiffness`` k in
-    Pa/m; ``margin`` m: slaves farther than this from the master surface are not candidates."""
+    Pa/m; ``margin`` m: slaves farther than this from the master surface are not candidates;
+    ``reach`` m: a slave's candidate triangles lie within this (plus their size) of its
+    closest point on the master surface (None: ``margin`` / 4)."""
 
-    def __init__(self, X: np.ndarray, slaves: np.ndarray, weights: np.ndarray, tris: np.ndarray, stiffness: float, margin: float):
+    def __init__(self, X: np.ndarray, slaves: np.ndarray, weights: np.ndarray, tris: np.ndarray, stiffness: float, margin: float,
+                 reach: float | None = None):
         if stiffness <= 0:
             raise ValueError(f"stiffness = {stiffness}: must be > 0 Pa/m")
         if margin <= 0:
             raise ValueError(f"margin = {margin}: must be > 0 m")
+        reach = margin / 4 if reach is None else reach
+        if not reach > 0:
+            raise ValueError(f"reach = {reach}: must be > 0 m")
+        self.reach = float(reach)
         self.X = np.asarray(X, float)
         self.slaves = np.asarray(slaves, np.int64)
         self.weights = np.asarray(weights, float)
@@ -113,12 +128,16 @@ class SurfaceContact:
         t = np.fromiter((j for h in hits for j in h), np.int64, int(cnt.sum()))
         keep = np.linalg.norm(xs[s] - cen[t], axis=1) <= self.margin + size[t]
         s, t = s[keep], t[keep]
-        if len(s):  # drop slaves farther than the margin from every candidate triangle
+        if len(s):  # each slave's closest point on the master: slaves within the margin keep the triangles about it
             _, y, _ = closest_points(xs[s], p[t, 0], p[t, 1], p[t, 2])
             d = np.linalg.norm(xs[s] - y, axis=1)
+            order = np.lexsort((d, s))
+            pick = order[np.r_[True, s[order][1:] != s[order][:-1]]]
+            foot = np.zeros((len(self.slaves), 3))
             near = np.zeros(len(self.slaves), bool)
-            near[s[d <= self.margin]] = True
-            keep = near[s]
+            foot[s[pick]] = y[pick]
+            near[s[pick]] = d[pick] <= self.margin
+            keep = near[s] & (np.linalg.norm(foot[s] - cen[t], axis=1) <= self.reach + size[t])
             s, t = s[keep], t[keep]
         order = np.lexsort((t, s))
         return s[order], t[order]
