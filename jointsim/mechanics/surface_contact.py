@@ -80,6 +80,12 @@ def closest_points(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -
     return lam, y, inside
 
 
+def _nearest_of_each(s: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Index, into candidate pairs with slaves ``s`` (k,), of each slave's pair of least ``dist``."""
+    order = np.lexsort((dist, s))
+    return order[np.r_[True, s[order][1:] != s[order][:-1]]]
+
+
 class SurfaceContact:
     """Node-to-surface penalty contact (module docstring) between ``slaves`` (k,) node indices
     with area weights ``weights`` (k,) and the master surface's linear triangles ``tris``
@@ -131,8 +137,7 @@ class SurfaceContact:
         if len(s):  # each slave's closest point on the master: slaves within the margin keep the triangles about it
             _, y, _ = closest_points(xs[s], p[t, 0], p[t, 1], p[t, 2])
             d = np.linalg.norm(xs[s] - y, axis=1)
-            order = np.lexsort((d, s))
-            pick = order[np.r_[True, s[order][1:] != s[order][:-1]]]
+            pick = _nearest_of_each(s, d)
             foot = np.zeros((len(self.slaves), 3))
             near = np.zeros(len(self.slaves), bool)
             foot[s[pick]] = y[pick]
@@ -187,9 +192,7 @@ class SurfaceContact:
         r = xs - y
         dist = np.linalg.norm(r, axis=1)
         # first candidate of each slave with the least distance (pairs are sorted by slave)
-        order = np.lexsort((dist, s))
-        first = np.r_[True, s[order][1:] != s[order][:-1]]
-        pick = order[first]
+        pick = _nearest_of_each(s, dist)
         ss = s[pick]
         tri[ss] = t[pick]
         lam[ss] = L[pick]
