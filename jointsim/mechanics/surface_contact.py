@@ -23,10 +23,9 @@ may couple, so a Newton solve runs on one sparsity pattern (:meth:`SurfaceContac
 callers refresh them between solves and check :meth:`SurfaceContact.covers` after one.
 
 Why about the closest point and not the slave: each candidate couples its slave with the
-triangle's nodes in the Hessian, which the factorisation fills in. A ball of ``margin`` (1 mm)
-about each slave held a median 138 triangles a slave on a sphere meshed at 0.25 mm, and its
-couplings added 69 % to the two bodies' own pattern; about the closest point, 22 and 16 %
-(a soft press twice as fast, half the memory). The closest triangle holds the closest point,
+triangle's nodes in the Hessian, which the factorisation fills in: a ball of ``margin`` about
+each slave holds far more triangles on a finely meshed surface than the few about its closest
+point, and made the soft press's factorisation run out of memory. The closest triangle holds the closest point,
 so it is a candidate while that point slides less than ``reach`` within a solve; when it
 slides further, :meth:`SurfaceContact.covers` says so and the caller solves again."""
 
